@@ -1,0 +1,128 @@
+"""The ground surface of a site: a smooth height field z = h(x, y), and ray/ground intersection.
+
+Real roads are not one plane (cross-fall, crowns, a raised central island), which is why the
+paper fits piecewise-planar homographies. The simulator and the exact pixel -> ground lookup
+share this model, so calibration is scored against the same surface the images were made of.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from shared.cameras import Camera
+
+
+@dataclass(frozen=True)
+class Bump:
+    """A Gaussian rise (or dip, negative height) of the ground."""
+
+    x_m: float
+    y_m: float
+    sigma_m: float
+    height_m: float
+
+
+@dataclass(frozen=True)
+class Terrain:
+    """z = slope_x * x + slope_y * y + sum of Gaussian bumps (metres, site frame)."""
+
+    slope_x: float = 0.0
+    slope_y: float = 0.0
+    bumps: tuple[Bump, ...] = field(default_factory=tuple)
+
+    def __post_init__(self) -> None:
+        for name in ("slope_x", "slope_y"):
+            v = getattr(self, name)
+            if not np.isfinite(v) or abs(v) > 0.15:
+                raise ValueError(f"terrain {name} must be a finite grade within +-0.15, got {v}")
+        for b in self.bumps:
+            if not b.sigma_m > 0:
+                raise ValueError(f"terrain bump sigma_m must be > 0, got {b.sigma_m}")
+
+    def height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Ground height (m) at site coordinates x, y (any matching shapes)."""
+        x = np.asarray(x, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        z = self.slope_x * x + self.slope_y * y
+        for b in self.bumps:
+            z = z + b.height_m * np.exp(-((x - b.x_m) ** 2 + (y - b.y_m) ** 2) / (2 * b.sigma_m**2))
+        return z
+
+    def gradient(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        x = np.asarray(x, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        gx = np.full_like(x, self.slope_x)
+        gy = np.full_like(y, self.slope_y)
+        for b in self.bumps:
+            e = b.height_m * np.exp(-((x - b.x_m) ** 2 + (y - b.y_m) ** 2) / (2 * b.sigma_m**2))
+            gx = gx - e * (x - b.x_m) / b.sigma_m**2
+            gy = gy - e * (y - b.y_m) / b.sigma_m**2
+        return gx, gy
+
+    def intersect(
+        self, origin_m: np.ndarray, dirs: np.ndarray, max_range_m: float = 1e4
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Rays from `origin_m` (3,) along `dirs` (N, 3) -> (points (N, 3), t (N,), valid (N,)).
+
+        `t` is the distance along each unit ray. Newton's method on the height field, started
+        from the z = 0 plane; rays that do not descend, or meet the ground beyond
+        `max_range_m`, are invalid.
+        """
+        o = np.asarray(origin_m, dtype=np.float64)
+        d = np.asarray(dirs, dtype=np.float64)
+        dz = d[..., 2]
+        descending = dz < -1e-6
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(descending, (self.height(o[0], o[1]) - o[2]) / np.where(descending, dz, -1), 0.0)
+        t = np.clip(t, 0.0, max_range_m * 2)
+        for _ in range(8):
+            px = o[0] + t * d[..., 0]
+            py = o[1] + t * d[..., 1]
+            f = o[2] + t * dz - self.height(px, py)
+            gx, gy = self.gradient(px, py)
+            df = dz - gx * d[..., 0] - gy * d[..., 1]
+            step = np.where(np.abs(df) > 1e-9, f / np.where(np.abs(df) > 1e-9, df, 1.0), 0.0)
+            t = np.clip(t - step, 0.0, max_range_m * 2)
+        pts = o + t[..., None] * d
+        residual = np.abs(pts[..., 2] - self.height(pts[..., 0], pts[..., 1]))
+        valid = descending & (t > 0) & (t <= max_range_m) & (residual < 1e-4)
+        return pts, t, valid
+
+    def to_dict(self) -> dict:
+        return {
+            "slope_x": self.slope_x,
+            "slope_y": self.slope_y,
+            "bumps": [
+                {"x_m": b.x_m, "y_m": b.y_m, "sigma_m": b.sigma_m, "height_m": b.height_m}
+                for b in self.bumps
+            ],
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> Terrain:
+        d = d or {}
+        return cls(
+            float(d.get("slope_x", 0.0)),
+            float(d.get("slope_y", 0.0)),
+            tuple(Bump(**{k: float(v) for k, v in b.items()}) for b in d.get("bumps", [])),
+        )
+
+
+def ground_lookup(
+    camera: Camera, terrain: Terrain, max_range_m: float = 1e3
+) -> tuple[np.ndarray, np.ndarray]:
+    """The exact pixel -> ground lookup of a camera: the ray through each pixel centre met with
+    the ground.
+
+    Returns ((H, W, 3) float64 site-frame metres, (H, W) bool valid). Invalid pixels: outside
+    the lens FOV / image circle, looking above the horizon, or meeting the ground beyond
+    `max_range_m`. Occlusion by objects standing on the ground is not considered here.
+    """
+    grid = camera.pixel_grid().reshape(-1, 2)
+    dirs, ok = camera.unproject(grid)
+    pts, _, hit = terrain.intersect(camera.pose.position_m, dirs, max_range_m)
+    valid = ok & hit & camera.in_image(grid)
+    h, w = camera.height, camera.width
+    return pts.reshape(h, w, 3), valid.reshape(h, w)
