@@ -59,9 +59,7 @@ class Pose:
         object.__setattr__(self, "r_cam_from_world", r)
 
     @classmethod
-    def from_angles(
-        cls, position_m, yaw_deg: float, pitch_deg: float, roll_deg: float = 0.0
-    ) -> Pose:
+    def from_angles(cls, position_m, yaw_deg: float, pitch_deg: float, roll_deg: float = 0.0) -> Pose:
         """Pose from a compass bearing of the optical axis (`yaw_deg`, 0 = north, 90 = east),
         its depression below the horizon (`pitch_deg`, 90 = straight down) and a roll about it."""
         r_world_from_cam = (
@@ -90,9 +88,7 @@ class Pose:
     def from_dict(cls, d: dict) -> Pose:
         if "r_cam_from_world" in d:
             return cls(np.asarray(d["position_m"]), np.asarray(d["r_cam_from_world"]))
-        return cls.from_angles(
-            d["position_m"], d["yaw_deg"], d["pitch_deg"], d.get("roll_deg", 0.0)
-        )
+        return cls.from_angles(d["position_m"], d["yaw_deg"], d["pitch_deg"], d.get("roll_deg", 0.0))
 
 
 @dataclass(frozen=True)
@@ -131,9 +127,13 @@ class Camera:
             raise ValueError(f"camera {self.name!r}: dist must have {want} finite numbers, got {self.dist!r}")
         object.__setattr__(self, "dist", dist)
         if self.kind == "pinhole" and not 0 < self.max_angle_deg < 90:
-            raise ValueError(f"camera {self.name!r}: pinhole max_angle_deg must be in (0, 90), got {self.max_angle_deg}")
+            raise ValueError(
+                f"camera {self.name!r}: pinhole max_angle_deg must be in (0, 90), got {self.max_angle_deg}"
+            )
         if self.kind == "fisheye" and not 0 < self.max_angle_deg < 180:
-            raise ValueError(f"camera {self.name!r}: fisheye max_angle_deg must be in (0, 180), got {self.max_angle_deg}")
+            raise ValueError(
+                f"camera {self.name!r}: fisheye max_angle_deg must be in (0, 180), got {self.max_angle_deg}"
+            )
         object.__setattr__(self, "_theta_limit", self._monotonic_limit())
 
     # ---- intrinsics helpers -------------------------------------------------------------

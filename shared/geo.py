@@ -28,9 +28,7 @@ class GeoFrame:
         if not np.isfinite(self.alt0_m):
             raise ValueError(f"alt0_m must be finite, got {self.alt0_m}")
 
-    def to_enu(
-        self, lat_deg: np.ndarray, lon_deg: np.ndarray, alt_m: np.ndarray | float = 0.0
-    ) -> np.ndarray:
+    def to_enu(self, lat_deg: np.ndarray, lon_deg: np.ndarray, alt_m: np.ndarray | float = 0.0) -> np.ndarray:
         """(N,) latitudes/longitudes in degrees -> (N, 3) float64 metres, site ENU frame.
 
         `alt_m` is the ellipsoidal height; pass the site's ground altitude to get z near 0.
@@ -48,12 +46,10 @@ class GeoFrame:
         """
         p = np.asarray(enu_m, dtype=np.float64)
         if p.shape[-1] == 2:
-            p = np.concatenate([p, np.zeros(p.shape[:-1] + (1,))], axis=-1)
+            p = np.concatenate([p, np.zeros((*p.shape[:-1], 1))], axis=-1)
         if p.shape[-1] != 3:
             raise ValueError(f"enu_m must have 2 or 3 columns, got shape {p.shape}")
-        lat, lon, alt = pymap3d.enu2geodetic(
-            p[..., 0], p[..., 1], p[..., 2], self.lat0_deg, self.lon0_deg, self.alt0_m
-        )
+        lat, lon, alt = pymap3d.enu2geodetic(p[..., 0], p[..., 1], p[..., 2], self.lat0_deg, self.lon0_deg, self.alt0_m)
         return np.stack([np.asarray(lat), np.asarray(lon), np.asarray(alt)], axis=-1)
 
     def to_dict(self) -> dict:

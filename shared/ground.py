@@ -94,10 +94,7 @@ class Terrain:
         return {
             "slope_x": self.slope_x,
             "slope_y": self.slope_y,
-            "bumps": [
-                {"x_m": b.x_m, "y_m": b.y_m, "sigma_m": b.sigma_m, "height_m": b.height_m}
-                for b in self.bumps
-            ],
+            "bumps": [{"x_m": b.x_m, "y_m": b.y_m, "sigma_m": b.sigma_m, "height_m": b.height_m} for b in self.bumps],
         }
 
     @classmethod
@@ -110,9 +107,7 @@ class Terrain:
         )
 
 
-def ground_lookup(
-    camera: Camera, terrain: Terrain, max_range_m: float = 1e3
-) -> tuple[np.ndarray, np.ndarray]:
+def ground_lookup(camera: Camera, terrain: Terrain, max_range_m: float = 1e3) -> tuple[np.ndarray, np.ndarray]:
     """The exact pixel -> ground lookup of a camera: the ray through each pixel centre met with
     the ground.
 

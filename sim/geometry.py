@@ -81,5 +81,7 @@ def rot2(yaw: float) -> np.ndarray:
 
 def rect(center, length: float, width: float, yaw: float) -> np.ndarray:
     """Corners (4, 2) of an oriented rectangle: front-left, front-right, rear-right, rear-left."""
-    h = np.array([[length / 2, width / 2], [length / 2, -width / 2], [-length / 2, -width / 2], [-length / 2, width / 2]])
+    h = np.array(
+        [[length / 2, width / 2], [length / 2, -width / 2], [-length / 2, -width / 2], [-length / 2, width / 2]]
+    )
     return np.asarray(center, float) + h @ rot2(yaw).T

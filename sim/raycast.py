@@ -5,8 +5,14 @@ from __future__ import annotations
 import numpy as np
 
 
-def ray_boxes(origin: np.ndarray, dirs: np.ndarray, centers: np.ndarray, halves: np.ndarray,
-              yaws: np.ndarray, t_max: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def ray_boxes(
+    origin: np.ndarray,
+    dirs: np.ndarray,
+    centers: np.ndarray,
+    halves: np.ndarray,
+    yaws: np.ndarray,
+    t_max: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Nearest hit of rays (origin (3,), dirs (M, 3) unit) with boxes rotated by yaw about z.
 
     Returns t (M,) float32 (inf where nothing is hit before t_max), box index (M,) int64 (-1),
@@ -60,8 +66,9 @@ def ray_boxes(origin: np.ndarray, dirs: np.ndarray, centers: np.ndarray, halves:
     return t_out, idx, normal
 
 
-def ray_spheres(origin: np.ndarray, dirs: np.ndarray, centers: np.ndarray, radii: np.ndarray,
-                t_max: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def ray_spheres(
+    origin: np.ndarray, dirs: np.ndarray, centers: np.ndarray, radii: np.ndarray, t_max: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Nearest hit of rays with spheres: t (M,), sphere index (M,), unit normal (M, 3)."""
     m = len(dirs)
     t_best = np.full(m, np.inf, np.float32) if t_max is None else t_max.astype(np.float32).copy()

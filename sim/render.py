@@ -65,13 +65,24 @@ def sample_environment(rng: np.random.Generator, weather: str = "auto") -> Envir
     if weather == "overcast":
         return Environment("overcast", az, float(rng.uniform(20, 50)), 0.9, 0.12, 1e9, (0.97, 0.99, 1.03), 2.5, False)
     if weather == "dusk":
-        return Environment("dusk", float(rng.uniform(230, 290)), float(rng.uniform(6, 14)), 0.32, 0.55, 1500.0,
-                           (1.08, 0.93, 0.78), 4.5, False)
+        return Environment(
+            "dusk",
+            float(rng.uniform(230, 290)),
+            float(rng.uniform(6, 14)),
+            0.32,
+            0.55,
+            1500.0,
+            (1.08, 0.93, 0.78),
+            4.5,
+            False,
+        )
     if weather == "fog":
-        return Environment("fog", az, float(rng.uniform(15, 40)), 0.85, 0.1, float(rng.uniform(90, 220)),
-                           (0.98, 0.99, 1.0), 3.0, False)
-    return Environment("rain", az, float(rng.uniform(20, 45)), 0.72, 0.08, float(rng.uniform(350, 700)),
-                       (0.93, 0.96, 1.0), 3.5, True)
+        return Environment(
+            "fog", az, float(rng.uniform(15, 40)), 0.85, 0.1, float(rng.uniform(90, 220)), (0.98, 0.99, 1.0), 3.0, False
+        )
+    return Environment(
+        "rain", az, float(rng.uniform(20, 45)), 0.72, 0.08, float(rng.uniform(350, 700)), (0.93, 0.96, 1.0), 3.5, True
+    )
 
 
 def site_seed(site: SiteSpec) -> int:
@@ -136,7 +147,9 @@ class ShadowCaster:
         self.static = cv2.GaussianBlur(self.static, (0, 0), 1.0)
 
     def to_px(self, xy: np.ndarray) -> np.ndarray:
-        return np.stack([(xy[..., 0] + self.extent) / SHADOW_RES_M - 0.5, (self.extent - xy[..., 1]) / SHADOW_RES_M - 0.5], -1)
+        return np.stack(
+            [(xy[..., 0] + self.extent) / SHADOW_RES_M - 0.5, (self.extent - xy[..., 1]) / SHADOW_RES_M - 0.5], -1
+        )
 
     def dynamic(self, scene: SceneState) -> np.ndarray:
         """Cast shadows of vehicles and pedestrians (plus a soft contact shadow under each)."""
@@ -149,7 +162,7 @@ class ShadowCaster:
                 corners = _box_corners(c, np.array([l / 2, w / 2, h / 2 * 0.92]), scene.yaw[i])
                 _hull_fill(r, self.to_px(_shadow_points(corners, gz, self.sun)), 255)
             foot = _box_corners(np.array([c[0], c[1], gz]), np.array([l / 2 + 0.25, w / 2 + 0.25, 0.0]), scene.yaw[i])
-            _hull_fill(r, self.to_px(foot[:, :2]), 255 if self.env.diffuse <= 0.2 else 255)
+            _hull_fill(r, self.to_px(foot[:, :2]), 255)
         for j in range(len(scene.ped_xy)):
             gz = float(self.terrain.height(*scene.ped_xy[j]))
             c = np.array([scene.ped_xy[j][0], scene.ped_xy[j][1], gz + 0.87])
@@ -199,7 +212,9 @@ class CameraRenderer:
         flat_dirs = self.dirs.reshape(-1, 3)
         sel = np.nonzero(ok)[0]
         tb, ib, nb = ray_boxes(origin, flat_dirs[sel], sc["box_center"], sc["box_half"], sc["box_yaw"], t_ground[sel])
-        ts, is_, ns = ray_spheres(origin, flat_dirs[sel], sc["sph_center"], sc["sph_radius"], np.minimum(tb, t_ground[sel]))
+        ts, is_, ns = ray_spheres(
+            origin, flat_dirs[sel], sc["sph_center"], sc["sph_radius"], np.minimum(tb, t_ground[sel])
+        )
         sphere_hit = is_ >= 0
         box_hit = (ib >= 0) & ~sphere_hit
         t_static = t_ground.copy()
@@ -262,7 +277,13 @@ class CameraRenderer:
         # Sensor: vignetting, noise bank, fixed-pattern noise.
         rng = np.random.default_rng([seed, 5])
         r_norm = np.hypot(*(grid - [camera.cx, camera.cy]).T) / camera.image_circle_radius_px()
-        self.gain = (1 - 0.3 * np.clip(r_norm, 0, 1) ** 3).astype(np.float32).reshape(h, w)
+        vignette = (1 - 0.3 * np.clip(r_norm, 0, 1) ** 3).astype(np.float32).reshape(h, w, 1)
+        tint = 1.0 if self.thermal else np.asarray(env.tint[::-1], np.float32)
+        valid3 = self.valid[..., None]
+        self.gain = np.where(valid3, vignette * tint, 0.0).astype(np.float32)  # (H, W, C)
+        self.offset = np.where(valid3, 0.0, 0.0 if self.thermal else np.array([8, 8, 10], np.float32)).astype(
+            np.float32
+        )
         self.pad = 48
         self.noise = (rng.standard_normal((h + self.pad, w + self.pad, chans)) * 40).clip(-127, 127).astype(np.int8)
         self.fixed = (rng.standard_normal((1, w, 1)) * 1.6).astype(np.float32) if self.thermal else None
@@ -270,7 +291,9 @@ class CameraRenderer:
     # ---- static helpers ----------------------------------------------------------------------
     def _sample_raster(self, raster: np.ndarray, pts: np.ndarray) -> np.ndarray:
         m = self.shadows.to_px(pts[..., :2]).astype(np.float32)
-        return cv2.remap(raster, m[..., 0], m[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0).astype(np.float32)
+        return cv2.remap(
+            raster, m[..., 0], m[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+        ).astype(np.float32)
 
     def _sample_ground(self, pts: np.ndarray, valid: np.ndarray) -> np.ndarray:
         g = self.world.ground
@@ -282,7 +305,7 @@ class CameraRenderer:
         level = np.clip(np.floor(np.log2(np.maximum(foot, 1e-6))), 0, 6).astype(np.int64)
         level[~valid] = 0
         chans = 1 if self.thermal else 3
-        out = np.zeros(pts.shape[:2] + (chans,), np.float32)
+        out = np.zeros((*pts.shape[:2], chans), np.float32)
         img = src
         for lv in range(int(level.max()) + 1):
             scale = 2.0**lv
@@ -315,7 +338,11 @@ class CameraRenderer:
     def _apply_fog(self, col: np.ndarray, f: np.ndarray) -> np.ndarray:
         if self.env.fog_visibility_m > 1e8:
             return col
-        fog = np.array([0.35], np.float32) if self.thermal else np.array([200, 200, 198], np.float32) * (0.55 + 0.5 * self.env.ambient)
+        fog = (
+            np.array([0.35], np.float32)
+            if self.thermal
+            else np.array([200, 200, 198], np.float32) * (0.55 + 0.5 * self.env.ambient)
+        )
         return col * f[:, None] + fog * (1 - f[:, None])
 
     # ---- per frame --------------------------------------------------------------------------
@@ -327,8 +354,14 @@ class CameraRenderer:
         ids = np.full((h, w), BACKGROUND_ID, np.int32)
         # Moving shadows on the ground.
         dyn = self.shadows.dynamic(scene)
-        s = cv2.remap(dyn, self.shadow_map[..., 0], self.shadow_map[..., 1], cv2.INTER_LINEAR,
-                      borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        s = cv2.remap(
+            dyn,
+            self.shadow_map[..., 0],
+            self.shadow_map[..., 1],
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0,
+        )
         gain = 1 - self.shadow_gain * (s.astype(np.float32) / 255.0)
         if self.thermal:
             img -= (self.shadow_gain * (s.astype(np.float32) / 255.0))[..., None]
@@ -341,18 +374,49 @@ class CameraRenderer:
         for i in range(len(scene)):
             vtype = VEHICLE_TYPES[scene.type_idx[i]]
             centres, halves, kinds = vehicle_parts(vtype, *scene.lwh[i])
-            n = self._draw_object(img, depth, ids, i, origin, scene.xy[i], gz[i], scene.yaw[i],
-                                  centres, halves, kinds, scene.lwh[i], scene.colors[i], vtype, bool(scene.parked[i]))
+            n = self._draw_object(
+                img,
+                depth,
+                ids,
+                i,
+                origin,
+                scene.xy[i],
+                gz[i],
+                scene.yaw[i],
+                centres,
+                halves,
+                kinds,
+                scene.lwh[i],
+                scene.colors[i],
+                vtype,
+                bool(scene.parked[i]),
+            )
             hit_px[i] = n
         pc, ph, pk = pedestrian_parts()
         for j in range(len(scene.ped_xy)):
             pz = float(terrain.height(*scene.ped_xy[j]))
-            self._draw_object(img, depth, ids, PEDESTRIAN_ID, origin, scene.ped_xy[j], pz, scene.ped_yaw[j],
-                              pc, ph, pk, np.array([0.3, 0.46, 1.75]), scene.ped_color[j], "pedestrian", False)
+            self._draw_object(
+                img,
+                depth,
+                ids,
+                PEDESTRIAN_ID,
+                origin,
+                scene.ped_xy[j],
+                pz,
+                scene.ped_yaw[j],
+                pc,
+                ph,
+                pk,
+                np.array([0.3, 0.46, 1.75]),
+                scene.ped_color[j],
+                "pedestrian",
+                False,
+            )
         return RenderResult(self._sensor(img, rng), ids, hit_px)
 
-    def _draw_object(self, img, depth, ids, obj_id, origin, xy, gz, yaw, centres, halves, kinds,
-                     lwh, color, vtype, parked) -> int:
+    def _draw_object(
+        self, img, depth, ids, obj_id, origin, xy, gz, yaw, centres, halves, kinds, lwh, color, vtype, parked
+    ) -> int:
         cam = self.cam
         l, w, h = lwh
         c, s = math.cos(yaw), math.sin(yaw)
@@ -415,7 +479,8 @@ class CameraRenderer:
         z, x, y = p_local[:, 2], p_local[:, 0], p_local[:, 1]
         name = np.array(PART_KINDS)[kinds]
         glass = ((name == "cabin") & ~top & (z > np.where(vtype == "truck", 1.4, 0.0) + 0.0)) & (
-            z > (h * 0.55 if vtype in ("car", "suv_van") else 1.3) + 0.08)
+            z > (h * 0.55 if vtype in ("car", "suv_van") else 1.3) + 0.08
+        )
         glass |= (name == "busbody") & ~top & (z > 1.25) & (z < h - 0.45) & ((np.abs(x) % 1.7) > 0.2)
         if self.thermal:
             hot = 0.5 if parked else 0.74
@@ -452,21 +517,16 @@ class CameraRenderer:
     def _sensor(self, img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         h, w = self.cam.height, self.cam.width
         if self.thermal:
-            grey = img[..., 0]
             lo, hi = 0.18, 0.9
-            out = (grey - lo) / (hi - lo) * 255.0
-            out = cv2.GaussianBlur(out, (0, 0), 1.1)
-            out += self.fixed[..., 0]
+            out = cv2.GaussianBlur((img[..., 0] - lo) * (255.0 / (hi - lo)), (0, 0), 1.1)[..., None]
+            out += self.fixed
+            sigma = self.env.noise_sigma * 1.3
         else:
-            out = img * np.asarray(self.env.tint[::-1], np.float32)
-            out = cv2.GaussianBlur(out, (0, 0), 0.7)
-            out *= self.gain[..., None]
+            out = cv2.GaussianBlur(img, (0, 0), 0.7)
+            sigma = self.env.noise_sigma
         dy, dx = rng.integers(0, self.pad, 2)
-        noise = self.noise[dy : dy + h, dx : dx + w].astype(np.float32) * (self.env.noise_sigma / 40.0)
-        if self.thermal:
-            out = out + noise[..., 0] * 1.3
-            out[~self.valid] = 0
-        else:
-            out = out + noise
-            out[~self.valid] = (8, 8, 10)
-        return np.clip(out, 0, 255).astype(np.uint8)
+        out *= self.gain
+        out += self.offset
+        out += self.noise[dy : dy + h, dx : dx + w] * np.float32(sigma / 40.0)
+        out = np.clip(out, 0, 255).astype(np.uint8)
+        return out[..., 0] if self.thermal else out

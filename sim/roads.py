@@ -83,7 +83,7 @@ class Route:
         return np.stack([x, y], axis=-1), np.interp(s, self.s, self.heading)
 
     def segment_kind(self, s: float) -> str:
-        for s0, s1, kind in self.segments:
+        for _, s1, kind in self.segments:
             if s <= s1 + 1e-6:
                 return kind
         return self.segments[-1][2]
@@ -290,10 +290,21 @@ def _build_roundabout(site: SiteSpec) -> RoadNetwork:
         if leg.splitter_length_m > 0 and leg.median_m > 0.8:
             hm = 0.5 * leg.median_m - 0.3
             d0, d1 = r_out + 1.5, r_out + 1.5 + leg.splitter_length_m
-            poly = np.array([u * d0 + r * 0.3, u * (d0 + 3) + r * hm, u * d1 + r * hm * 0.6, u * (d1 + 2),
-                             u * d1 - r * hm * 0.6, u * (d0 + 3) - r * hm, u * d0 - r * 0.3])
+            poly = np.array(
+                [
+                    u * d0 + r * 0.3,
+                    u * (d0 + 3) + r * hm,
+                    u * d1 + r * hm * 0.6,
+                    u * (d1 + 2),
+                    u * d1 - r * hm * 0.6,
+                    u * (d0 + 3) - r * hm,
+                    u * d0 - r * 0.3,
+                ]
+            )
             paint.islands.append((poly, "brick"))
-            paint.features.append((float(poly[0][0] + poly[-1][0]) / 2, float(poly[0][1] + poly[-1][1]) / 2, "island_nose"))
+            paint.features.append(
+                (float(poly[0][0] + poly[-1][0]) / 2, float(poly[0][1] + poly[-1][1]) / 2, "island_nose")
+            )
             paint.features.append((float(poly[3][0]), float(poly[3][1]), "island_nose"))
         _leg_lines(paint, site, leg, d_yield + 0.6, r_out + 1.5 + leg.splitter_length_m)
         # Yield line (shark teeth) across the inbound lanes, and YIELD text.
@@ -307,7 +318,9 @@ def _build_roundabout(site: SiteSpec) -> RoadNetwork:
             c = _lane_point(leg, d_yield + 7.0, k, inbound=True)
             paint.texts.append(("YIELD", c, math.atan2(-u[1], -u[0]), 1.8))
         if leg.crosswalk_m > 0:
-            _crosswalk(paint, leg, leg.crosswalk_m, 0.5 * leg.median_m + max(leg.lanes_in, leg.lanes_out) * leg.lane_width_m)
+            _crosswalk(
+                paint, leg, leg.crosswalk_m, 0.5 * leg.median_m + max(leg.lanes_in, leg.lanes_out) * leg.lane_width_m
+            )
 
         order = _turn_order(site, a)
         turns = {order[0]: "right", order[-1]: "left"}
@@ -330,18 +343,42 @@ def _build_roundabout(site: SiteSpec) -> RoadNetwork:
                 pd = _lane_point(out_leg, d_yield, kout, False)
                 phi_d = math.atan2(pd[1], pd[0])
                 phi_c = phi_d - math.radians(rb.entry_angle_deg - 4 + (0 if outer else 12))
-                while phi_c < phi_b + math.radians(8):
-                    phi_c += 2 * math.pi
+                sweep = (phi_c - phi_b) % (2 * math.pi)
+                if turn == "right" and sweep > math.radians(300):
+                    # Neighbouring legs: the entry and exit offsets overlap; meet in the middle.
+                    mid = phi_b + (sweep - 2 * math.pi) / 2
+                    phi_b, phi_c = mid - math.radians(4), mid + math.radians(4)
+                    pb = rj * np.array([math.cos(phi_b), math.sin(phi_b)])
+                    tb = np.array([-math.sin(phi_b), math.cos(phi_b)])
+                    entry = hermite(ay, -u, pb, tb, 0.45)
+                else:
+                    phi_c = phi_b + max(sweep, math.radians(8))
                 ring = arc((0, 0), rj, phi_b, phi_c)
                 tc = np.array([-math.sin(phi_c), math.cos(phi_c)])
                 exit_ = hermite(ring[-1], tc, pd, out_leg.unit_out, 0.45)
                 depart = line(pd, _lane_point(out_leg, _leg_length(site, out_leg), kout, False))
                 s = np.cumsum([0.0] + [arclength(p)[-1] for p in (approach, entry, ring, exit_, depart)])
-                segs = [(s[0], s[1], "approach"), (s[1], s[2], "entry"), (s[2], s[3], "ring"),
-                        (s[3], s[4], "exit"), (s[4], s[5], "depart")]
-                routes.append(Route(concat(approach, entry, ring, exit_, depart), a, b, k, kout, turn,
-                                    segs, stop_s=float(s[1]), merge_polar=phi_b,
-                                    speed_limit_mps=min(leg.speed_limit_mps, out_leg.speed_limit_mps)))
+                segs = [
+                    (s[0], s[1], "approach"),
+                    (s[1], s[2], "entry"),
+                    (s[2], s[3], "ring"),
+                    (s[3], s[4], "exit"),
+                    (s[4], s[5], "depart"),
+                ]
+                routes.append(
+                    Route(
+                        concat(approach, entry, ring, exit_, depart),
+                        a,
+                        b,
+                        k,
+                        kout,
+                        turn,
+                        segs,
+                        stop_s=float(s[1]),
+                        merge_polar=phi_b,
+                        speed_limit_mps=min(leg.speed_limit_mps, out_leg.speed_limit_mps),
+                    )
+                )
                 paint.asphalt_strokes.append((entry, leg.lane_width_m + 1.0))
                 paint.asphalt_strokes.append((exit_, out_leg.lane_width_m + 1.0))
 
@@ -372,8 +409,12 @@ def _build_intersection(site: SiteSpec) -> RoadNetwork:
         u, r = leg.unit_out, leg.unit_right
         length = _leg_length(site, leg)
         _leg_lines(paint, site, leg, d_stop + 0.5, d_stop + 0.5)
-        bar = np.array([u * (d_stop + 0.3) - r * 0.5 * leg.median_m,
-                        u * (d_stop + 0.3) - r * (0.5 * leg.median_m + leg.lanes_in * leg.lane_width_m)])
+        bar = np.array(
+            [
+                u * (d_stop + 0.3) - r * 0.5 * leg.median_m,
+                u * (d_stop + 0.3) - r * (0.5 * leg.median_m + leg.lanes_in * leg.lane_width_m),
+            ]
+        )
         paint.markings.append(Marking(bar, 0.5))
         for p in bar:
             paint.features.append((float(p[0]), float(p[1]), "stop_line_end"))
@@ -391,8 +432,15 @@ def _build_intersection(site: SiteSpec) -> RoadNetwork:
                 pairs = [(leg.lanes_in - 1, out_leg.lanes_out - 1)]
             else:
                 first = 1 if leg.left_turn_lane else 0
-                pairs = [(first + i, min(i, out_leg.lanes_out - 1) if n_through <= out_leg.lanes_out
-                          else round(i * (out_leg.lanes_out - 1) / max(n_through - 1, 1))) for i in range(n_through)]
+                pairs = [
+                    (
+                        first + i,
+                        min(i, out_leg.lanes_out - 1)
+                        if n_through <= out_leg.lanes_out
+                        else round(i * (out_leg.lanes_out - 1) / max(n_through - 1, 1)),
+                    )
+                    for i in range(n_through)
+                ]
             for k, kout in pairs:
                 start = _lane_point(leg, length, k, True)
                 pa = _lane_point(leg, d_stop, k, True)
@@ -403,13 +451,27 @@ def _build_intersection(site: SiteSpec) -> RoadNetwork:
                 s = np.cumsum([0.0] + [arclength(p)[-1] for p in (approach, box, depart)])
                 segs = [(s[0], s[1], "approach"), (s[1], s[2], "box"), (s[2], s[3], "depart")]
                 group = f"{axis}_{'left' if turn == 'left' else 'through'}"
-                routes.append(Route(concat(approach, box, depart), a, b, k, kout, turn, segs,
-                                    stop_s=float(s[1]), signal_group=group,
-                                    speed_limit_mps=min(leg.speed_limit_mps, out_leg.speed_limit_mps)))
+                routes.append(
+                    Route(
+                        concat(approach, box, depart),
+                        a,
+                        b,
+                        k,
+                        kout,
+                        turn,
+                        segs,
+                        stop_s=float(s[1]),
+                        signal_group=group,
+                        speed_limit_mps=min(leg.speed_limit_mps, out_leg.speed_limit_mps),
+                    )
+                )
                 paint.asphalt_strokes.append((box, leg.lane_width_m + 0.5))
-    plan = [("NS_left", ix.left_green_s), ("NS_through", ix.green_s),
-            ("EW_left", ix.left_green_s), ("EW_through", ix.green_s)]
+    plan = [
+        ("NS_left", ix.left_green_s),
+        ("NS_through", ix.green_s),
+        ("EW_left", ix.left_green_s),
+        ("EW_through", ix.green_s),
+    ]
     sidewalks = _sidewalks(site, [box_half + rc + 1.0] * len(legs))
     slots = _parking(site, paint)
     return RoadNetwork(routes, paint, sidewalks, slots, plan, ix.yellow_s, ix.all_red_s, d_stop)
-

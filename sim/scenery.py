@@ -61,7 +61,9 @@ class Primitives:
         }
 
 
-def _vertical(prims: Primitives, terrain: Terrain, xy, size_xy, height: float, yaw: float, rgb, thermal: float, z0: float = 0.0) -> None:
+def _vertical(
+    prims: Primitives, terrain: Terrain, xy, size_xy, height: float, yaw: float, rgb, thermal: float, z0: float = 0.0
+) -> None:
     g = float(terrain.height(xy[0], xy[1]))
     prims.box([xy[0], xy[1], g + z0 + height / 2], [size_xy[0] / 2, size_xy[1] / 2, height / 2], yaw, rgb, thermal)
 
@@ -75,8 +77,7 @@ def build_scenery(site: SiteSpec, net: RoadNetwork, ground: GroundRaster, seed: 
     # Camera poles: a mast beside the camera with an arm reaching out to it, and the housing.
     done = set()
     for pos, off in cams:
-        off = off if off is not None else (
-            1.8 * math.copysign(1, pos[0] or 1), 1.2 * math.copysign(1, pos[1] or 1))
+        off = off if off is not None else (1.8 * math.copysign(1, pos[0] or 1), 1.2 * math.copysign(1, pos[1] or 1))
         base = (round(pos[0] + off[0], 1), round(pos[1] + off[1], 1))
         if base not in done:
             done.add(base)
@@ -96,8 +97,9 @@ def build_scenery(site: SiteSpec, net: RoadNetwork, ground: GroundRaster, seed: 
             xy = u * d + r * side * (leg.half_width_m + 4.6)
             _vertical(prims, terrain, xy, (0.25, 0.25), 9.0, 0.0, grey, 0.4)
             arm = xy - r * side * 1.5
-            prims.box([arm[0], arm[1], float(terrain.height(*xy)) + 8.9], [1.5, 0.08, 0.08],
-                      math.atan2(r[1], r[0]), grey, 0.4)
+            prims.box(
+                [arm[0], arm[1], float(terrain.height(*xy)) + 8.9], [1.5, 0.08, 0.08], math.atan2(r[1], r[0]), grey, 0.4
+            )
             d += 32.0
             side = -side
         # A sign on the right of the inbound lanes before the junction.
@@ -121,8 +123,13 @@ def build_scenery(site: SiteSpec, net: RoadNetwork, ground: GroundRaster, seed: 
     for b in site.buildings:
         gz = float(terrain.height(*b.center_m))
         wall = tuple(int(c) for c in rng.choice([(170, 160, 150), (140, 110, 90), (190, 185, 175), (120, 120, 130)]))
-        prims.box([b.center_m[0], b.center_m[1], gz + b.height_m / 2 - 0.5], [b.size_m[0] / 2, b.size_m[1] / 2, b.height_m / 2 + 0.5],
-                  math.radians(90 - b.yaw_deg), wall, 0.5)
+        prims.box(
+            [b.center_m[0], b.center_m[1], gz + b.height_m / 2 - 0.5],
+            [b.size_m[0] / 2, b.size_m[1] / 2, b.height_m / 2 + 0.5],
+            math.radians(90 - b.yaw_deg),
+            wall,
+            0.5,
+        )
     # Trees and bushes on grass, away from roads, cameras and buildings.
     dist_ok = _far_from_road(ground, site.trees.min_road_gap_m)
     placed: list[np.ndarray] = []
@@ -137,7 +144,10 @@ def build_scenery(site: SiteSpec, net: RoadNetwork, ground: GroundRaster, seed: 
             continue
         if placed and np.min(np.linalg.norm(np.array(placed) - xy, axis=1)) < 5.0:
             continue
-        if any(abs(xy[0] - b.center_m[0]) < b.size_m[0] / 2 + 4 and abs(xy[1] - b.center_m[1]) < b.size_m[1] / 2 + 4 for b in site.buildings):
+        if any(
+            abs(xy[0] - b.center_m[0]) < b.size_m[0] / 2 + 4 and abs(xy[1] - b.center_m[1]) < b.size_m[1] / 2 + 4
+            for b in site.buildings
+        ):
             continue
         placed.append(xy)
         gz = float(terrain.height(*xy))

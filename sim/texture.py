@@ -85,7 +85,9 @@ def paint_ground(net: RoadNetwork, extent_m: float, seed: int, res_m: float = 0.
         material[(edge > 0) & (m > 0)] = CURB
 
     # Albedo per material with multi-scale variation.
-    base = np.array([[96, 104, 70], [82, 82, 84], [178, 176, 168], [158, 78, 66], [196, 196, 190], [0, 0, 0]], np.float32)
+    base = np.array(
+        [[96, 104, 70], [82, 82, 84], [178, 176, 168], [158, 78, 66], [196, 196, 190], [0, 0, 0]], np.float32
+    )
     low = _smooth_noise(rng, size, 24)
     mid = _smooth_noise(rng, size, 160)
     grain = rng.standard_normal((size, size), dtype=np.float32)

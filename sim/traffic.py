@@ -25,9 +25,17 @@ TYPE_SIZES = {
 }
 # Body colours (RGB) of ordinary vehicles, with their shares on US roads.
 PALETTE = [
-    ((235, 235, 232), 0.23), ((22, 22, 25), 0.19), ((105, 108, 112), 0.15), ((175, 178, 182), 0.13),
-    ((30, 60, 125), 0.09), ((150, 20, 22), 0.09), ((25, 70, 45), 0.03), ((200, 185, 150), 0.03),
-    ((210, 100, 20), 0.02), ((90, 60, 40), 0.02), ((225, 190, 40), 0.02),
+    ((235, 235, 232), 0.23),
+    ((22, 22, 25), 0.19),
+    ((105, 108, 112), 0.15),
+    ((175, 178, 182), 0.13),
+    ((30, 60, 125), 0.09),
+    ((150, 20, 22), 0.09),
+    ((25, 70, 45), 0.03),
+    ((200, 185, 150), 0.03),
+    ((210, 100, 20), 0.02),
+    ((90, 60, 40), 0.02),
+    ((225, 190, 40), 0.02),
 ]
 TURN_SHARES = {"right": 0.25, "through": 0.5, "left": 0.2, "uturn": 0.05}
 LOOKAHEAD_M = 45
@@ -82,8 +90,14 @@ class SceneState:
 class TrafficSim:
     """Steps traffic on a road network. Vehicle ids come from this instance only."""
 
-    def __init__(self, site: SiteSpec, net: RoadNetwork, rng: np.random.Generator,
-                 max_vehicles: int = 100, demand_scale: float = 1.0) -> None:
+    def __init__(
+        self,
+        site: SiteSpec,
+        net: RoadNetwork,
+        rng: np.random.Generator,
+        max_vehicles: int = 100,
+        demand_scale: float = 1.0,
+    ) -> None:
         if max_vehicles < 1:
             raise ValueError(f"max_vehicles must be >= 1, got {max_vehicles}")
         if demand_scale < 0 or not math.isfinite(demand_scale):
@@ -153,8 +167,17 @@ class TrafficSim:
         paths = self.net.sidewalk_paths
         path_idx = self.rng.integers(0, len(paths), n) if paths else np.zeros(0, int)
         lens = np.array([np.linalg.norm(paths[i][-1] - paths[i][0]) for i in path_idx])
-        shirts = np.array([(180, 40, 40), (40, 60, 140), (30, 30, 30), (220, 220, 210), (60, 120, 60),
-                           (200, 160, 60), (120, 120, 125)])
+        shirts = np.array(
+            [
+                (180, 40, 40),
+                (40, 60, 140),
+                (30, 30, 30),
+                (220, 220, 210),
+                (60, 120, 60),
+                (200, 160, 60),
+                (120, 120, 125),
+            ]
+        )
         return {
             "path": path_idx,
             "s": self.rng.uniform(0, 1, n) * lens,
@@ -289,13 +312,27 @@ class TrafficSim:
         hit_any = blocked.any(axis=1)
         first_k = ks[blocked.argmax(axis=1)]
         first = np.where(hit_any, np.maximum(first_k, 0.0), np.inf)  # (n, m) gap in m
-        # Mutual blocking: the one with right of way goes, the other yields.
+        # Mutual blocking: the one behind the other (seen from both headings) yields; otherwise
+        # the one with right of way goes, then the one nearer the conflict, then the older one.
         pri = self._pri[self._index(self.route, self.s)].astype(float)
         pri_all = np.concatenate([pri, np.full(m - n, 9.0)])
         mutual = np.isfinite(first[:, :n]) & np.isfinite(first[:, :n].T)
-        yields = (pri[:, None] < pri_all[None, :n]) | (
-            (pri[:, None] == pri_all[None, :n])
-            & ((first[:, :n] < first[:, :n].T) | ((first[:, :n] == first[:, :n].T) & (self.ids[:, None] > self.ids[None, :])))
+        pos_i = self._pts[self._index(self.route, self.s)]
+        head_v = self._head[self._index(self.route, self.s)]
+        h_i = np.stack([np.cos(head_v), np.sin(head_v)], 1)
+        rel_ij = pos_i[None, :, :] - pos_i[:, None, :]  # j - i
+        ahead_of_i = np.einsum("ijk,ik->ij", rel_ij, h_i) > 0  # j is ahead of i
+        behind = ahead_of_i & ~ahead_of_i.T  # i is behind j
+        g = first[:, :n]
+        yields = behind | (
+            ~behind.T
+            & (
+                (pri[:, None] < pri_all[None, :n])
+                | (
+                    (pri[:, None] == pri_all[None, :n])
+                    & ((g < g.T) | ((g == g.T) & (self.ids[:, None] > self.ids[None, :])))
+                )
+            )
         )
         ignore = np.zeros((n, m), bool)
         ignore[:, :n] = mutual & ~yields
@@ -347,8 +384,12 @@ class TrafficSim:
     def snapshot(self) -> dict[str, np.ndarray]:
         """The dynamic state, for TrafficHistory."""
         return {
-            "ids": self.ids.copy(), "route": self.route.copy(), "s": self.s.copy(), "v": self.v.copy(),
-            "ped_s": self._peds["s"].copy(), "ped_dir": self._peds["dir"].copy(),
+            "ids": self.ids.copy(),
+            "route": self.route.copy(),
+            "s": self.s.copy(),
+            "v": self.v.copy(),
+            "ped_s": self._peds["s"].copy(),
+            "ped_dir": self._peds["dir"].copy(),
         }
 
 
@@ -418,9 +459,16 @@ class TrafficHistory:
         )
 
 
-def simulate_traffic(site: SiteSpec, net: RoadNetwork, seconds: float, seed: int,
-                     dt_s: float = 0.1, warmup_s: float = 90.0, max_vehicles: int = 100,
-                     demand_scale: float = 1.0) -> TrafficHistory:
+def simulate_traffic(
+    site: SiteSpec,
+    net: RoadNetwork,
+    seconds: float,
+    seed: int,
+    dt_s: float = 0.1,
+    warmup_s: float = 90.0,
+    max_vehicles: int = 100,
+    demand_scale: float = 1.0,
+) -> TrafficHistory:
     """Run traffic for a warm-up, then record `seconds` of it every dt_s."""
     if not seconds > 0:
         raise ValueError(f"seconds must be > 0, got {seconds}")

@@ -1,0 +1,1 @@
+"""The `roadside` command: one entry point with a sub-command per job."""

@@ -1,0 +1,3 @@
+from roadside.cli import main
+
+raise SystemExit(main())

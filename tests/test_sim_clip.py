@@ -1,0 +1,233 @@
+"""Simulator end to end: recordings, determinism, ground-truth geometry, bad input."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+import sim.clip as clip_mod
+from sim.clip import ClipConfig, simulate_clip
+from sim.contact_sheet import contact_sheet
+from sim.groundtruth import frame_ground_truth
+from sim.recording import Recording
+from sim.render import CameraRenderer, ShadowCaster, build_world, sample_environment
+from sim.site import load_site
+from sim.traffic import simulate_traffic
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def clips(tmp_path_factory) -> dict[str, Path]:
+    """The same small clip twice (one and two render processes) and once with another seed."""
+    base = tmp_path_factory.mktemp("clips")
+    common = dict(site="state_ellsworth", seconds=0.8, hz=5.0, cameras="NE,T_SW", weather="clear")
+    simulate_clip(ClipConfig(out=base / "a", seed=5, workers=1, **common))
+    simulate_clip(ClipConfig(out=base / "b", seed=5, workers=2, **common))
+    simulate_clip(ClipConfig(out=base / "c", seed=6, workers=2, **common))
+    return {k: base / k for k in "abc"}
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_same_seed_gives_byte_identical_recordings(clips):
+    a, b = _files(clips["a"]), _files(clips["b"])
+    assert a.keys() == b.keys()
+    assert [k for k in a if a[k] != b[k]] == []
+
+
+def test_another_seed_gives_other_frames(clips):
+    a = Recording(clips["a"])
+    c = Recording(clips["c"])
+    fa = [p.read_bytes() for _, p in a.frames("NE")]
+    fc = [p.read_bytes() for _, p in c.frames("NE")]
+    assert fa != fc
+
+
+def test_recording_round_trip(clips):
+    rec = Recording(clips["a"])
+    site = load_site("state_ellsworth")
+    assert rec.camera_names == ["NE", "T_SW"]
+    pts = np.random.default_rng(0).uniform([-40, -40, 0], [40, 40, 2], (50, 3))
+    for cam in site.build_cameras():
+        if cam.name in rec.cameras:
+            uv_site, _ = cam.project(pts)
+            uv_rec, _ = rec.cameras[cam.name].project(pts)
+            np.testing.assert_allclose(uv_rec, uv_site, atol=1e-9)
+    for name in rec.camera_names:
+        frames = rec.frames(name)
+        gt = rec.ground_truth(name)
+        assert len(frames) == len(gt) == 4
+        times = [t for t, _ in frames]
+        assert times == sorted(times) and len(set(times)) == len(times)
+        assert [g["t_ns"] for g in gt] == times
+        cam = rec.cameras[name]
+        img = rec.image(frames[0][1])
+        assert img.shape[:2] == (cam.height, cam.width)
+        assert img.ndim == (2 if cam.modality == "thermal" else 3)
+        for frame in gt:
+            for v in frame["vehicles"]:
+                # The recorded pixel position is the camera model's projection of the recorded point.
+                uv, _ = cam.project(np.array([v["xyz"]]))
+                if v["uv"] is not None:
+                    np.testing.assert_allclose(uv[0], v["uv"], atol=0.01)
+                ll = rec.geo.to_geodetic(np.array([v["xyz"]]))[0]
+                np.testing.assert_allclose(ll[:2], v["latlon"], atol=1e-8)
+                assert abs(v["xyz"][2] - rec.terrain.height(v["xyz"][0], v["xyz"][1])) < 1e-3
+                assert 0.0 <= v["visible_fraction"] <= 1.0
+    # Cameras are not synchronised: their capture times differ.
+    assert rec.frames("NE")[0][0] != rec.frames("T_SW")[0][0]
+    lm = rec.landmarks("NE")
+    assert 10 <= len(lm["landmarks"]) <= 30
+    assert lm["noise_model"]["pixel_sigma_px"] == 2.0
+
+
+def test_ground_truth_bottom_centres_land_on_the_vehicles_pixels():
+    """Project each unoccluded vehicle's ground-truth bottom centre through the camera model:
+    the renderer's id buffer must show that very vehicle there (for fisheye and thermal)."""
+    site = load_site("state_ellsworth")
+    world = build_world(site)
+    env = sample_environment(np.random.default_rng(0), "clear")
+    shadows = ShadowCaster(world, env)
+    history = simulate_traffic(site, world.net, 3.0, seed=11, warmup_s=60)
+    scene = history.state_at(1.5)
+    cams = {c.name: c for c in site.build_cameras()}
+    checked = 0
+    for name in ("NE", "SW", "T_NE"):
+        cam = cams[name]
+        res = CameraRenderer(cam, world, env, shadows, seed=1).render(scene, np.random.default_rng(0))
+        gt = frame_ground_truth(cam, scene, res, site.ground, site.geo)
+        index = {int(i): k for k, i in enumerate(scene.ids)}
+        for v in gt:
+            if not v["in_image"] or v["visible_fraction"] < 0.999 or v["visible_px"] < 40:
+                continue
+            u, w = np.round(v["uv"]).astype(int)
+            d = np.array(v["xyz"]) - cam.pose.position_m
+            elevation = np.degrees(np.arctan2(-d[2], np.hypot(d[0], d[1])))
+            if elevation > 25:  # steep view: the body hides the ground under it
+                assert res.ids[w, u] == index[v["id"]], f"{name}: vehicle {v['id']} not at its bottom centre"
+            else:  # grazing view: the ray may pass under the body, between the wheels
+                window = res.ids[max(w - 3, 0) : w + 4, max(u - 3, 0) : u + 4]
+                assert (window == index[v["id"]]).any(), f"{name}: vehicle {v['id']} not near its bottom centre"
+            x1, y1, x2, y2 = v["box"]
+            assert x1 <= v["uv"][0] <= x2 and y1 <= v["uv"][1] <= y2
+            bx1, by1, bx2, by2 = v["box_visible"]
+            assert bx1 >= x1 - 2 and by1 >= y1 - 2 and bx2 <= x2 + 2 and by2 <= y2 + 2
+            checked += 1
+        # Occlusion is real: some vehicle is partly hidden, and hidden pixels are not counted.
+        assert any(0 < v["visible_fraction"] < 0.9 for v in gt), name
+    assert checked >= 15
+
+
+def test_intersection_site_renders(tmp_path):
+    out = tmp_path / "ix"
+    summary = simulate_clip(
+        ClipConfig(
+            site="intersection", out=out, seconds=0.5, hz=2.0, seed=1, cameras="C_NE", workers=1, weather="overcast"
+        )
+    )
+    assert summary["frames"] == 1
+    rec = Recording(out)
+    gt = rec.ground_truth("C_NE")[0]
+    assert sum(v["visible_px"] > 0 for v in gt["vehicles"]) >= 5
+    img = rec.image(rec.path / gt["file"])
+    assert img.std() > 20
+
+
+def test_contact_sheet_draws_every_camera(clips, tmp_path):
+    out = contact_sheet(clips["a"], tmp_path / "sheet.png", moments=2)
+    img = cv2.imread(str(out))
+    assert img is not None and img.shape[0] > 400 and img.shape[1] >= 2 * 480
+    assert img.std() > 20
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "roadside", *args], capture_output=True, text=True, cwd=ROOT, timeout=300
+    )
+
+
+def test_cli_unknown_site_is_one_clear_line(tmp_path):
+    r = _cli("sim", "--site", "atlantis", "--seconds", "1", "--out", str(tmp_path / "x"))
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "unknown site 'atlantis'" in lines[0] and "state_ellsworth" in lines[0]
+    assert not (tmp_path / "x").exists()
+
+
+def test_cli_negative_duration_is_refused(tmp_path):
+    r = _cli("sim", "--site", "state_ellsworth", "--seconds", "-3", "--out", str(tmp_path / "x"))
+    assert r.returncode == 2
+    assert "--seconds" in r.stderr and "must be > 0" in r.stderr
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("bad", ["file_parent", "proc"])
+def test_cli_unwritable_output_is_refused(tmp_path, bad):
+    if bad == "file_parent":
+        (tmp_path / "plain.txt").write_text("x")
+        out = tmp_path / "plain.txt" / "rec"
+    else:
+        out = Path("/proc/roadside_rec")
+    r = _cli("sim", "--site", "state_ellsworth", "--seconds", "1", "--out", str(out))
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("roadside sim: error:")
+    assert not out.exists()
+
+
+def test_existing_output_is_not_overwritten_without_flag(clips):
+    before = _files(clips["a"])
+    with pytest.raises(ValueError, match="already exists"):
+        simulate_clip(ClipConfig(site="state_ellsworth", out=clips["a"], seconds=0.5, cameras="NE"))
+    assert _files(clips["a"]) == before
+
+
+def test_failed_run_leaves_nothing_behind(tmp_path, monkeypatch):
+    calls = {"n": 0}
+    real = clip_mod.frame_ground_truth
+
+    def failing(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] > 1:
+            raise RuntimeError("disk full (simulated)")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(clip_mod, "frame_ground_truth", failing)
+    out = tmp_path / "rec"
+    with pytest.raises(RuntimeError, match="disk full"):
+        simulate_clip(ClipConfig(site="state_ellsworth", out=out, seconds=0.6, hz=5.0, cameras="T_NE", workers=1))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_recording_reader_names_the_bad_file(tmp_path):
+    with pytest.raises(ValueError, match=r"recording\.json is missing"):
+        Recording(tmp_path)
+    (tmp_path / "recording.json").write_text("{not json")
+    with pytest.raises(ValueError, match="not valid JSON"):
+        Recording(tmp_path)
+    (tmp_path / "recording.json").write_text(json.dumps({"format": "roadside-recording", "version": 99}))
+    with pytest.raises(ValueError, match="version 99"):
+        Recording(tmp_path)
+
+
+def test_bad_clip_config_values_are_named():
+    for kwargs, word in [
+        ({"seconds": float("nan")}, "--seconds"),
+        ({"hz": 0.0}, "--hz"),
+        ({"seed": -1}, "--seed"),
+        ({"workers": 0}, "--workers"),
+    ]:
+        cfg = ClipConfig(**{"site": "state_ellsworth", "out": Path("/tmp/unused"), "seconds": 1.0, **kwargs})
+        with pytest.raises(ValueError, match=word):
+            cfg.validate()
+    with pytest.raises(ValueError, match="unknown camera"):
+        clip_mod.select_cameras(load_site("state_ellsworth"), "NE,XX")
