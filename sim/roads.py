@@ -234,6 +234,14 @@ def _sidewalks(site: SiteSpec, start_d: list[float]) -> list[np.ndarray]:
     return paths
 
 
+def _route(pieces: list[tuple[np.ndarray, str]], ids: tuple[int, int, int, int, str], **kwargs) -> Route:
+    """A Route from consecutive (polyline, segment kind) pieces; the stop line ends the first piece.
+    `ids` = (origin leg, destination leg, inbound lane, outbound lane, turn)."""
+    s = np.cumsum([0.0] + [arclength(p)[-1] for p, _ in pieces])
+    segs = [(float(s[i]), float(s[i + 1]), kind) for i, (_, kind) in enumerate(pieces)]
+    return Route(concat(*[p for p, _ in pieces]), *ids, segs, stop_s=float(s[1]), **kwargs)
+
+
 def build_network(site: SiteSpec) -> RoadNetwork:
     if site.layout == "roundabout":
         return _build_roundabout(site)
@@ -357,24 +365,11 @@ def _build_roundabout(site: SiteSpec) -> RoadNetwork:
                 tc = np.array([-math.sin(phi_c), math.cos(phi_c)])
                 exit_ = hermite(ring[-1], tc, pd, out_leg.unit_out, 0.45)
                 depart = line(pd, _lane_point(out_leg, _leg_length(site, out_leg), kout, False))
-                s = np.cumsum([0.0] + [arclength(p)[-1] for p in (approach, entry, ring, exit_, depart)])
-                segs = [
-                    (s[0], s[1], "approach"),
-                    (s[1], s[2], "entry"),
-                    (s[2], s[3], "ring"),
-                    (s[3], s[4], "exit"),
-                    (s[4], s[5], "depart"),
-                ]
+                pieces = [(approach, "approach"), (entry, "entry"), (ring, "ring"), (exit_, "exit"), (depart, "depart")]
                 routes.append(
-                    Route(
-                        concat(approach, entry, ring, exit_, depart),
-                        a,
-                        b,
-                        k,
-                        kout,
-                        turn,
-                        segs,
-                        stop_s=float(s[1]),
+                    _route(
+                        pieces,
+                        (a, b, k, kout, turn),
                         merge_polar=phi_b,
                         speed_limit_mps=min(leg.speed_limit_mps, out_leg.speed_limit_mps),
                     )
@@ -448,19 +443,12 @@ def _build_intersection(site: SiteSpec) -> RoadNetwork:
                 box = hermite(pa, -u, pd, out_leg.unit_out, 0.33 if turn == "through" else 0.5)
                 approach = line(start, pa)
                 depart = line(pd, _lane_point(out_leg, _leg_length(site, out_leg), kout, False))
-                s = np.cumsum([0.0] + [arclength(p)[-1] for p in (approach, box, depart)])
-                segs = [(s[0], s[1], "approach"), (s[1], s[2], "box"), (s[2], s[3], "depart")]
                 group = f"{axis}_{'left' if turn == 'left' else 'through'}"
+                pieces = [(approach, "approach"), (box, "box"), (depart, "depart")]
                 routes.append(
-                    Route(
-                        concat(approach, box, depart),
-                        a,
-                        b,
-                        k,
-                        kout,
-                        turn,
-                        segs,
-                        stop_s=float(s[1]),
+                    _route(
+                        pieces,
+                        (a, b, k, kout, turn),
                         signal_group=group,
                         speed_limit_mps=min(leg.speed_limit_mps, out_leg.speed_limit_mps),
                     )
