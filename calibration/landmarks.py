@@ -1,0 +1,137 @@
+"""Landmark files: ground points a person marked both in a camera image and on a map.
+
+Two formats are read:
+- JSON: `{"camera": ..., "width": W, "height": H, "landmarks": [{"id", "u", "v", "lat", "lon",
+  "segment"?}, ...]}` (the simulator's landmark files are this format; extra keys are ignored);
+- CSV with a header row `id,u,v,lat,lon[,segment]`.
+Pixels (u, v) are in the original image, (0, 0) the centre of the top-left pixel.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from shared.geo import GeoFrame
+
+FAR_FROM_OTHERS_M = 2000.0
+
+
+@dataclass(frozen=True)
+class Landmarks:
+    """N landmarks: ids (N,), uv (N, 2) pixels, latlon (N, 2) degrees, segment (N,) int (-1 = auto)."""
+
+    ids: tuple[str, ...]
+    uv: np.ndarray
+    latlon: np.ndarray
+    segment: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def subset(self, idx) -> Landmarks:
+        idx = np.asarray(idx)
+        return Landmarks(tuple(self.ids[i] for i in idx), self.uv[idx], self.latlon[idx], self.segment[idx])
+
+    def digest(self) -> str:
+        """A hash of the landmark values (ids, pixels, lat/lon), recorded with the masks made from them."""
+        h = hashlib.sha256()
+        for i, (u, v), (la, lo), s in zip(self.ids, self.uv, self.latlon, self.segment, strict=True):
+            h.update(f"{i},{u:.4f},{v:.4f},{la:.10f},{lo:.10f},{s};".encode())
+        return h.hexdigest()[:16]
+
+    def to_local(self, geo: GeoFrame) -> np.ndarray:
+        """(N, 2) site-frame metres."""
+        return geo.to_enu(self.latlon[:, 0], self.latlon[:, 1], geo.alt0_m)[:, :2]
+
+
+def load_landmarks(path: str | Path) -> tuple[Landmarks, dict]:
+    """Read a landmark file -> (Landmarks, header dict with optional camera/width/height)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"landmark file not found: {path}")
+    header: dict = {}
+    if path.suffix.lower() == ".csv":
+        with path.open(newline="") as f:
+            rows = list(csv.DictReader(f))
+        missing = {"id", "u", "v", "lat", "lon"} - set(rows[0].keys() if rows else [])
+        if missing:
+            raise ValueError(f"{path}: CSV header lacks column(s) {', '.join(sorted(missing))}")
+    else:
+        try:
+            data = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{path}: not valid JSON: {exc}") from None
+        if not isinstance(data, dict) or not isinstance(data.get("landmarks"), list):
+            raise ValueError(f"{path}: expected an object with a 'landmarks' list")
+        rows = data["landmarks"]
+        header = {k: data[k] for k in ("camera", "kind", "width", "height") if k in data}
+    ids, uv, latlon, seg = [], [], [], []
+    for n, row in enumerate(rows, 1):
+        lid = str(row.get("id", f"#{n}")).strip()
+        try:
+            vals = [float(row[k]) for k in ("u", "v", "lat", "lon")]
+        except (KeyError, TypeError, ValueError):
+            raise ValueError(f"{path}: landmark {lid!r}: u, v, lat and lon must all be numbers") from None
+        if not all(math.isfinite(x) for x in vals):
+            raise ValueError(f"{path}: landmark {lid!r}: u, v, lat, lon must be finite, got {vals}")
+        ids.append(lid)
+        uv.append(vals[:2])
+        latlon.append(vals[2:])
+        s = row.get("segment")
+        seg.append(int(s) if s not in (None, "") else -1)
+    lm = Landmarks(
+        tuple(ids), np.array(uv, float).reshape(-1, 2), np.array(latlon, float).reshape(-1, 2), np.array(seg, int)
+    )
+    return lm, header
+
+
+def validate_landmarks(
+    lm: Landmarks, width: int, height: int, image_circle: tuple[float, float, float] | None = None
+) -> None:
+    """Raise ValueError naming the landmark for: duplicate ids, lat/lon out of range, a landmark far
+    from the others (a swapped lat/lon, a typo), pixels outside the image or the fisheye image
+    circle (cx, cy, radius), fewer than 4 landmarks, all landmarks (nearly) collinear."""
+    seen: dict[str, int] = {}
+    for i, lid in enumerate(lm.ids):
+        if lid in seen:
+            raise ValueError(f"landmark {lid!r} is listed twice (entries {seen[lid] + 1} and {i + 1})")
+        seen[lid] = i
+    for lid, (la, lo) in zip(lm.ids, lm.latlon, strict=True):
+        if not -90 <= la <= 90:
+            raise ValueError(f"landmark {lid!r}: latitude {la} is out of range [-90, 90] (swapped with longitude?)")
+        if not -180 <= lo <= 180:
+            raise ValueError(f"landmark {lid!r}: longitude {lo} is out of range [-180, 180]")
+    for lid, (u, v) in zip(lm.ids, lm.uv, strict=True):
+        if not (-0.5 <= u <= width - 0.5 and -0.5 <= v <= height - 0.5):
+            raise ValueError(f"landmark {lid!r}: pixel ({u:.1f}, {v:.1f}) is outside the {width}x{height} image")
+        if image_circle is not None:
+            cx, cy, r = image_circle
+            if math.hypot(u - cx, v - cy) > r:
+                raise ValueError(f"landmark {lid!r}: pixel ({u:.1f}, {v:.1f}) is outside the fisheye image circle")
+    if len(lm) < 4:
+        raise ValueError(f"need at least 4 landmarks, got {len(lm)}")
+    med = np.median(lm.latlon, axis=0)
+    geo = GeoFrame(float(med[0]), float(med[1]))
+    xy = lm.to_local(geo)
+    for lid, p in zip(lm.ids, xy, strict=True):
+        d = float(np.hypot(*p))
+        if d > FAR_FROM_OTHERS_M:
+            raise ValueError(f"landmark {lid!r} is {d / 1000:.1f} km from the others (a typo or swapped lat/lon?)")
+    _check_spread(lm.ids, xy, "map")
+    _check_spread(lm.ids, lm.uv, "image")
+
+
+def _check_spread(ids: tuple[str, ...], pts: np.ndarray, where: str) -> None:
+    centred = pts - pts.mean(axis=0)
+    sv = np.linalg.svd(centred, compute_uv=False)
+    if sv[0] == 0 or sv[1] / sv[0] < 0.02:
+        raise ValueError(
+            f"landmarks {', '.join(ids)} are (nearly) collinear in the {where}: they cannot fix a homography"
+        )

@@ -1,0 +1,219 @@
+"""Calibration: landmark files, validation errors that name the landmark, model fitting."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from calibration.fit import CalibConfig, calibrate
+from calibration.landmarks import Landmarks, load_landmarks, validate_landmarks
+from shared.cameras import Camera, Pose
+from shared.geo import GeoFrame
+from shared.ground import Terrain, ground_lookup
+
+GEO = GeoFrame(42.2294, -83.739, 265.0)
+TERRAIN = Terrain(0.006, 0.009)
+
+
+def _fisheye() -> Camera:
+    return Camera(
+        "F",
+        "fisheye",
+        1280,
+        960,
+        300.0,
+        300.0,
+        639.5,
+        479.5,
+        (0.012, -0.004, 0.0, 0.0),
+        Pose.from_angles([27.0, 26.0, 11.0], 225.0, 90.0),
+        max_angle_deg=94.0,
+    )
+
+
+def _pinhole() -> Camera:
+    return Camera(
+        "P",
+        "pinhole",
+        640,
+        512,
+        600.0,
+        600.0,
+        319.5,
+        255.5,
+        (-0.08, 0.01, 0.0, 0.0, 0.0),
+        Pose.from_angles([30.0, 28.0, 8.0], 225.0, 14.0),
+    )
+
+
+def _synthetic_landmarks(cam: Camera, n: int, rng, max_range_m: float, pixel_sigma=0.0, map_sigma=0.0) -> Landmarks:
+    """n well-spread ground points seen by the camera, with optional noise."""
+    pts = []
+    while len(pts) < n:
+        xy = cam.pose.position_m[:2] + rng.uniform(-max_range_m, max_range_m, 2)
+        p = np.array([*xy, TERRAIN.height(*xy)])
+        uv, ok = cam.project(p[None])
+        if ok[0] and cam.in_image(uv, margin_px=20)[0] and np.linalg.norm(xy - cam.pose.position_m[:2]) < max_range_m:
+            if (
+                cam.kind == "fisheye"
+                and np.degrees(np.arccos(-cam.pose.to_world_dirs(cam.unproject_cam(uv)[0])[0, 2])) > 80
+            ):
+                continue
+            pts.append((uv[0], xy))
+    uv = (
+        np.array([p[0] for p in pts]) + rng.normal(0, pixel_sigma, (n, 2))
+        if pixel_sigma
+        else np.array([p[0] for p in pts])
+    )
+    xy = np.array([p[1] for p in pts]) + (rng.normal(0, map_sigma, (n, 2)) if map_sigma else 0.0)
+    ll = GEO.to_geodetic(np.column_stack([xy, np.full(n, 0.0)]))
+    return Landmarks(tuple(f"L{i}" for i in range(n)), uv, ll[:, :2], -np.ones(n, int))
+
+
+def _score(cal, cam: Camera, radius_m: float) -> float:
+    pts, valid = ground_lookup(cam, TERRAIN)
+    grid = cam.pixel_grid().reshape(-1, 2)[::5]
+    p = pts.reshape(-1, 3)[::5]
+    v = valid.reshape(-1)[::5]
+    near = v & (np.linalg.norm(p[:, :2] - cam.pose.position_m[:2], axis=1) < radius_m)
+    xy, ok = cal.pixel_to_xy(grid[near])
+    assert ok.mean() > 0.95
+    return float(np.mean(np.linalg.norm(xy[ok] - p[near][ok, :2], axis=1)))
+
+
+def test_fisheye_fit_recovers_the_lens_and_the_ground_from_exact_landmarks():
+    cam = _fisheye()
+    lm = _synthetic_landmarks(cam, 20, np.random.default_rng(0), 45.0)
+    cfg = CalibConfig("fisheye", 1280, 960, image_circle=(639.5, 479.5, cam.image_circle_radius_px()), fov_deg=188.0)
+    cal = calibrate(lm, cfg, GEO)
+    assert abs(cal.camera.fx - 300.0) / 300.0 < 0.05  # f trades against k1 inside the landmarks' angles
+    assert np.linalg.norm(cal.camera.pose.position_m - cam.pose.position_m) < 0.4
+    assert cal.rejected == []
+    assert _score(cal, cam, 25.0) < 0.05
+
+
+def test_pinhole_fit_recovers_distortion_and_pose_from_exact_landmarks():
+    cam = _pinhole()
+    lm = _synthetic_landmarks(cam, 15, np.random.default_rng(1), 60.0)
+    cal = calibrate(lm, CalibConfig("pinhole", 640, 512), GEO)
+    assert abs(cal.camera.fx - 600.0) < 5.0
+    assert abs(cal.camera.dist[0] - (-0.08)) < 0.02
+    assert _score(cal, cam, 40.0) < 0.05
+
+
+def test_gross_mistake_is_rejected_and_reported():
+    cam = _fisheye()
+    lm = _synthetic_landmarks(cam, 14, np.random.default_rng(2), 40.0, pixel_sigma=1.0, map_sigma=0.05)
+    uv = lm.uv.copy()
+    uv[3] += [45.0, -20.0]  # a wrong click
+    bad = Landmarks(lm.ids, uv, lm.latlon, lm.segment)
+    cfg = CalibConfig("fisheye", 1280, 960, image_circle=(639.5, 479.5, cam.image_circle_radius_px()), fov_deg=188.0)
+    cal = calibrate(bad, cfg, GEO)
+    assert [r[0] for r in cal.rejected] == ["L3"]
+    assert "reprojection residual" in cal.rejected[0][1]
+    assert _score(cal, cam, 25.0) < 0.3
+
+
+def test_too_few_landmarks_for_four_segments_falls_back_with_a_warning():
+    cam = _fisheye()
+    lm = _synthetic_landmarks(cam, 8, np.random.default_rng(3), 40.0)
+    cfg = CalibConfig("fisheye", 1280, 960, image_circle=(639.5, 479.5, cam.image_circle_radius_px()), fov_deg=188.0)
+    cal = calibrate(lm, cfg, GEO)
+    assert len(cal.planes) < 4
+    assert any("instead of 4" in w for w in cal.warnings)
+
+
+def _write(tmp_path, rows, name="lm.json"):
+    path = tmp_path / name
+    path.write_text(json.dumps({"camera": "X", "width": 640, "height": 480, "landmarks": rows}))
+    return path
+
+
+def _rows(n=5):
+    base = [(100, 100), (500, 120), (520, 400), (90, 380), (300, 250), (200, 300)]
+    return [
+        {"id": f"P{i}", "u": u, "v": v, "lat": 42.2294 + 1e-4 * i, "lon": -83.739 + 1.3e-4 * (i % 3)}
+        for i, (u, v) in enumerate(base[:n])
+    ]
+
+
+def test_landmark_files_json_and_csv_agree(tmp_path):
+    rows = _rows()
+    lm_json, header = load_landmarks(_write(tmp_path, rows))
+    csv_path = tmp_path / "lm.csv"
+    csv_path.write_text(
+        "id,u,v,lat,lon,segment\n" + "\n".join(f"{r['id']},{r['u']},{r['v']},{r['lat']},{r['lon']}," for r in rows)
+    )
+    lm_csv, _ = load_landmarks(csv_path)
+    assert header["width"] == 640
+    assert lm_json.ids == lm_csv.ids
+    np.testing.assert_allclose(lm_json.uv, lm_csv.uv)
+    np.testing.assert_allclose(lm_json.latlon, lm_csv.latlon)
+    assert lm_json.digest() == lm_csv.digest()
+    validate_landmarks(lm_json, 640, 480)
+
+
+@pytest.mark.parametrize(
+    ("mutate", "message"),
+    [
+        (lambda r: r[2].update(id="P0"), "landmark 'P0' is listed twice"),
+        (
+            lambda r: r[1].update(lat=-83.739, lon=42.2295),
+            "landmark 'P1' is 4418.1 km from the others (a typo or swapped",
+        ),
+        (lambda r: r[1].update(lat=95.0), "landmark 'P1': latitude 95.0 is out of range"),
+        (lambda r: r[4].update(lat=42.2994), "landmark 'P4' is 7.8 km from the others"),
+        (lambda r: r[3].update(u=700.0), "landmark 'P3': pixel (700.0, 380.0) is outside the 640x480 image"),
+        (lambda r: r[0].update(u="abc"), "landmark 'P0': u, v, lat and lon must all be numbers"),
+        (lambda r: r[0].update(v=float("nan")), "landmark 'P0': u, v, lat, lon must be finite"),
+    ],
+)
+def test_bad_landmarks_are_named(tmp_path, mutate, message):
+    rows = _rows()
+    mutate(rows)
+    with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)").replace(".", r"\.")):
+        lm, _ = load_landmarks(_write(tmp_path, rows))
+        validate_landmarks(lm, 640, 480)
+
+
+def test_fewer_than_four_and_collinear_landmarks_are_refused(tmp_path):
+    lm, _ = load_landmarks(_write(tmp_path, _rows(3)))
+    with pytest.raises(ValueError, match="at least 4 landmarks, got 3"):
+        validate_landmarks(lm, 640, 480)
+    rows = [
+        {"id": f"C{i}", "u": 100 + 50 * i, "v": 100 + 40 * i, "lat": 42.2294 + 1e-4 * i, "lon": -83.739 + 1e-4 * i}
+        for i in range(5)
+    ]
+    lm, _ = load_landmarks(_write(tmp_path, rows, "col.json"))
+    with pytest.raises(ValueError, match="collinear"):
+        validate_landmarks(lm, 640, 480)
+
+
+def test_pixel_outside_the_fisheye_image_circle_is_named(tmp_path):
+    rows = _rows()
+    rows[2].update(u=630.0, v=20.0)
+    lm, _ = load_landmarks(_write(tmp_path, rows))
+    with pytest.raises(ValueError, match=r"landmark 'P2'.*outside the fisheye image circle"):
+        validate_landmarks(lm, 640, 480, image_circle=(319.5, 239.5, 300.0))
+
+
+def test_missing_and_malformed_files(tmp_path):
+    with pytest.raises(ValueError, match="landmark file not found"):
+        load_landmarks(tmp_path / "nope.json")
+    (tmp_path / "bad.json").write_text("[1, 2")
+    with pytest.raises(ValueError, match="not valid JSON"):
+        load_landmarks(tmp_path / "bad.json")
+    (tmp_path / "bad.csv").write_text("id,u,v\nA,1,2\n")
+    with pytest.raises(ValueError, match="lacks column"):
+        load_landmarks(tmp_path / "bad.csv")
+
+
+def test_config_errors_name_the_parameter():
+    with pytest.raises(ValueError, match="kind must be pinhole or fisheye"):
+        CalibConfig("spherical", 10, 10)
+    with pytest.raises(ValueError, match="segments must be in"):
+        CalibConfig("fisheye", 10, 10, segments=0)
+    assert math.isclose(CalibConfig("fisheye", 1280, 960).circle[2], 480.0)
