@@ -6,7 +6,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench-sim clean
+.PHONY: demo test lint bench-sim bench-calibration clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -25,7 +25,10 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 bench-sim: $(STAMP)
-	$(BIN)/python -m bench.sim_render
+	$(BIN)/roadside bench sim
+
+bench-calibration: $(STAMP)
+	$(BIN)/roadside bench calibration
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .ruff_cache

@@ -100,13 +100,90 @@ def _run_demo(args) -> int:
     return 0
 
 
+def _floats(n: int):
+    def parse(text: str) -> tuple[float, ...]:
+        try:
+            vals = tuple(float(x) for x in text.split(","))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {n} comma-separated numbers, got {text!r}") from None
+        if len(vals) != n:
+            raise argparse.ArgumentTypeError(f"expected {n} comma-separated numbers, got {text!r}")
+        return vals
+
+    return parse
+
+
+def _add_calibrate(sub) -> None:
+    p = sub.add_parser("calibrate", help="landmarks -> lookup masks (pixel -> lat/lon) + accuracy report")
+    p.add_argument(
+        "--landmarks", type=Path, required=True, help="landmark file (JSON or CSV: id,u,v,lat,lon[,segment])"
+    )
+    p.add_argument("--kind", choices=["pinhole", "fisheye"], required=True)
+    p.add_argument("--out", type=Path, required=True, help="lookup masks file to write (.npz)")
+    p.add_argument("--width", type=int, help="image width (default: from the landmark file)")
+    p.add_argument("--height", type=int, help="image height (default: from the landmark file)")
+    p.add_argument("--report", type=Path, help="report JSON (default: next to --out)")
+    p.add_argument("--segments", type=int, help="ground segments (default 1 pinhole, 4 fisheye)")
+    p.add_argument("--image-circle", type=_floats(3), help="fisheye image circle CX,CY,RADIUS in pixels")
+    p.add_argument("--fov-deg", type=float, default=188.0, help="fisheye field of view at the image circle's edge")
+    p.add_argument("--origin", type=_floats(3), help="site frame origin LAT,LON,ALT (default: the landmarks' median)")
+    p.add_argument(
+        "--roi-center", type=_floats(2), help="ROI centre LAT,LON (default: the camera, 25 m fisheye / 200 m)"
+    )
+    p.add_argument("--roi-radius", type=float, default=25.0, help="ROI radius in metres (with --roi-center)")
+    p.add_argument("--plot", type=Path, help="draw residual arrows to this PNG")
+    p.add_argument("--image", type=Path, help="camera frame to draw the plot on")
+
+
+def _run_calibrate(args) -> int:
+    from calibration.run import CalibrateJob, run_calibration
+
+    roi = {"center_latlon": list(args.roi_center), "radius_m": args.roi_radius} if args.roi_center else None
+    job = CalibrateJob(
+        landmarks=args.landmarks,
+        kind=args.kind,
+        out=args.out,
+        width=args.width,
+        height=args.height,
+        report=args.report,
+        segments=args.segments,
+        image_circle=args.image_circle,
+        fov_deg=args.fov_deg,
+        origin=args.origin,
+        roi=roi,
+        plot=args.plot,
+        image=args.image,
+    )
+    report = run_calibration(job)
+    print(report["summary"])
+    print(f"masks: {args.out}\nreport: {report['report']}")
+    return 0
+
+
+BENCHMARKS = {"sim": "bench.sim_render", "calibration": "bench.calibration"}
+
+
+def _add_bench(sub) -> None:
+    p = sub.add_parser("bench", help="run a benchmark; prints one JSON document")
+    p.add_argument("name", choices=sorted(BENCHMARKS))
+    p.add_argument("args", nargs=argparse.REMAINDER, help="flags passed to the benchmark")
+
+
+def _run_bench(args) -> int:
+    import importlib
+
+    return importlib.import_module(BENCHMARKS[args.name]).main(args.args)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="roadside", description="Roadside traffic perception")
     sub = parser.add_subparsers(dest="job", required=True)
     _add_sim(sub)
     _add_demo(sub)
+    _add_calibrate(sub)
+    _add_bench(sub)
     args = parser.parse_args(argv)
-    runners = {"sim": _run_sim, "demo": _run_demo}
+    runners = {"sim": _run_sim, "demo": _run_demo, "calibrate": _run_calibrate, "bench": _run_bench}
     try:
         return runners[args.job](args)
     except (ValueError, FileNotFoundError, RuntimeError) as exc:

@@ -217,3 +217,120 @@ def test_config_errors_name_the_parameter():
     with pytest.raises(ValueError, match="segments must be in"):
         CalibConfig("fisheye", 10, 10, segments=0)
     assert math.isclose(CalibConfig("fisheye", 1280, 960).circle[2], 480.0)
+
+
+# ---- masks file, lookup and the CLI -------------------------------------------------------------
+from calibration.masks import LookupMasks, build_masks, calibrated_area, load_masks  # noqa: E402
+
+
+def _fitted_fisheye():
+    cam = _fisheye()
+    lm = _synthetic_landmarks(cam, 16, np.random.default_rng(5), 40.0)
+    cfg = CalibConfig("fisheye", 1280, 960, image_circle=(639.5, 479.5, cam.image_circle_radius_px()), fov_deg=188.0)
+    cal = calibrate(lm, cfg, GEO)
+    return cam, lm, cal
+
+
+def test_masks_agree_with_the_model_and_survive_a_round_trip(tmp_path):
+    _, lm, cal = _fitted_fisheye()
+    masks = build_masks(cal, lm.digest(), calibrated_area(cal, lm.to_local(GEO)))
+    assert masks.meta["landmarks_hash"] == lm.digest()
+    uv = np.random.default_rng(0).uniform([300, 200], [980, 760], (100, 2))
+    latlon, xy, ok = masks.lookup(uv)
+    want, wok = cal.pixel_to_xy(uv)
+    assert ok.mean() > 0.9 and (ok <= wok).all()
+    np.testing.assert_allclose(xy[ok], want[ok], atol=0.02)  # bilinear between pixel centres
+    ll = GEO.to_geodetic(np.column_stack([xy[ok], np.zeros(int(ok.sum()))]))
+    np.testing.assert_allclose(latlon[ok], ll[:, :2], atol=2e-7)
+    path = masks.save(tmp_path / "cam.npz")
+    back = load_masks(path)
+    assert back.meta == masks.meta
+    np.testing.assert_array_equal(back.valid, masks.valid)
+    np.testing.assert_array_equal(back.lookup(uv)[1][ok], xy[ok])
+
+
+def test_lookup_is_exact_at_pixel_centres_and_nan_outside():
+    lat = np.arange(12, dtype=float).reshape(3, 4)
+    xy = np.stack([lat, -lat], -1).astype(np.float32)
+    valid = np.ones((3, 4), bool)
+    valid[2, 3] = False
+    m = LookupMasks(lat, lat + 100, xy, valid, {})
+    latlon, got, ok = m.lookup(np.array([[1.0, 1.0], [1.5, 0.5], [2.5, 1.5], [-1.0, 0.0], [np.nan, 1.0]]))
+    assert ok.tolist() == [True, True, False, False, False]
+    assert latlon[0].tolist() == [5.0, 105.0]
+    np.testing.assert_allclose(got[1], [3.5, -3.5])
+    assert np.isnan(latlon[2:]).all()
+
+
+def test_bad_masks_files_are_named(tmp_path):
+    with pytest.raises(ValueError, match="lookup masks not found"):
+        load_masks(tmp_path / "none.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(ValueError, match="not a lookup masks file"):
+        load_masks(tmp_path / "junk.npz")
+
+
+def test_cli_calibrate_writes_masks_report_and_plot(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    cam = _fisheye()
+    lm = _synthetic_landmarks(cam, 12, np.random.default_rng(6), 40.0, pixel_sigma=1.0, map_sigma=0.05)
+    rows = [
+        {"id": i, "u": float(u), "v": float(v), "lat": float(a), "lon": float(b)}
+        for i, (u, v), (a, b) in zip(lm.ids, lm.uv, lm.latlon, strict=True)
+    ]
+    lm_path = tmp_path / "lm.json"
+    lm_path.write_text(json.dumps({"width": 1280, "height": 960, "landmarks": rows}))
+    out = tmp_path / "masks.npz"
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "roadside",
+            "calibrate",
+            "--landmarks",
+            str(lm_path),
+            "--kind",
+            "fisheye",
+            "--out",
+            str(out),
+            "--image-circle",
+            f"639.5,479.5,{cam.image_circle_radius_px()}",
+            "--origin",
+            "42.2294,-83.739,265",
+            "--plot",
+            str(tmp_path / "plot.png"),
+        ],
+        capture_output=True,
+        text=True,
+        cwd=Path(__file__).resolve().parents[1],
+        timeout=300,
+    )
+    assert r.returncode == 0, r.stderr
+    assert "leave-one-out in-ROI" in r.stdout
+    report = json.loads((tmp_path / "masks.report.json").read_text())
+    assert report["landmarks_used"] == 12 and report["leave_one_out_in_roi"]["n"] > 0
+    assert report["leave_one_out_in_roi"]["mean_m"] < 0.5
+    assert load_masks(out).valid.any()
+    assert (tmp_path / "plot.png").stat().st_size > 10_000
+    bad = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "roadside",
+            "calibrate",
+            "--landmarks",
+            str(tmp_path / "x.json"),
+            "--kind",
+            "fisheye",
+            "--out",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=Path(__file__).resolve().parents[1],
+    )
+    assert bad.returncode == 2 and "landmark file not found" in bad.stderr

@@ -1,0 +1,185 @@
+"""Per-camera lookup masks: pixel -> latitude/longitude and site metres, and their file.
+
+File (`.npz`, numpy's zip of arrays, loaded without pickle):
+- `lat`, `lon`: (H, W) float64 degrees at each pixel centre (NaN where invalid);
+- `xy`: (H, W, 2) float32 site-frame metres (east, north) around `meta.geo_origin`;
+- `valid`: (H, W) bool, ground pixels inside the calibrated area;
+- `meta`: a JSON string: format, version, camera (fitted model), geo origin, segments with
+  their ground planes and homographies, landmark hash, calibrated area, warnings.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from calibration.fit import Calibration
+from shared.geo import GeoFrame
+
+FORMAT = "roadside-lookup-masks"
+VERSION = 1
+
+
+@dataclass
+class LookupMasks:
+    lat: np.ndarray
+    lon: np.ndarray
+    xy: np.ndarray
+    valid: np.ndarray
+    meta: dict
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.valid.shape
+
+    @property
+    def geo(self) -> GeoFrame:
+        return GeoFrame.from_dict(self.meta["geo_origin"])
+
+    def lookup(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Bilinear lookup at sub-pixel positions.
+
+        uv (N, 2) pixels -> (latlon (N, 2) float64 degrees, xy (N, 2) float64 metres, valid (N,)).
+        A position is valid when its four neighbouring pixel centres are all valid.
+        """
+        uv = np.asarray(uv, np.float64).reshape(-1, 2)
+        h, w = self.valid.shape
+        finite = np.all(np.isfinite(uv), axis=1)
+        u = np.where(finite, uv[:, 0], -10.0)
+        v = np.where(finite, uv[:, 1], -10.0)
+        inside = finite & (u >= 0) & (v >= 0) & (u <= w - 1) & (v <= h - 1)
+        u0 = np.clip(np.floor(u).astype(np.int64), 0, w - 2)
+        v0 = np.clip(np.floor(v).astype(np.int64), 0, h - 2)
+        fu = np.clip(u - u0, 0, 1)[:, None]
+        fv = np.clip(v - v0, 0, 1)[:, None]
+        ok = inside & self.valid[v0, u0] & self.valid[v0, u0 + 1] & self.valid[v0 + 1, u0] & self.valid[v0 + 1, u0 + 1]
+
+        def interp(a: np.ndarray) -> np.ndarray:
+            a00, a01 = a[v0, u0], a[v0, u0 + 1]
+            a10, a11 = a[v0 + 1, u0], a[v0 + 1, u0 + 1]
+            if a00.ndim == 1:
+                a00, a01, a10, a11 = (x[:, None] for x in (a00, a01, a10, a11))
+            return (a00 * (1 - fu) + a01 * fu) * (1 - fv) + (a10 * (1 - fu) + a11 * fu) * fv
+
+        latlon = np.column_stack([interp(self.lat)[:, 0], interp(self.lon)[:, 0]])
+        xy = interp(self.xy.astype(np.float64))
+        latlon[~ok] = np.nan
+        xy[~ok] = np.nan
+        return latlon, xy, ok
+
+    def save(self, path: str | Path) -> Path:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".partial")
+        with tmp.open("wb") as f:
+            np.savez(f, lat=self.lat, lon=self.lon, xy=self.xy, valid=self.valid, meta=np.array(json.dumps(self.meta)))
+        tmp.replace(path)
+        return path
+
+
+def load_masks(path: str | Path) -> LookupMasks:
+    """Load a masks file; ValueError naming the file and what is wrong."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"lookup masks not found: {path}")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in ("lat", "lon", "xy", "valid", "meta")}
+    except (OSError, ValueError, KeyError) as exc:
+        raise ValueError(f"{path}: not a lookup masks file ({exc})") from None
+    meta = json.loads(str(arrays["meta"]))
+    if meta.get("format") != FORMAT or meta.get("version") != VERSION:
+        raise ValueError(
+            f"{path}: format {meta.get('format')!r} v{meta.get('version')!r}, expected {FORMAT!r} v{VERSION}"
+        )
+    h, w = arrays["valid"].shape
+    if arrays["lat"].shape != (h, w) or arrays["xy"].shape != (h, w, 2):
+        raise ValueError(f"{path}: array shapes disagree")
+    return LookupMasks(arrays["lat"], arrays["lon"], arrays["xy"], arrays["valid"].astype(bool), meta)
+
+
+def calibrated_area(cal: Calibration, xy_landmarks: np.ndarray, margin: float = 1.25) -> dict:
+    """The area the masks answer for: ground within `margin` x the farthest inlier landmark's
+    distance from the camera (plus 5 m). Beyond it the planes are extrapolated, so it is invalid."""
+    o = cal.camera.pose.position_m[:2]
+    far = float(np.max(np.linalg.norm(xy_landmarks[cal.inliers] - o, axis=1)))
+    return {"center_m": [float(o[0]), float(o[1])], "radius_m": round(far * margin + 5.0, 2)}
+
+
+def build_masks(cal: Calibration, landmarks_hash: str, area: dict, extra_meta: dict | None = None) -> LookupMasks:
+    """Evaluate the calibration at every pixel centre of the image."""
+    cfg = cal.config
+    h, w = cfg.height, cfg.width
+    v, u = np.mgrid[0:h, 0:w]
+    uv = np.column_stack([u.ravel(), v.ravel()]).astype(np.float64)
+    xy, ok = cal.pixel_to_xy(uv)
+    centre = np.asarray(area["center_m"])
+    ok &= np.linalg.norm(np.where(ok[:, None], xy, 0.0) - centre, axis=1) <= area["radius_m"]
+    if cfg.kind == "fisheye":
+        cx, cy, r = cfg.circle
+        ok &= np.hypot(uv[:, 0] - cx, uv[:, 1] - cy) <= r
+    xy = np.where(ok[:, None], xy, np.nan)
+    lat = np.full(h * w, np.nan)
+    lon = np.full(h * w, np.nan)
+    if ok.any():
+        ll = cal.geo.to_geodetic(np.column_stack([xy[ok], np.zeros(int(ok.sum()))]))
+        lat[ok], lon[ok] = ll[:, 0], ll[:, 1]
+    segments = []
+    for k, plane in enumerate(cal.planes):
+        hmat = cal.homography(k)
+        segments.append(
+            {
+                "plane_abc": [float(x) for x in plane],
+                "sector_center_rad": float(cal.sector_centres[k]) if len(cal.planes) > 1 else None,
+                "homography_undistorted_to_xy": [[float(x) for x in row] for row in hmat],
+            }
+        )
+    meta = {
+        "format": FORMAT,
+        "version": VERSION,
+        "kind": cfg.kind,
+        "width": w,
+        "height": h,
+        "camera": cal.camera.to_dict(),
+        "geo_origin": cal.geo.to_dict(),
+        "nadir_px": [float(x) for x in cal.nadir_px],
+        "segments": segments,
+        "landmarks_hash": landmarks_hash,
+        "calibrated_area": area,
+        "warnings": list(cal.warnings),
+        **(extra_meta or {}),
+    }
+    return LookupMasks(
+        lat.reshape(h, w), lon.reshape(h, w), xy.reshape(h, w, 2).astype(np.float32), ok.reshape(h, w), meta
+    )
+
+
+def roi_mask(xy: np.ndarray, roi: dict | None) -> np.ndarray:
+    """(N,) bool: points (N, 2) site metres inside an ROI {center_m, radius_m} or {polygon_m}."""
+    if roi is None:
+        return np.ones(len(xy), bool)
+    if "polygon_m" in roi:
+        import cv2
+
+        poly = np.asarray(roi["polygon_m"], np.float32)
+        return np.array([cv2.pointPolygonTest(poly, (float(x), float(y)), False) >= 0 for x, y in xy])
+    c = np.asarray(roi["center_m"], float)
+    return np.linalg.norm(xy - c, axis=1) <= float(roi["radius_m"])
+
+
+def default_roi(cal: Calibration) -> dict:
+    """The paper's ROI: 25 m around a fisheye camera; 200 m in front of a pinhole/thermal one."""
+    o = cal.camera.pose.position_m[:2]
+    return {"center_m": [float(o[0]), float(o[1])], "radius_m": 25.0 if cal.config.kind == "fisheye" else 200.0}
+
+
+def angular_coverage_deg(xy: np.ndarray, centre: np.ndarray) -> float:
+    """Largest angle around `centre` NOT covered by the points (0 = surrounded, 360 = none)."""
+    if len(xy) == 0:
+        return 360.0
+    ang = np.sort(np.degrees(np.arctan2(xy[:, 1] - centre[1], xy[:, 0] - centre[0])))
+    gaps = np.diff(np.concatenate([ang, [ang[0] + 360.0]]))
+    return float(gaps.max()) if len(ang) > 1 else 360.0

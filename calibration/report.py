@@ -1,0 +1,135 @@
+"""The calibration report: residuals per landmark, leave-one-out error, in/out-ROI statistics,
+rejected landmarks with the reason, and warnings about what the landmarks leave unconstrained."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from calibration.fit import CalibConfig, Calibration, calibrate
+from calibration.landmarks import Landmarks
+from calibration.masks import angular_coverage_deg, roi_mask
+
+
+def _stats(x: np.ndarray) -> dict:
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        return {"n": 0, "mean_m": None, "std_m": None, "max_m": None}
+    return {
+        "n": int(x.size),
+        "mean_m": round(float(x.mean()), 4),
+        "std_m": round(float(x.std()), 4),
+        "max_m": round(float(x.max()), 4),
+    }
+
+
+def build_report(cal: Calibration, lm: Landmarks, cfg: CalibConfig, roi: dict, leave_one_out: bool = True) -> dict:
+    xy = lm.to_local(cal.geo)
+    got, ok = cal.pixel_to_xy(lm.uv)
+    res = np.where(ok, np.linalg.norm(got - xy, axis=1), np.nan)
+    proj, pok = cal.camera.project(np.column_stack([xy, np.zeros(len(lm))]))
+    res_px = np.where(pok, np.linalg.norm(proj - lm.uv, axis=1), np.nan)
+    in_roi = roi_mask(xy, roi)
+    loo = np.full(len(lm), np.nan)
+    if leave_one_out:
+        for i in np.nonzero(cal.inliers)[0]:
+            keep = np.ones(len(lm), bool)
+            keep[i] = False
+            try:
+                sub = calibrate(lm.subset(np.nonzero(keep)[0]), cfg, cal.geo)
+            except ValueError:
+                continue
+            p, pok_i = sub.pixel_to_xy(lm.uv[i : i + 1])
+            if pok_i[0]:
+                loo[i] = float(np.linalg.norm(p[0] - xy[i]))
+    inl = cal.inliers
+    warnings = list(cal.warnings)
+    gap = angular_coverage_deg(xy[inl & in_roi], np.asarray(roi.get("center_m", xy[inl].mean(0))))
+    if "radius_m" in roi and gap > 150:
+        warnings.append(
+            f"landmarks leave part of the ROI unconstrained: no in-ROI landmark in a {gap:.0f} degree "
+            "wedge around the ROI centre; add landmarks on that side"
+        )
+    if int((inl & in_roi).sum()) < 4:
+        warnings.append(f"only {int((inl & in_roi).sum())} landmarks inside the ROI: the error there is not measured")
+    return {
+        "camera_kind": cfg.kind,
+        "landmarks_used": int(inl.sum()),
+        "landmarks_total": len(lm),
+        "segments": len(cal.planes),
+        "roi": roi,
+        "residual_in_roi": _stats(res[inl & in_roi]),
+        "residual_out_roi": _stats(res[inl & ~in_roi]),
+        "leave_one_out_in_roi": _stats(loo[inl & in_roi]),
+        "leave_one_out_out_roi": _stats(loo[inl & ~in_roi]),
+        "rejected": [{"id": i, "reason": r} for i, r in cal.rejected],
+        "warnings": warnings,
+        "landmarks": [
+            {
+                "id": lid,
+                "inlier": bool(inl[k]),
+                "in_roi": bool(in_roi[k]),
+                "residual_m": None if np.isnan(res[k]) else round(float(res[k]), 4),
+                "reprojection_px": None if np.isnan(res_px[k]) else round(float(res_px[k]), 2),
+                "leave_one_out_m": None if np.isnan(loo[k]) else round(float(loo[k]), 4),
+            }
+            for k, lid in enumerate(lm.ids)
+        ],
+    }
+
+
+def summary_text(report: dict) -> str:
+    def fmt(s: dict) -> str:
+        return "n/a" if s["n"] == 0 else f"{s['mean_m']:.3f} ± {s['std_m']:.3f} m (n={s['n']}, max {s['max_m']:.3f})"
+
+    lines = [
+        f"{report['camera_kind']} camera: {report['landmarks_used']}/{report['landmarks_total']} landmarks used, "
+        f"{report['segments']} ground segment(s)",
+        f"  residual      in-ROI  {fmt(report['residual_in_roi'])}",
+        f"  residual      out-ROI {fmt(report['residual_out_roi'])}",
+        f"  leave-one-out in-ROI  {fmt(report['leave_one_out_in_roi'])}",
+        f"  leave-one-out out-ROI {fmt(report['leave_one_out_out_roi'])}",
+    ]
+    for r in report["rejected"]:
+        lines.append(f"  rejected {r['id']}: {r['reason']}")
+    for w in report["warnings"]:
+        lines.append(f"  warning: {w}")
+    return "\n".join(lines)
+
+
+def plot_residuals(
+    cal: Calibration, lm: Landmarks, image: np.ndarray | None, out_png: str, scale: float = 20.0
+) -> None:
+    """Residual arrows on the image: from each clicked pixel toward where its map point projects
+    (lengths x `scale`); green inliers, red rejected."""
+    import cv2
+
+    cfg = cal.config
+    canvas = np.full((cfg.height, cfg.width, 3), 40, np.uint8) if image is None else image.copy()
+    if canvas.ndim == 2:
+        canvas = cv2.cvtColor(canvas, cv2.COLOR_GRAY2BGR)
+    xy = lm.to_local(cal.geo)
+    proj, ok = cal.camera.project(np.column_stack([xy, np.zeros(len(lm))]))
+    for k, lid in enumerate(lm.ids):
+        a = lm.uv[k]
+        colour = (60, 220, 60) if cal.inliers[k] else (40, 40, 255)
+        if ok[k]:
+            b = a + (proj[k] - a) * scale
+            cv2.arrowedLine(
+                canvas, tuple(np.round(a).astype(int)), tuple(np.round(b).astype(int)), colour, 2, cv2.LINE_AA
+            )
+        cv2.circle(canvas, tuple(np.round(a).astype(int)), 4, colour, -1, cv2.LINE_AA)
+        cv2.putText(
+            canvas,
+            lid,
+            tuple(np.round(a + np.array([6, -6])).astype(int)),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.45,
+            colour,
+            1,
+            cv2.LINE_AA,
+        )
+    cv2.putText(
+        canvas, f"residual arrows x{scale:g}", (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 2, cv2.LINE_AA
+    )
+    if not cv2.imwrite(out_png, canvas):
+        raise ValueError(f"cannot write plot {out_png}")

@@ -1,0 +1,97 @@
+"""`roadside calibrate`: landmark file -> lookup masks file + report (JSON and text) + plot."""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from calibration.fit import CalibConfig, calibrate
+from calibration.landmarks import load_landmarks, validate_landmarks
+from calibration.masks import build_masks, calibrated_area, default_roi
+from calibration.report import build_report, plot_residuals, summary_text
+from shared.geo import GeoFrame
+
+
+@dataclass(frozen=True)
+class CalibrateJob:
+    landmarks: Path
+    kind: str
+    out: Path
+    width: int | None = None
+    height: int | None = None
+    report: Path | None = None
+    segments: int | None = None
+    image_circle: tuple[float, float, float] | None = None
+    fov_deg: float = 188.0
+    origin: tuple[float, float, float] | None = None  # lat, lon, alt of the site frame
+    roi: dict | None = None  # {"center_latlon": [lat, lon], "radius_m": r} or {"polygon_latlon": [...]}
+    plot: Path | None = None
+    image: Path | None = None
+
+
+def _roi_local(roi: dict | None, geo: GeoFrame) -> dict | None:
+    if roi is None:
+        return None
+    if "center_latlon" in roi:
+        c = geo.to_enu(np.array([roi["center_latlon"][0]]), np.array([roi["center_latlon"][1]]), geo.alt0_m)[0]
+        return {"center_m": [float(c[0]), float(c[1])], "radius_m": float(roi["radius_m"])}
+    if "polygon_latlon" in roi:
+        p = np.asarray(roi["polygon_latlon"], float)
+        xy = geo.to_enu(p[:, 0], p[:, 1], geo.alt0_m)[:, :2]
+        return {"polygon_m": xy.tolist()}
+    return roi
+
+
+def run_calibration(job: CalibrateJob) -> dict:
+    lm, header = load_landmarks(job.landmarks)
+    width = job.width or header.get("width")
+    height = job.height or header.get("height")
+    if not width or not height:
+        raise ValueError(f"image size unknown: pass --width and --height (not in {job.landmarks})")
+    cfg = CalibConfig(
+        job.kind, int(width), int(height), job.segments, image_circle=job.image_circle, fov_deg=job.fov_deg
+    )
+    validate_landmarks(lm, cfg.width, cfg.height, cfg.circle if cfg.kind == "fisheye" else None)
+    if job.origin is not None:
+        geo = GeoFrame(*job.origin)
+    else:
+        med = np.median(lm.latlon, axis=0)
+        geo = GeoFrame(float(med[0]), float(med[1]))
+    t0 = time.perf_counter()
+    cal = calibrate(lm, cfg, geo)
+    t_fit = time.perf_counter() - t0
+    xy = lm.to_local(geo)
+    area = calibrated_area(cal, xy)
+    t0 = time.perf_counter()
+    masks = build_masks(cal, lm.digest(), area, {"landmarks_file": str(job.landmarks)})
+    t_masks = time.perf_counter() - t0
+    masks.save(job.out)
+    roi = _roi_local(job.roi, geo) or default_roi(cal)
+    report = build_report(cal, lm, cfg, roi)
+    report.update(
+        {
+            "masks": str(job.out),
+            "landmarks_hash": lm.digest(),
+            "fit_s": round(t_fit, 3),
+            "masks_s": round(t_masks, 3),
+            "calibrated_area": area,
+        }
+    )
+    report_path = job.report or job.out.with_suffix(".report.json")
+    report_path.write_text(json.dumps(report, indent=1))
+    report["report"] = str(report_path)
+    report["summary"] = summary_text(report)
+    if job.plot:
+        image = None
+        if job.image:
+            import cv2
+
+            image = cv2.imread(str(job.image))
+            if image is None:
+                raise ValueError(f"cannot read image {job.image}")
+        plot_residuals(cal, lm, image, str(job.plot))
+    return report
