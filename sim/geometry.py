@@ -57,14 +57,6 @@ def resample(points: np.ndarray, step_m: float) -> np.ndarray:
     return np.stack([np.interp(t, s, points[:, 0]), np.interp(t, s, points[:, 1])], axis=1)
 
 
-def offset(points: np.ndarray, dist_m: float) -> np.ndarray:
-    """Offset a polyline to its right by dist_m (negative: left)."""
-    d = np.gradient(points, axis=0)
-    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
-    right = np.stack([d[:, 1], -d[:, 0]], axis=1)
-    return points + dist_m * right
-
-
 def curvature(points: np.ndarray) -> np.ndarray:
     """Unsigned curvature (1/m) at each point of a uniformly resampled polyline."""
     d1 = np.gradient(points, axis=0)

@@ -82,12 +82,6 @@ class Route:
         y = np.interp(s, self.s, self.points[:, 1])
         return np.stack([x, y], axis=-1), np.interp(s, self.s, self.heading)
 
-    def segment_kind(self, s: float) -> str:
-        for _, s1, kind in self.segments:
-            if s <= s1 + 1e-6:
-                return kind
-        return self.segments[-1][2]
-
 
 @dataclass
 class Marking:
