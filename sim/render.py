@@ -223,7 +223,6 @@ class CameraRenderer:
         self.ground_visible = np.zeros(h * w, bool)
         self.ground_visible[ground_ok] = True
         self.ground_visible[sel[box_hit | sphere_hit]] = False
-        self.ground_points = pts.reshape(h, w, 3)
         sun = env.sun_dir
         chans = 1 if self.thermal else 3
         bg = np.zeros((h * w, chans), np.float32)
@@ -267,8 +266,7 @@ class CameraRenderer:
             bg[sky] = horizon + (zenith - horizon) * up[sky, None]
             bg[far] = np.array([95, 100, 80], np.float32) * lit
         self.depth = np.where(ok, t_static, 0.0).astype(np.float32).reshape(h, w)
-        self.fog = self._fog_factor(self.depth.reshape(-1)).reshape(h, w)
-        bg = self._apply_fog(bg, self.fog.reshape(-1))
+        bg = self._apply_fog(bg, self._fog_factor(self.depth.reshape(-1)))
         self.background = bg.reshape(h, w, chans)
         self.shadow_gain = self.shadow_gain.reshape(h, w)
         shadow_map = shadows.to_px(pts[:, :2]).astype(np.float32).reshape(h, w, 2)
@@ -478,9 +476,8 @@ class CameraRenderer:
         rear = n_local[:, 0] < -0.5
         z, x, y = p_local[:, 2], p_local[:, 0], p_local[:, 1]
         name = np.array(PART_KINDS)[kinds]
-        glass = ((name == "cabin") & ~top & (z > np.where(vtype == "truck", 1.4, 0.0) + 0.0)) & (
-            z > (h * 0.55 if vtype in ("car", "suv_van") else 1.3) + 0.08
-        )
+        glass_from_m = (h * 0.55 if vtype in ("car", "suv_van") else 1.3) + 0.08
+        glass = (name == "cabin") & ~top & (z > glass_from_m)
         glass |= (name == "busbody") & ~top & (z > 1.25) & (z < h - 0.45) & ((np.abs(x) % 1.7) > 0.2)
         if self.thermal:
             hot = 0.5 if parked else 0.74

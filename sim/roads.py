@@ -15,6 +15,7 @@ from sim.geometry import arc, arclength, concat, curvature, hermite, line, rect,
 from sim.site import ApproachSpec, SiteSpec
 
 ROUTE_STEP_M = 0.5
+AXLE_SPAN = 0.35  # front / rear axle positions, as a fraction of the vehicle length from its centre
 LATERAL_ACCEL_MPS2 = 2.2
 COMFORT_DECEL_MPS2 = 2.0
 
@@ -81,6 +82,21 @@ class Route:
         x = np.interp(s, self.s, self.points[:, 0])
         y = np.interp(s, self.s, self.points[:, 1])
         return np.stack([x, y], axis=-1), np.interp(s, self.s, self.heading)
+
+    def pose(self, s: np.ndarray, length_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Body centre (N, 2) and yaw (N,) of vehicles whose centre is at arc length s: both axles
+        ride on the path, so on a curve the body cuts the inside like a real vehicle instead of
+        swinging its ends outside the lane."""
+        return body_pose(
+            *self.at(np.asarray(s) + AXLE_SPAN * np.asarray(length_m))[:1],
+            *self.at(np.asarray(s) - AXLE_SPAN * np.asarray(length_m))[:1],
+        )
+
+
+def body_pose(front_axle: np.ndarray, rear_axle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centre (N, 2) and yaw (N,) of a body whose axle points (N, 2) are given."""
+    d = front_axle - rear_axle
+    return (front_axle + rear_axle) / 2, np.arctan2(d[:, 1], d[:, 0])
 
 
 @dataclass
@@ -164,7 +180,7 @@ def _lanes_for(turn: str, n_in: int, n_mid: int, n_out: int) -> list[tuple[int, 
     return out
 
 
-def _dashes(points: np.ndarray, on: float, off: float) -> list[np.ndarray]:
+def dashes(points: np.ndarray, on: float, off: float) -> list[np.ndarray]:
     s = arclength(points)
     out = []
     t = 0.0
@@ -177,7 +193,7 @@ def _dashes(points: np.ndarray, on: float, off: float) -> list[np.ndarray]:
 
 def _add_dashed(paint: Paint, pts: np.ndarray, width: float, on: float, off: float, color="white") -> None:
     paint.markings.append(Marking(pts, width, color, (on, off)))
-    for d in _dashes(pts, on, off):
+    for d in dashes(pts, on, off):
         paint.features.append((float(d[0, 0]), float(d[0, 1]), "dash_end"))
         paint.features.append((float(d[-1, 0]), float(d[-1, 1]), "dash_end"))
 

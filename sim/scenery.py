@@ -82,12 +82,10 @@ def build_scenery(site: SiteSpec, net: RoadNetwork, ground: GroundRaster, seed: 
         if base not in done:
             done.add(base)
             _vertical(prims, terrain, base, (0.32, 0.32), pos[2] + 0.8, 0.0, grey, 0.42)
-        g = float(terrain.height(pos[0], pos[1]))
         arm_c = np.array([(pos[0] + base[0]) / 2, (pos[1] + base[1]) / 2, pos[2] + 0.35])
         arm_len = math.hypot(off[0], off[1])
         prims.box(arm_c, [arm_len / 2, 0.06, 0.06], math.atan2(-off[1], -off[0]), grey, 0.42)
         prims.box([pos[0], pos[1], pos[2] + 0.2], [0.12, 0.12, 0.12], 0.0, (40, 40, 42), 0.55)
-        del g
     # Light poles along the legs, at the sidewalk's outer edge.
     for leg in site.approaches:
         u, r = leg.unit_out, leg.unit_right

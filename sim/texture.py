@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from sim.roads import Paint, RoadNetwork
+from sim.roads import Paint, RoadNetwork, dashes
 
 GRASS, ASPHALT, SIDEWALK, BRICK, CURB, MARKING = range(6)
 MATERIAL_NAMES = ("grass", "asphalt", "sidewalk", "brick", "curb", "marking")
@@ -103,10 +103,8 @@ def paint_ground(net: RoadNetwork, extent_m: float, seed: int, res_m: float = 0.
     # Markings on top, slightly worn.
     mark = np.zeros((size, size), np.uint8)
     colour_idx = {"white": 1, "yellow": 2}
-    from sim.roads import _dashes  # dash layout shared with the feature points
-
     for mk in paint.markings:
-        pieces = [mk.points] if mk.dash is None else _dashes(mk.points, *mk.dash)
+        pieces = [mk.points] if mk.dash is None else dashes(mk.points, *mk.dash)
         th = max(1, int(round(mk.width_m / res_m)))
         for piece in pieces:
             px = np.round(raster.to_px(piece) * 16).astype(np.int32)

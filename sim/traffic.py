@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim.roads import ROUTE_STEP_M, SEGMENT_KINDS, RoadNetwork
+from sim.roads import AXLE_SPAN, ROUTE_STEP_M, SEGMENT_KINDS, RoadNetwork, body_pose
 from sim.site import SiteSpec
 
 VEHICLE_TYPES = ("car", "suv_van", "truck", "bus", "motorcycle")
@@ -43,8 +43,10 @@ IDM_TIME_HEADWAY_S = 1.3
 IDM_MIN_GAP_M = 1.6
 IDM_DECEL_MPS2 = 2.2
 MAX_DECEL_MPS2 = 9.0
-GAP_ACCEPT_S = 2.8
+GAP_ACCEPT_S = 3.5
 LATERAL_CLEARANCE_M = 0.35
+CLOSE_CONFLICT_M = 3.0
+SPAWN_CLEARANCE_M = 19.0  # the longest vehicle (13 m) plus a gap
 
 
 @dataclass(frozen=True)
@@ -113,6 +115,7 @@ class TrafficSim:
         self._len = np.array(lens, dtype=np.int64)
         self._pts = np.concatenate([r.points for r in net.routes])
         self._head = np.concatenate([r.heading for r in net.routes])
+        self._curv = np.concatenate([np.abs(np.gradient(r.heading)) / ROUTE_STEP_M for r in net.routes])
         self._cap = np.concatenate([r.speed_cap for r in net.routes])
         self._pri = np.concatenate([r.seg_priority for r in net.routes])
         self._kind = np.concatenate([r.seg_kind for r in net.routes])
@@ -130,7 +133,8 @@ class TrafficSim:
         self.speed_factor = np.zeros(0)
         self.committed = np.zeros(0, bool)
         self._parked = self._place_parked()
-        self._pending: list[list[float]] = [[] for _ in site.approaches]
+        self._pending = [0] * len(site.approaches)  # arrivals waiting for room at the entry
+        self._spawn_routes = [self._route_choice(a) for a in range(len(site.approaches))]
         self._peds = self._place_pedestrians()
 
     # ---- vehicles ---------------------------------------------------------------------------
@@ -187,28 +191,29 @@ class TrafficSim:
             "color": shirts[self.rng.integers(0, len(shirts), n)].astype(np.uint8),
         }
 
+    def _route_choice(self, a: int) -> tuple[list[int], np.ndarray]:
+        """Routes starting on approach a and their probabilities (turn share split over lanes)."""
+        cands = [i for i, r in enumerate(self.net.routes) if r.origin == a]
+        turns = [self.net.routes[i].turn for i in cands]
+        w = np.array([TURN_SHARES[t] / turns.count(t) for t in turns])
+        return cands, w / w.sum()
+
     def _spawn(self, dt: float) -> None:
         for a, leg in enumerate(self.site.approaches):
             rate = leg.demand_veh_h * self.demand_scale / 3600.0
             if self.rng.random() < 1 - math.exp(-rate * dt):
-                self._pending[a].append(0.0)
+                self._pending[a] += 1
             if not self._pending[a] or len(self.ids) >= self.max_vehicles:
                 continue
-            cands = [i for i, r in enumerate(self.net.routes) if r.origin == a]
-            w = np.array([TURN_SHARES[self.net.routes[i].turn] for i in cands])
-            counts = {}
-            for i in cands:
-                counts[self.net.routes[i].turn] = counts.get(self.net.routes[i].turn, 0) + 1
-            w = w / np.array([counts[self.net.routes[i].turn] for i in cands])
-            ri = cands[int(self.rng.choice(len(cands), p=w / w.sum()))]
+            cands, p = self._spawn_routes[a]
+            ri = cands[int(self.rng.choice(len(cands), p=p))]
             start = self._pts[self._off[ri]]
-            info_tmp_len = 13.0  # room for the longest vehicle
             if len(self.ids):
                 pos = self._pts[self._index(self.route, self.s)]
-                if np.min(np.linalg.norm(pos - start, axis=1)) < info_tmp_len + 6.0:
+                if np.min(np.linalg.norm(pos - start, axis=1)) < SPAWN_CLEARANCE_M:
                     continue
             info = self._new_vehicle(False)
-            self._pending[a].pop(0)
+            self._pending[a] -= 1
             factor = self.rng.normal(1.0, 0.08)
             if self.rng.random() < 0.08:
                 factor = self.rng.uniform(0.45, 0.65)  # slow-moving vehicles
@@ -229,11 +234,16 @@ class TrafficSim:
         k = np.clip(np.round(s / ROUTE_STEP_M).astype(np.int64), 0, self._len[route] - 1)
         return self._off[route] + k
 
-    def _obstacles(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def _body(self) -> tuple[np.ndarray, np.ndarray]:
+        """Body centres (N, 2) and unit headings (N, 2) of the moving vehicles (Route.pose)."""
+        span = AXLE_SPAN * self.length
+        pos, yaw = body_pose(
+            self._pts[self._index(self.route, self.s + span)], self._pts[self._index(self.route, self.s - span)]
+        )
+        return pos, np.stack([np.cos(yaw), np.sin(yaw)], 1)
+
+    def _obstacles(self, pos: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Footprint segments (rear, front), half widths and velocities of every vehicle."""
-        pos = self._pts[self._index(self.route, self.s)]
-        yaw = self._head[self._index(self.route, self.s)]
-        h = np.stack([np.cos(yaw), np.sin(yaw)], 1)
         rear = pos - h * self.length[:, None] / 2
         front = pos + h * self.length[:, None] / 2
         vel = h * self.v[:, None]
@@ -249,7 +259,7 @@ class TrafficSim:
             half_w = np.concatenate([half_w, np.array([i.width_m / 2 for i in p_info])])
         return rear, front, half_w, vel
 
-    def _must_wait(self, t_s: float) -> np.ndarray:
+    def _must_wait(self, t_s: float, idx: np.ndarray) -> np.ndarray:
         """(N,) bool: the vehicle must treat its stop line as a wall now."""
         n = len(self.ids)
         wait = np.zeros(n, bool)
@@ -268,7 +278,6 @@ class TrafficSim:
                 wait[i] = state == "red" or (state == "yellow" and can_stop)
             return wait
         # Roundabout: gap acceptance against vehicles already in the ring or entering it.
-        idx = self._index(self.route, self.s)
         kind = self._kind[idx]
         pos = self._pts[idx]
         circ = (kind == SEGMENT_KINDS.index("entry")) | (kind == SEGMENT_KINDS.index("ring"))
@@ -281,7 +290,7 @@ class TrafficSim:
             merge = self._merge[self.route[i]]
             delta = (merge - phi) % (2 * math.pi)
             arc_m = delta * rad
-            coming = arc_m < np.maximum(9.0, vc * GAP_ACCEPT_S) + 2.0
+            coming = arc_m < np.maximum(14.0, vc * GAP_ACCEPT_S) + 4.0
             at_merge = delta > 2 * math.pi - 7.0 / np.maximum(rad, 1.0)
             wait[i] = bool(np.any(coming | at_merge))
         return wait
@@ -292,59 +301,55 @@ class TrafficSim:
         n = len(self.ids)
         if n == 0:
             return
-        # Path samples from just ahead of the own rear (vehicles beside a long vehicle that
-        # sweeps across on a curve) to LOOKAHEAD_M ahead of the front bumper.
-        ks = np.arange(-12.0, LOOKAHEAD_M, 1.0)
+        # Samples of each vehicle's path from its front bumper to LOOKAHEAD_M ahead; other vehicles
+        # are their exact footprints, and the curve margin below covers a long body's sweep.
+        ks = np.arange(0.0, LOOKAHEAD_M, 1.0)
         front_s = self.s + self.length / 2
         idx_ahead = self._index(np.repeat(self.route, len(ks)), (front_s[:, None] + ks[None, :]).ravel())
         ahead = self._pts[idx_ahead].reshape(n, len(ks), 2)
-        rear, front, half_w, vel = self._obstacles()
+        idx_now = self._index(self.route, self.s)
+        pos_now, h_now = self._body()
+        # On a curve a rigid body's ends stand off its path by (L/2)^2 * curvature / 2.
+        kappa = self._curv[idx_ahead].reshape(n, len(ks)).max(axis=1)
+        off_tracking = np.minimum(0.5 * (self.length / 2) ** 2 * kappa, 1.5)
+        rear, front, half_w, vel = self._obstacles(pos_now, h_now)
         seg = front - rear
         seg_len2 = np.maximum(np.sum(seg**2, 1), 1e-9)
         rel = ahead[:, :, None, :] - rear[None, None, :, :]
         t = np.clip(np.sum(rel * seg[None, None], -1) / seg_len2, 0.0, 1.0)
         closest = rear[None, None] + t[..., None] * seg[None, None]
         dist = np.linalg.norm(ahead[:, :, None, :] - closest, axis=-1)
-        blocked = dist < (self.width[:, None, None] / 2 + half_w[None, None, :] + LATERAL_CLEARANCE_M)
+        reach = self.width / 2 + off_tracking + LATERAL_CLEARANCE_M
+        blocked = dist < (reach[:, None, None] + half_w[None, None, :])
         m = blocked.shape[2]
         blocked[np.arange(n), :, np.arange(n)] = False
-        blocked &= (ks[None, :] > -self.length[:, None] + 0.5)[:, :, None]
         hit_any = blocked.any(axis=1)
-        first_k = ks[blocked.argmax(axis=1)]
-        first = np.where(hit_any, np.maximum(first_k, 0.0), np.inf)  # (n, m) gap in m
+        first = np.where(hit_any, ks[blocked.argmax(axis=1)], np.inf)  # (n, m) gap in m
         # Mutual blocking: the one behind the other (seen from both headings) yields; otherwise
         # the one with right of way goes, then the one nearer the conflict, then the older one.
-        pri = self._pri[self._index(self.route, self.s)].astype(float)
+        g = first[:, :n]
+        pri = self._pri[idx_now].astype(float)
         pri_all = np.concatenate([pri, np.full(m - n, 9.0)])
         mutual = np.isfinite(first[:, :n]) & np.isfinite(first[:, :n].T)
-        pos_i = self._pts[self._index(self.route, self.s)]
-        head_v = self._head[self._index(self.route, self.s)]
-        h_i = np.stack([np.cos(head_v), np.sin(head_v)], 1)
+        pos_i, h_i = pos_now, h_now
         rel_ij = pos_i[None, :, :] - pos_i[:, None, :]  # j - i
         ahead_of_i = np.einsum("ijk,ik->ij", rel_ij, h_i) > 0  # j is ahead of i
         behind = ahead_of_i & ~ahead_of_i.T  # i is behind j
-        g = first[:, :n]
-        yields = behind | (
-            ~behind.T
-            & (
-                (pri[:, None] < pri_all[None, :n])
-                | (
-                    (pri[:, None] == pri_all[None, :n])
-                    & ((g < g.T) | ((g == g.T) & (self.ids[:, None] > self.ids[None, :])))
-                )
-            )
-        )
+        # A close conflict (one already stands in or at the other's path) is not decided by right
+        # of way: the one more in the other's way goes first to clear it, the other waits.
+        nearer = (g < g.T) | ((g == g.T) & (self.ids[:, None] > self.ids[None, :]))
+        close = np.minimum(g, g.T) < CLOSE_CONFLICT_M
+        by_right_of_way = (pri[:, None] < pri_all[None, :n]) | ((pri[:, None] == pri_all[None, :n]) & nearer)
+        yields = behind | (~behind.T & np.where(close, nearer, by_right_of_way))
         ignore = np.zeros((n, m), bool)
         ignore[:, :n] = mutual & ~yields
         first = np.where(ignore, np.inf, first)
         leader = np.argmin(first, axis=1)
         gap = first[np.arange(n), leader]
-        head_i = self._head[self._index(self.route, self.s)]
-        hvec = np.stack([np.cos(head_i), np.sin(head_i)], 1)
-        v_lead = np.where(np.isfinite(gap), np.sum(vel[leader] * hvec, 1), 0.0)
+        v_lead = np.where(np.isfinite(gap), np.sum(vel[leader] * h_i, 1), 0.0)
         v_lead = np.maximum(v_lead, 0.0)
         # Stop lines.
-        wait = self._must_wait(t_s)
+        wait = self._must_wait(t_s, idx_now)
         stop_gap = np.where(wait, self._stop_s[self.route] - front_s, np.inf)
         use_stop = stop_gap < gap
         gap = np.where(use_stop, np.maximum(stop_gap, 0.0), gap)
@@ -420,11 +425,12 @@ class TrafficHistory:
         route = a["route"][ia]
         s = (1 - f) * a["s"][ia] + f * b["s"][ib]
         v = (1 - f) * a["v"][ia] + f * b["v"][ib]
+        lengths = np.array([self.info[int(i)].length_m for i in common])
         xy = np.zeros((len(common), 2))
         yaw = np.zeros(len(common))
         for r in np.unique(route):
             m = route == r
-            xy[m], yaw[m] = self.net.routes[r].at(s[m])
+            xy[m], yaw[m] = self.net.routes[r].pose(s[m], lengths[m])
         ids = np.concatenate([common, self._p_ids])
         xy = np.concatenate([xy, self._p_xy])
         yaw = np.concatenate([yaw, self._p_yaw])

@@ -110,28 +110,38 @@ def test_right_turn_is_the_shortest_route_from_each_approach(name: str) -> None:
 @pytest.mark.parametrize("name", SITES)
 def test_no_vehicle_footprints_overlap(runs, name: str) -> None:
     _, _, hist = runs[name]
-    collisions = []
+    collisions = _collisions(hist)
+    assert not collisions, f"{name}: overlapping vehicles (t, id, id): {collisions}"
+
+
+def _collisions(hist) -> list[tuple]:
+    out = []
     for t in _sample_times(hist):
         st = hist.state_at(float(t))
         polys = [rect(st.xy[i], st.lwh[i, 0], st.lwh[i, 1], st.yaw[i]) for i in range(len(st))]
         radius = 0.5 * np.hypot(st.lwh[:, 0], st.lwh[:, 1])
         for i in range(len(st)):
             for j in range(i + 1, len(st)):
-                if np.linalg.norm(st.xy[i] - st.xy[j]) > radius[i] + radius[j]:
-                    continue
-                d = _overlap(polys[i], polys[j])
-                if d > 0:
-                    collisions.append((round(float(t), 2), int(st.ids[i]), int(st.ids[j]), round(d, 3)))
-    assert not collisions, f"{name}: overlapping vehicles (t, id, id, depth m): {collisions}"
+                if np.linalg.norm(st.xy[i] - st.xy[j]) <= radius[i] + radius[j] and _overlap(polys[i], polys[j]) > 0:
+                    out.append((round(float(t), 2), int(st.ids[i]), int(st.ids[j])))
+    return out
 
 
-def test_vehicle_types_across_sites(runs) -> None:
-    seen = set()
-    for name in SITES:
-        _, _, hist = runs[name]
-        for t in _sample_times(hist):
-            st = hist.state_at(float(t))
-            seen |= {VEHICLE_TYPES[i] for i in st.type_idx}
+# Seeds that once produced collisions: a bus sweeping into the next lane on an entry curve, and
+# entering vehicles stalled in the ring after a gap closed.
+@pytest.mark.parametrize("seed", [1, 2, 10])
+def test_no_overlap_on_more_roundabout_seeds(seed: int) -> None:
+    site = load_site("state_ellsworth")
+    hist = simulate_traffic(site, build_network(site), seconds=60.0, seed=seed)
+    assert _collisions(hist) == [], f"seed {seed}"
+
+
+def test_vehicle_types_across_sites() -> None:
+    # A 20 s clip holds ~30 moving vehicles and can miss the 5 % types; 200 s holds ~120.
+    site = load_site("state_ellsworth")
+    hist = simulate_traffic(site, build_network(site), seconds=200.0, seed=SEED, warmup_s=WARMUP)
+    seen = {info.type for info in hist.info.values()}
+    assert seen <= set(VEHICLE_TYPES)
     assert len(seen) >= 4, seen
 
 
