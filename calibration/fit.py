@@ -25,6 +25,7 @@ from shared.cameras import Camera, Pose
 from shared.geo import GeoFrame
 
 MIN_PER_SEGMENT = 4
+MIN_LANDMARKS = 5  # below this a gross mistake cannot be told from the rest
 MAX_VIEW_ANGLE_DEG = 86.0  # fisheye pixels further off axis than this look at the horizon
 PLANE_PRIOR_WEIGHT = 2.0  # pull of the global plane on a segment's plane (in landmark units)
 
@@ -35,7 +36,9 @@ class CalibConfig:
     width: int
     height: int
     segments: int | None = None  # default: 1 pinhole, 4 fisheye
-    outlier_px: float = 8.0  # smallest reprojection residual (px) that can mark a gross mistake
+    pixel_sigma_px: float = 2.0  # how precisely a person clicks a landmark in the image
+    map_sigma_m: float = 0.15  # how precisely it is read off the map (an orthophoto pixel is ~0.1-0.3 m)
+    outlier_sigma: float = 4.0  # combined residual (in the noise units above) that marks a gross mistake
     image_circle: tuple[float, float, float] | None = None  # fisheye: cx, cy, radius (px)
     fov_deg: float = 188.0  # fisheye: full field of view at the image circle's edge (datasheet)
 
@@ -46,8 +49,9 @@ class CalibConfig:
             raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
         if self.segments is not None and not 1 <= self.segments <= 8:
             raise ValueError(f"segments must be in [1, 8], got {self.segments}")
-        if not self.outlier_px > 0:
-            raise ValueError(f"outlier_px must be > 0, got {self.outlier_px}")
+        for name in ("pixel_sigma_px", "map_sigma_m", "outlier_sigma"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
 
     @property
     def wanted_segments(self) -> int:
@@ -63,7 +67,9 @@ class CalibConfig:
 @dataclass
 class Calibration:
     """A fitted pixel -> site-metres model: `camera` (lens + pose), `planes` (P, 3) as
-    z = a x + b y + c per segment, `sector_centres` (P,) angles around `nadir_px`."""
+    z = a x + b y + c per segment. Fisheye segments are sectors around `nadir_px` (centre angles
+    in `sector_centres`); pinhole segments are range bands (`band_edges_m`, P - 1 ground
+    distances from the camera's foot), since a forward-looking camera's nadir is off the image."""
 
     config: CalibConfig
     geo: GeoFrame
@@ -71,20 +77,32 @@ class Calibration:
     planes: np.ndarray
     sector_centres: np.ndarray
     nadir_px: np.ndarray
+    band_edges_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
     inliers: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     rejected: list[tuple[str, str]] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
 
-    def weights(self, uv: np.ndarray) -> np.ndarray:
+    def weights(self, uv: np.ndarray, dirs: np.ndarray | None = None) -> np.ndarray:
         """(N, P) blending weights of the segments at pixels uv (rows sum to 1)."""
         p = len(self.planes)
         if p == 1:
             return np.ones((len(uv), 1))
+        if len(self.band_edges_m):
+            return _band_weights(self._range_m(dirs if dirs is not None else self.camera.unproject(uv)[0]),
+                                 self.band_edges_m)
         ang = np.arctan2(uv[:, 1] - self.nadir_px[1], uv[:, 0] - self.nadir_px[0])
         d = np.abs(np.angle(np.exp(1j * (ang[:, None] - self.sector_centres[None, :]))))
         half = math.pi / p
         w = np.clip(1.0 - (d - half * 0.6) / (half * 0.8), 0.0, 1.0)
         return w / np.maximum(w.sum(axis=1, keepdims=True), 1e-12)
+
+    def _range_m(self, dirs: np.ndarray) -> np.ndarray:
+        """Ground distance from the camera's foot along each ray, on the mean of the planes."""
+        a, b, c = self.planes.mean(axis=0)
+        o = self.camera.pose.position_m
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (a * o[0] + b * o[1] + c - o[2]) / (dirs[:, 2] - a * dirs[:, 0] - b * dirs[:, 1])
+        return np.where(t > 0, t * np.linalg.norm(dirs[:, :2], axis=1), np.inf)
 
     def pixel_to_xy(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(N, 2) pixels -> ((N, 2) site metres, (N,) valid)."""
@@ -94,7 +112,7 @@ class Calibration:
             cam_rays, _ = self.camera.unproject_cam(uv)
             ok &= cam_rays[:, 2] > math.cos(math.radians(MAX_VIEW_ANGLE_DEG))
         o = self.camera.pose.position_m
-        w = self.weights(uv)
+        w = self.weights(uv, dirs)
         out = np.zeros((len(uv), 2))
         for k, (a, b, c) in enumerate(self.planes):
             m = w[:, k] > 0
@@ -122,6 +140,17 @@ class Calibration:
         xy = o[:2] + t[:, None] * d[:, :2]
         h, _ = cv2.findHomography(q, xy, 0)
         return h
+
+
+def _band_weights(r: np.ndarray, edges: np.ndarray, blend: float = 0.15) -> np.ndarray:
+    """(N, P) weights of P range bands split at `edges`, blended linearly over +-blend x edge."""
+    w = np.zeros((len(r), len(edges) + 1))
+    w[:, 0] = 1.0
+    for k, e in enumerate(edges):
+        s = np.clip((r - e * (1 - blend)) / (2 * blend * e), 0.0, 1.0)  # 0 before the edge, 1 after
+        w[:, k + 1] = w[:, k] * s
+        w[:, k] *= 1 - s
+    return w
 
 
 # ---- camera model -------------------------------------------------------------------------------
@@ -182,23 +211,21 @@ def _initial_pinhole(uv: np.ndarray, obj: np.ndarray, cfg: CalibConfig) -> tuple
     return np.array([f, cx0, cy0, 0.0, 0.0, *rvec.ravel(), *tvec.ravel()]), f
 
 
-def _fit_camera(uv: np.ndarray, obj: np.ndarray, cfg: CalibConfig, p0: np.ndarray | None = None) -> np.ndarray:
-    """Robust least squares of the reprojection error; frees parameters as landmarks allow."""
+def _fit_camera(
+    uv: np.ndarray, obj: np.ndarray, cfg: CalibConfig, p0: np.ndarray | None = None, robust: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
+    """Errors-in-variables least squares: the lens, the pose and each landmark's true ground
+    position (within `map_sigma_m` of the map point) are fitted together, pixel residuals in
+    units of `pixel_sigma_px`, so a landmark's map error counts as much as it moves its pixel
+    (a lot under the camera, little far away). Returns (parameters, (N, 2) ground corrections)."""
     if p0 is None:
         p0, _ = (_initial_fisheye if cfg.kind == "fisheye" else _initial_pinhole)(uv, obj, cfg)
     n = len(uv)
-    free = [True] * 11
-    idx = np.nonzero(free)[0]
     f0 = p0[0]
     span = 0.15 * (cfg.circle[2] if cfg.kind == "fisheye" else max(cfg.width, cfg.height) / 2)
-    lo_all = np.array([0.4 * f0, p0[1] - span, p0[2] - span, -0.5, -0.3, *[-np.inf] * 6])
-    hi_all = np.array([2.5 * f0, p0[1] + span, p0[2] + span, 0.5, 0.3, *[np.inf] * 6])
-    x0 = np.clip(p0[idx], lo_all[idx] + 1e-9, hi_all[idx] - 1e-9)
-
-    def full(x):
-        p = p0.copy()
-        p[idx] = x
-        return p
+    lo = np.array([0.4 * f0, p0[1] - span, p0[2] - span, -0.5, -0.3, *[-np.inf] * 6, *[-np.inf] * (2 * n)])
+    hi = np.array([2.5 * f0, p0[1] + span, p0[2] + span, 0.5, 0.3, *[np.inf] * 6, *[np.inf] * (2 * n)])
+    x0 = np.clip(np.concatenate([p0, np.zeros(2 * n)]), lo + 1e-9, hi - 1e-9)
 
     # Priors that a user knows: the fisheye image circle's radius at half the field of view,
     # the principal point near the circle (or image) centre, small higher-order distortion.
@@ -206,24 +233,38 @@ def _fit_camera(uv: np.ndarray, obj: np.ndarray, cfg: CalibConfig, p0: np.ndarra
     theta_edge = math.radians(cfg.fov_deg / 2)
     centre_sigma = 3.0 if cfg.kind == "fisheye" else 12.0
     k2_sigma = 0.01 if cfg.kind == "fisheye" else 0.05
-    weight = math.sqrt(max(n, 4))
+    k1_sigma = 0.25  # pinhole: keeps k1 from wandering when few landmarks reach the image corners
 
     def resid(x):
-        p = full(x)
+        p, dxy = x[:11], x[11:].reshape(n, 2)
         cam = _camera(p, cfg)
-        proj, ok = cam.project(obj)
-        r = np.where(ok[:, None], proj - uv, 1e3).ravel()
+        pts = obj.copy()
+        pts[:, :2] += dxy
+        proj, ok = cam.project(pts)
+        r = np.where(ok[:, None], proj - uv, 1e3).ravel() / cfg.pixel_sigma_px
         prior = [(p[1] - ccx) / centre_sigma, (p[2] - ccy) / centre_sigma, p[4] / k2_sigma]
+        if cfg.kind == "pinhole":
+            prior.append(p[3] / k1_sigma)
         if cfg.kind == "fisheye":
             t2 = theta_edge**2
             r_edge = p[0] * theta_edge * (1 + p[3] * t2 + p[4] * t2 * t2)
             prior.append((r_edge - crad) / 2.0)
-        return np.concatenate([r, weight * np.array(prior)])
+        return np.concatenate([r, dxy.ravel() / cfg.map_sigma_m, np.array(prior)])
 
-    sol = least_squares(
-        resid, x0, bounds=(lo_all[idx], hi_all[idx]), loss="soft_l1", f_scale=3.0, x_scale="jac", max_nfev=600
-    )
-    return full(sol.x)
+    loss = "soft_l1" if robust else "linear"
+    sol = least_squares(resid, x0, bounds=(lo, hi), loss=loss, f_scale=2.5, x_scale="jac", max_nfev=800)
+    return sol.x[:11], sol.x[11:].reshape(n, 2)
+
+
+def _normalised_residuals(p: np.ndarray, dxy: np.ndarray, uv: np.ndarray, obj: np.ndarray, cfg: CalibConfig):
+    """Per landmark: pixel residual (px) and the combined residual in noise units
+    sqrt(|pixel residual|^2 / pixel_sigma^2 + |ground correction|^2 / map_sigma^2)."""
+    pts = obj.copy()
+    pts[:, :2] += dxy
+    proj, ok = _camera(p, cfg).project(pts)
+    res_px = np.where(ok, np.linalg.norm(proj - uv, axis=1), np.inf)
+    norm = np.sqrt((res_px / cfg.pixel_sigma_px) ** 2 + (np.linalg.norm(dxy, axis=1) / cfg.map_sigma_m) ** 2)
+    return res_px, norm
 
 
 # ---- ground planes --------------------------------------------------------------------------
@@ -276,19 +317,16 @@ def calibrate(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame) -> Calibration:
     xy = lm.to_local(geo)
     n = len(lm)
     obj = np.column_stack([xy, np.zeros(n)])
-    p = _fit_camera(lm.uv, obj, cfg)
+    p, dxy = _fit_camera(lm.uv, obj, cfg)
     use = np.ones(n, bool)
-    for _ in range(2):
-        cam = _camera(p, cfg)
-        proj, ok = cam.project(obj)
-        res_px = np.where(ok, np.linalg.norm(proj - lm.uv, axis=1), np.inf)
-        mad = 1.4826 * np.median(np.abs(res_px[use] - np.median(res_px[use])))
-        thr = max(cfg.outlier_px, np.median(res_px[use]) + 4.0 * mad)
-        new_use = res_px < thr
-        if new_use.sum() < 4 or (new_use == use).all():
+    # Reject the worst landmark while it is inconsistent with the others, refitting each time.
+    while use.sum() > MIN_LANDMARKS:
+        _, norm = _normalised_residuals(p, dxy, lm.uv[use], obj[use], cfg)
+        worst = int(np.argmax(norm))
+        if norm[worst] <= cfg.outlier_sigma:
             break
-        use = new_use
-        p = _fit_camera(lm.uv[use], obj[use], cfg, p)
+        use[np.nonzero(use)[0][worst]] = False
+        p, dxy = _fit_camera(lm.uv[use], obj[use], cfg, p)
     cam = _camera(p, cfg)
     # Ground planes: a global one, then one per segment around the nadir.
     z, w = _implied_heights(cam, lm.uv[use], xy[use])
@@ -296,38 +334,51 @@ def calibrate(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame) -> Calibration:
     global_plane = _fit_plane(xy[use], z, w, None, centre) if use.sum() >= 6 else np.zeros(3)
     # Refit the camera on the plane's heights (the ground is not at z = 0).
     obj[:, 2] = global_plane[0] * xy[:, 0] + global_plane[1] * xy[:, 1] + global_plane[2]
-    p = _fit_camera(lm.uv[use], obj[use], cfg, p)
+    p, dxy = _fit_camera(lm.uv[use], obj[use], cfg, p, robust=False)  # gross mistakes are out: plain least squares
     cam = _camera(p, cfg)
-    z, w = _implied_heights(cam, lm.uv[use], xy[use])
+    xy_use = xy[use] + dxy  # the fitted ground positions of the landmarks
+    z, w = _implied_heights(cam, lm.uv[use], xy_use)
     if use.sum() >= 6:
-        global_plane = _fit_plane(xy[use], z, w, global_plane, centre)
+        global_plane = _fit_plane(xy_use, z, w, global_plane, centre)
     nadir_px = cam.project(cam.pose.position_m[None] - [0.0, 0.0, 10.0])[0][0]
+    ranges = np.linalg.norm(xy_use - cam.pose.position_m[:2], axis=1)
+
+    def split(p: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Segment centres, band edges and each landmark's segment for P segments."""
+        if cfg.kind == "fisheye":
+            centres, lab = _sectors(lm.uv[use], nadir_px, p)
+            return centres, np.zeros(0), lab
+        edges = np.quantile(ranges, np.arange(1, p) / p)
+        return np.zeros(p), edges, np.searchsorted(edges, ranges)
+
     warnings: list[str] = []
     n_seg = cfg.wanted_segments
-    while n_seg > 1 and np.bincount(_sectors(lm.uv[use], nadir_px, n_seg)[1], minlength=n_seg).min() < MIN_PER_SEGMENT:
+    while n_seg > 1 and np.bincount(split(n_seg)[2], minlength=n_seg).min() < MIN_PER_SEGMENT:
         n_seg -= 1
     if n_seg < cfg.wanted_segments:
         warnings.append(
             f"{int(use.sum())} usable landmarks: fitted {n_seg} ground segment(s) instead of "
             f"{cfg.wanted_segments} (each needs at least {MIN_PER_SEGMENT} landmarks)"
         )
+    centres, edges, lab = split(n_seg)
     if n_seg > 1:
-        centres, lab = _sectors(lm.uv[use], nadir_px, n_seg)
-        planes = []
-        for s in range(n_seg):
-            m = lab == s
-            planes.append(_fit_plane(xy[use][m], z[m], w[m], global_plane, xy[use][m].mean(axis=0)))
-        planes = np.array(planes)
+        planes = np.array([
+            _fit_plane(xy_use[lab == s], z[lab == s], w[lab == s], global_plane, xy_use[lab == s].mean(axis=0))
+            for s in range(n_seg)
+        ])
     else:
-        centres, planes = np.zeros(1), global_plane[None]
-    cal = Calibration(cfg, geo, cam, planes, centres, nadir_px, use)
+        edges, planes = np.zeros(0), global_plane[None]
+    cal = Calibration(cfg, geo, cam, planes, centres, nadir_px, edges, use)
     proj, _ = cam.project(obj)
     res_px = np.linalg.norm(proj - lm.uv, axis=1)
+    ground, _ = cal.pixel_to_xy(lm.uv)
+    res_m = np.linalg.norm(ground - xy, axis=1)
     cal.rejected = [
         (
             lm.ids[i],
-            f"reprojection residual {res_px[i]:.1f} px is inconsistent with the other "
-            f"landmarks (threshold {thr:.1f} px): a wrong pixel or map point",
+            f"{res_px[i]:.1f} px from where its map point projects ({res_m[i]:.2f} m on the ground), "
+            f"inconsistent with the other landmarks beyond {cfg.outlier_sigma:g} sigma of the expected "
+            f"{cfg.pixel_sigma_px:g} px / {cfg.map_sigma_m:g} m: a wrong pixel or map point",
         )
         for i in np.nonzero(~use)[0]
     ]

@@ -128,12 +128,16 @@ def build_masks(cal: Calibration, landmarks_hash: str, area: dict, extra_meta: d
         ll = cal.geo.to_geodetic(np.column_stack([xy[ok], np.zeros(int(ok.sum()))]))
         lat[ok], lon[ok] = ll[:, 0], ll[:, 1]
     segments = []
+    sectors = len(cal.planes) > 1 and not len(cal.band_edges_m)
+    edges = [0.0, *map(float, cal.band_edges_m), None]
+    bands = [[edges[k], edges[k + 1]] for k in range(len(cal.planes))]
     for k, plane in enumerate(cal.planes):
         hmat = cal.homography(k)
         segments.append(
             {
                 "plane_abc": [float(x) for x in plane],
-                "sector_center_rad": float(cal.sector_centres[k]) if len(cal.planes) > 1 else None,
+                "sector_center_rad": float(cal.sector_centres[k]) if sectors else None,
+                "band_m": bands[k] if len(cal.band_edges_m) else None,
                 "homography_undistorted_to_xy": [[float(x) for x in row] for row in hmat],
             }
         )
