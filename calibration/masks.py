@@ -130,14 +130,14 @@ def build_masks(cal: Calibration, landmarks_hash: str, area: dict, extra_meta: d
     segments = []
     sectors = len(cal.planes) > 1 and not len(cal.band_edges_m)
     edges = [0.0, *map(float, cal.band_edges_m), None]
-    bands = [[edges[k], edges[k + 1]] for k in range(len(cal.planes))]
+    bands = [[edges[k], edges[k + 1]] for k in range(len(edges) - 1)]
     for k, plane in enumerate(cal.planes):
         hmat = cal.homography(k)
         segments.append(
             {
                 "plane_abc": [float(x) for x in plane],
                 "sector_center_rad": float(cal.sector_centres[k]) if sectors else None,
-                "band_m": bands[k] if len(cal.band_edges_m) else None,
+                "band_m": bands[k] if len(cal.band_edges_m) else None,  # [from, to) ground distance, m
                 "homography_undistorted_to_xy": [[float(x) for x in row] for row in hmat],
             }
         )

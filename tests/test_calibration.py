@@ -267,7 +267,7 @@ from calibration.masks import LookupMasks, build_masks, calibrated_area, load_ma
 
 def _fitted_fisheye():
     cam = _fisheye()
-    lm = _synthetic_landmarks(cam, 16, np.random.default_rng(5), 40.0)
+    lm = _synthetic_landmarks(cam, 24, np.random.default_rng(5), 40.0)
     cfg = CalibConfig("fisheye", 1280, 960, image_circle=(639.5, 479.5, cam.image_circle_radius_px()), fov_deg=188.0)
     cal = calibrate(lm, cfg, GEO)
     return cam, lm, cal
@@ -277,6 +277,8 @@ def test_masks_agree_with_the_model_and_survive_a_round_trip(tmp_path):
     _, lm, cal = _fitted_fisheye()
     masks = build_masks(cal, lm.digest(), calibrated_area(cal, lm.to_local(GEO)))
     assert masks.meta["landmarks_hash"] == lm.digest()
+    assert len(masks.meta["segments"]) == len(cal.planes) > 1  # sectors around the nadir
+    assert all(seg["sector_center_rad"] is not None and seg["band_m"] is None for seg in masks.meta["segments"])
     uv = np.random.default_rng(0).uniform([300, 200], [980, 760], (100, 2))
     latlon, xy, ok = masks.lookup(uv)
     want, wok = cal.pixel_to_xy(uv)
