@@ -65,7 +65,7 @@ class LookupMasks:
             return (a00 * (1 - fu) + a01 * fu) * (1 - fv) + (a10 * (1 - fu) + a11 * fu) * fv
 
         latlon = np.column_stack([interp(self.lat)[:, 0], interp(self.lon)[:, 0]])
-        xy = interp(self.xy.astype(np.float64))
+        xy = interp(self.xy)  # index first, then promote: never convert the whole (H, W, 2) map
         latlon[~ok] = np.nan
         xy[~ok] = np.nan
         return latlon, xy, ok

@@ -160,7 +160,84 @@ def _run_calibrate(args) -> int:
     return 0
 
 
-BENCHMARKS = {"sim": "bench.sim_render", "calibration": "bench.calibration"}
+BENCHMARKS = {"sim": "bench.sim_render", "calibration": "bench.calibration", "detector": "bench.detector"}
+
+
+def _add_train(sub) -> None:
+    p = sub.add_parser("train", help="train the detector on recordings and/or COCO-style annotations (needs torch)")
+    p.add_argument("--recording", action="append", default=[], help="simulator recording folder (repeatable)")
+    p.add_argument("--coco", action="append", default=[], help="COCO-style annotation JSON (repeatable)")
+    p.add_argument("--out", required=True, help="output folder (model.pt, train_log.jsonl, train.json)")
+    p.add_argument("--steps", type=int, default=4000)
+    p.add_argument("--minutes", type=_positive_float, help="time budget; fewer steps if needed")
+    p.add_argument("--batch-size", type=int, default=16)
+    p.add_argument("--crop", type=int, default=256)
+    p.add_argument("--lr", type=_positive_float, default=2e-3)
+    p.add_argument("--every", type=int, default=1, help="use every n-th frame")
+    p.add_argument("--center", choices=["bottom", "box"], default="bottom", help="box: the 2D-box-centre ablation")
+    p.add_argument("--no-topk", action="store_true", help="ablation: plain mean squared heat-map loss")
+    p.add_argument("--stride", type=int, default=4, choices=[1, 2, 4])
+    p.add_argument("--seed", type=int, default=0)
+
+
+def _run_train(args) -> int:
+    try:
+        from training.train import TrainConfig, train
+    except ImportError as exc:
+        raise RuntimeError(f"training needs the train extra (pip install -e '.[train]'): {exc}") from exc
+    from training.loss import LossConfig
+    from training.model import DetectorConfig
+
+    cfg = TrainConfig(recordings=tuple(args.recording), coco=tuple(args.coco), out=args.out, steps=args.steps,
+                      minutes=args.minutes, batch_size=args.batch_size, crop=args.crop, lr=args.lr, every=args.every,
+                      center=args.center, seed=args.seed, model=DetectorConfig(stride=args.stride),
+                      loss=LossConfig(topk_fraction=None if args.no_topk else 0.01))
+    print(json.dumps(train(cfg), indent=1))
+    return 0
+
+
+def _add_export(sub) -> None:
+    p = sub.add_parser("export", help="export a trained detector to fp32 and fp16 ONNX (needs torch)")
+    p.add_argument("model", type=Path, help="model.pt written by roadside train")
+    p.add_argument("--out", type=Path, required=True, help="fp32 ONNX file; the fp16 copy gets a _fp16 suffix")
+
+
+def _run_export(args) -> int:
+    from training.export import export_onnx
+    from training.model import load_detector
+
+    if not args.model.is_file():
+        raise ValueError(f"model not found: {args.model}")
+    fp16 = args.out.with_name(args.out.stem + "_fp16" + args.out.suffix)
+    export_onnx(load_detector(args.model), args.out, fp16)
+    print(f"fp32: {args.out}\nfp16: {fp16}")
+    return 0
+
+
+def _add_eval(sub) -> None:
+    p = sub.add_parser("eval", help="score a component against simulator ground truth")
+    p.add_argument("what", choices=["detector"])
+    p.add_argument("--model", type=Path, required=True, help="exported ONNX detector")
+    p.add_argument("--recording", type=Path, required=True)
+    p.add_argument("--every", type=int, default=1, help="use every n-th frame")
+    p.add_argument("--score-thr", type=float, default=0.05, help="lowest score kept (AP needs the low ones)")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--json", action="store_true", help="print one JSON document (default: also a summary)")
+
+
+def _run_eval(args) -> int:
+    from eval.detector import evaluate
+    from shared.inference import OnnxDetector
+
+    det = OnnxDetector(args.model, threads=args.threads, score_thr=args.score_thr)
+    result = evaluate(args.recording, det.detect, every=args.every)
+    result["model"] = str(args.model)
+    if not args.json:
+        for kind, r in {"overall": result["overall"], **result["per_kind"]}.items():
+            print(f"{kind:8s} ap50 {r['ap50']} loc {r['loc_err_m']} m yaw {r['yaw_err_deg']} deg "
+                  f"size {r['size_err_m']} m ({r['frames']} frames)", file=sys.stderr)
+    print(json.dumps(result, indent=1))
+    return 0
 
 
 def _add_bench(sub) -> None:
@@ -182,8 +259,12 @@ def main(argv: list[str] | None = None) -> int:
     _add_demo(sub)
     _add_calibrate(sub)
     _add_bench(sub)
+    _add_train(sub)
+    _add_export(sub)
+    _add_eval(sub)
     args = parser.parse_args(argv)
-    runners = {"sim": _run_sim, "demo": _run_demo, "calibrate": _run_calibrate, "bench": _run_bench}
+    runners = {"sim": _run_sim, "demo": _run_demo, "calibrate": _run_calibrate, "bench": _run_bench,
+               "train": _run_train, "export": _run_export, "eval": _run_eval}
     try:
         return runners[args.job](args)
     except (ValueError, FileNotFoundError, RuntimeError) as exc:

@@ -1,0 +1,119 @@
+"""Detector latency: ONNX Runtime ms per frame (median after warm-up) for one (1, 1, S, S) input, fp32 on
+CPU with a fixed thread count and, where the CUDA or TensorRT providers exist, fp16 on them; plus MACs.
+The load average is recorded: on a shared machine the CPU numbers are upper bounds.
+Without --model an untrained default model (or --stride variant) is exported and timed, labelled
+untrained-for-timing-only. Prints one JSON document.
+
+    python -m bench.detector [--model detector.onnx] [--model-fp16 detector_fp16.onnx] [--size 512]
+                             [--threads 2] [--runs 50] [--warmup 10] [--stride 4]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+
+from shared.decode import CONFIG_KEY
+from training.export import INPUT_NAME, export_onnx
+from training.model import Detector, DetectorConfig, count_macs
+
+GPU_PROVIDERS = ("TensorrtExecutionProvider", "CUDAExecutionProvider")
+
+
+@dataclass(frozen=True)
+class BenchSettings:
+    """model / model_fp16: exported files (None: export an untrained model with `stride`)."""
+
+    model: Path | None = None
+    model_fp16: Path | None = None
+    size_px: int = 512
+    threads: int = 2
+    runs: int = 50
+    warmup: int = 10
+    stride: int = 4
+
+    def __post_init__(self) -> None:
+        if self.size_px % 32 or self.size_px < 32:
+            raise ValueError(f"size_px must be a positive multiple of 32, got {self.size_px}")
+        for name in ("threads", "runs"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+
+
+def time_session(session: ort.InferenceSession, image: np.ndarray, runs: int, warmup: int) -> dict:
+    """Median and 90th-percentile ms of session.run over `runs` calls after `warmup` calls."""
+    for _ in range(warmup):
+        session.run(None, {INPUT_NAME: image})
+    times = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        session.run(None, {INPUT_NAME: image})
+        times.append((time.perf_counter() - t0) * 1e3)
+    return {"median_ms": round(statistics.median(times), 2), "min_ms": round(min(times), 2),
+            "p90_ms": round(float(np.percentile(times, 90)), 2), "runs": runs}
+
+
+def run(settings: BenchSettings, workdir: Path) -> dict:
+    """Time the model(s) named in settings, exporting into workdir when none is given."""
+    out: dict = {"benchmark": "detector", "input": [1, 1, settings.size_px, settings.size_px],
+                 "cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
+                 "load_average_1min": round(os.getloadavg()[0], 2), "onnxruntime": ort.__version__}
+    fp32, fp16 = settings.model, settings.model_fp16
+    if fp32 is None:
+        model = Detector(DetectorConfig(stride=settings.stride))
+        fp32, fp16 = workdir / "detector.onnx", workdir / "detector_fp16.onnx"
+        export_onnx(model, fp32, fp16 if set(GPU_PROVIDERS) & set(ort.get_available_providers()) else None,
+                    (settings.size_px, settings.size_px))
+        out["model"] = "untrained-for-timing-only"
+    else:
+        out["model"] = str(fp32)
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = settings.threads
+    options.inter_op_num_threads = 1
+    session = ort.InferenceSession(str(fp32), options, providers=["CPUExecutionProvider"])
+    config = DetectorConfig(**json.loads(session.get_modelmeta().custom_metadata_map[CONFIG_KEY]))
+    out["config"] = asdict(config)
+    out["macs"] = count_macs(Detector(config), settings.size_px, settings.size_px)
+    image = np.random.default_rng(0).random((1, 1, settings.size_px, settings.size_px), dtype=np.float32)
+    out["cpu_fp32"] = {"threads": settings.threads, **time_session(session, image, settings.runs, settings.warmup)}
+    for provider in GPU_PROVIDERS:
+        if provider not in ort.get_available_providers() or fp16 is None:
+            continue
+        gpu = ort.InferenceSession(str(fp16), providers=[provider, "CPUExecutionProvider"])
+        out[f"{provider.removesuffix('ExecutionProvider').lower()}_fp16"] = time_session(
+            gpu, image, settings.runs, settings.warmup)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    settings = _parse(argv)
+    with tempfile.TemporaryDirectory() as tmp:
+        print(json.dumps(run(settings, Path(tmp)), indent=1))
+    return 0
+
+
+def _parse(argv: list[str] | None = None) -> BenchSettings:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--model", type=Path, help="exported fp32 ONNX model (default: untrained, for timing only)")
+    p.add_argument("--model-fp16", type=Path, help="its fp16 copy, timed on CUDA / TensorRT where available")
+    p.add_argument("--size", type=int, default=512, help="square input side in pixels")
+    p.add_argument("--threads", type=int, default=2, help="ONNX Runtime intra-op threads on CPU")
+    p.add_argument("--runs", type=int, default=50)
+    p.add_argument("--warmup", type=int, default=10)
+    p.add_argument("--stride", type=int, default=4, help="output stride of the untrained model")
+    a = p.parse_args(argv)
+    return BenchSettings(a.model, a.model_fp16, a.size, a.threads, a.runs, a.warmup, a.stride)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,1 @@
+"""Evaluation of the detector and the pipeline against simulator ground truth."""

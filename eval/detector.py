@@ -1,0 +1,170 @@
+"""Detector accuracy on a simulator recording, per camera kind and overall.
+
+- `ap50`: VOC07 average precision (11-point interpolation) at IoU 0.5 on 2D boxes. Ground truth follows
+  the training label policy (`training.data.vehicle_weight`): positives must be found; a detection on
+  an "ignore" vehicle (tiny, mostly hidden) is neither a hit nor a false alarm (VOC's "difficult").
+- For the detections matched to a positive (IoU >= 0.5): `loc_err_m`, the ground distance between the
+  detected bottom centre lifted to the ground through the recording's exact pixel -> ground lookup and
+  the true bottom centre; `yaw_err_deg`, the angle between the true heading and the detected image-space
+  heading carried to the ground (the bottom centre and a point a few pixels along the heading, both
+  lifted; full circle, so a reversed heading is 180 deg); `size_err_m`, the mean absolute length, width
+  and height difference (`size_err_l2_m`: the norm of the 3D difference); `type_acc`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from shared.decode import Detections
+from shared.ground import ground_lookup
+from sim.recording import Recording
+from training.data import samples_from_recording
+
+IOU_MATCH = 0.5
+HEADING_STEP_PX = 6.0  # pixels along the detected heading for the second lifted point
+
+
+def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(N, M) IoU of boxes x1, y1, x2, y2 (edges)."""
+    lt = np.maximum(a[:, None, :2], b[None, :, :2])
+    rb = np.minimum(a[:, None, 2:], b[None, :, 2:])
+    inter = np.prod(np.clip(rb - lt, 0, None), axis=2)
+    area = lambda x: np.prod(np.clip(x[:, 2:] - x[:, :2], 0, None), axis=1)  # noqa: E731
+    return inter / np.maximum(area(a)[:, None] + area(b)[None, :] - inter, 1e-9)
+
+
+def voc07_ap(scores: np.ndarray, hits: np.ndarray, n_pos: int) -> float:
+    """11-point interpolated average precision (PASCAL VOC 2007)."""
+    if n_pos == 0:
+        return float("nan")
+    order = np.argsort(-scores, kind="stable")
+    tp = np.cumsum(hits[order])
+    fp = np.cumsum(~hits[order])
+    recall = tp / n_pos
+    precision = tp / np.maximum(tp + fp, 1)
+    ap = 0.0
+    for t in np.linspace(0, 1, 11):
+        p = precision[recall >= t]
+        ap += (p.max() if len(p) else 0.0) / 11
+    return float(ap)
+
+
+def match_frame(det: Detections, box: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Greedy VOC matching by score: per detection, its matched positive (index, -1 none) and whether
+    it counts at all (False when it only overlaps an ignore vehicle)."""
+    gt_of = -np.ones(len(det), int)
+    counts = np.ones(len(det), bool)
+    if len(det) == 0 or len(box) == 0:
+        return gt_of, counts
+    iou = box_iou(det.box, box)
+    taken = np.zeros(len(box), bool)
+    for i in np.argsort(-det.score, kind="stable"):
+        pos = (weight > 0) & ~taken
+        cand = np.where(pos, iou[i], -1.0)
+        j = int(np.argmax(cand))
+        if cand[j] >= IOU_MATCH:
+            gt_of[i], taken[j] = j, True
+        elif (iou[i][weight == 0] >= IOU_MATCH).any():
+            counts[i] = False
+    return gt_of, counts
+
+
+class GroundLifter:
+    """Bilinear lookup into a camera's exact pixel -> ground map."""
+
+    def __init__(self, xyz: np.ndarray, valid: np.ndarray) -> None:
+        self.xyz = np.where(valid[..., None], xyz, np.nan)
+
+    def __call__(self, uv: np.ndarray) -> np.ndarray:
+        h, w = self.xyz.shape[:2]
+        u = np.clip(uv[:, 0], 0, w - 1)
+        v = np.clip(uv[:, 1], 0, h - 1)
+        u0 = np.minimum(np.floor(u).astype(int), w - 2)
+        v0 = np.minimum(np.floor(v).astype(int), h - 2)
+        fu, fv = (u - u0)[:, None], (v - v0)[:, None]
+        g = self.xyz
+        out = (g[v0, u0] * (1 - fu) * (1 - fv) + g[v0, u0 + 1] * fu * (1 - fv)
+               + g[v0 + 1, u0] * (1 - fu) * fv + g[v0 + 1, u0 + 1] * fu * fv)
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+        return np.where(inside[:, None], out, np.nan)
+
+
+def _angle_diff(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.abs((a - b + np.pi) % (2 * np.pi) - np.pi)
+
+
+def evaluate(recording: str | Path, detect: Callable[[np.ndarray], Detections], every: int = 1,
+             cameras: list[str] | None = None, log=None) -> dict:
+    """Score `detect(grey image) -> Detections` (original pixels) on every `every`-th frame."""
+    rec = Recording(recording)
+    names = cameras or rec.camera_names
+    per: dict[str, dict] = {}
+    t_total, n_frames = 0.0, 0
+    for name in names:
+        cam = rec.cameras[name]
+        kind = "thermal" if rec._camera_entry(name).get("modality") == "thermal" else cam.kind
+        lift = GroundLifter(*ground_lookup(cam, rec.terrain))
+        truth = {g["t_ns"]: g for g in rec.ground_truth(name)}
+        acc = per.setdefault(kind, {"scores": [], "hits": [], "n_pos": 0, "loc": [], "yaw": [], "size": [],
+                                    "size_l2": [], "type": [], "frames": 0})
+        for ref in samples_from_recording(rec.path, [name], every=every):
+            sample = ref.load()
+            t0 = time.perf_counter()
+            det = detect(sample.image)
+            t_total += time.perf_counter() - t0
+            n_frames += 1
+            acc["frames"] += 1
+            gt_of, counts = match_frame(det, sample.box, sample.weight)
+            acc["scores"] += list(det.score[counts])
+            acc["hits"] += list(gt_of[counts] >= 0)
+            acc["n_pos"] += int((sample.weight > 0).sum())
+            hit = np.nonzero(gt_of >= 0)[0]
+            if len(hit) == 0:
+                continue
+            g = gt_of[hit]
+            by_id = {v["id"]: v for v in truth[ref.meta["t_ns"]]["vehicles"]}
+            gts = [by_id[int(ref.meta["track_id"][j])] for j in g]
+            xyz_true = np.array([v["xyz"] for v in gts])
+            p0 = lift(det.uv[hit])
+            acc["loc"] += list(np.linalg.norm(p0[:, :2] - xyz_true[:, :2], axis=1))
+            p1 = lift(det.uv[hit] + HEADING_STEP_PX * det.heading_uv[hit])
+            yaw = np.arctan2(p1[:, 1] - p0[:, 1], p1[:, 0] - p0[:, 0])
+            acc["yaw"] += list(np.degrees(_angle_diff(yaw, np.array([v["yaw"] for v in gts]))))
+            d = det.size_lwh[hit] - np.array([v["lwh"] for v in gts])
+            acc["size"] += list(np.abs(d).mean(axis=1))
+            acc["size_l2"] += list(np.linalg.norm(d, axis=1))
+            acc["type"] += list(det.vtype[hit] == sample.vtype[g])
+        if log:
+            log(f"[eval] {name}: {acc['frames']} frames so far for {kind}")
+
+    def stat(values: list, fn) -> float | None:
+        x = np.asarray(values, float)
+        return round(float(fn(x)), 4) if np.isfinite(x).any() else None
+
+    def summary(accs: list[dict]) -> dict:
+        scores = np.concatenate([np.asarray(a["scores"], float) for a in accs])
+        hits = np.concatenate([np.asarray(a["hits"], bool) for a in accs])
+        n_pos = sum(a["n_pos"] for a in accs)
+        pool = {k: [x for a in accs for x in a[k]] for k in ("loc", "yaw", "size", "size_l2", "type")}
+        return {
+            "frames": sum(a["frames"] for a in accs),
+            "positives": n_pos,
+            "ap50": round(voc07_ap(scores, hits, n_pos), 4),
+            "matched": len(pool["loc"]),
+            "loc_err_m": stat(pool["loc"], np.nanmean),
+            "loc_err_median_m": stat(pool["loc"], np.nanmedian),
+            "yaw_err_deg": stat(pool["yaw"], np.nanmean),
+            "yaw_err_median_deg": stat(pool["yaw"], np.nanmedian),
+            "size_err_m": stat(pool["size"], np.nanmean),
+            "size_err_l2_m": stat(pool["size_l2"], np.nanmean),
+            "type_acc": stat(pool["type"], np.nanmean),
+        }
+
+    out = {"recording": str(rec.path), "every": every, "overall": summary(list(per.values()))}
+    out["per_kind"] = {k: summary([a]) for k, a in sorted(per.items())}
+    out["detect_ms_per_frame"] = round(1e3 * t_total / max(n_frames, 1), 2)
+    return out

@@ -1,0 +1,122 @@
+"""Detections from the detector's output maps: 3x3 max-pool peaks, a score threshold and a top-k.
+
+NumPy only (the detect service runs it next to ONNX Runtime, without PyTorch). Pixel convention as in
+shared/cameras.py: pixel (col, row) covers [col - 0.5, col + 0.5). An output cell j at stride s covers input
+pixels j*s .. j*s + s - 1, so its centre is at j*s + (s - 1) / 2.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+BOX_SCALE_PX = 32.0  # the size head predicts 2D box width and height in input pixels / BOX_SCALE_PX
+HEADING_EPS = 1e-12
+CONFIG_KEY = "detector_config"  # ONNX metadata written by training.export: the DetectorConfig as JSON
+
+
+def model_stride(metadata: Mapping[str, str]) -> int:
+    """Output stride of an exported model from its metadata (onnxruntime: session.get_modelmeta().
+    custom_metadata_map)."""
+    if CONFIG_KEY not in metadata:
+        raise ValueError(f"model metadata has no {CONFIG_KEY!r} (not written by training.export?): {sorted(metadata)}")
+    return int(json.loads(metadata[CONFIG_KEY])["stride"])
+
+
+def cell_centres(n: int, stride: int) -> np.ndarray:
+    """(n,) float64 input-pixel coordinate of the centres of n output cells along one axis."""
+    return np.arange(n, dtype=np.float64) * stride + (stride - 1) / 2
+
+
+def cell_of(coord: np.ndarray, stride: int) -> np.ndarray:
+    """Index of the output cell that contains each input-pixel coordinate (same shape, int64)."""
+    return np.floor((np.asarray(coord, np.float64) + 0.5) / stride).astype(np.int64)
+
+
+@dataclass
+class Detections:
+    """N detections, struct of arrays, in the pixels of one image.
+
+    score       (N,)    float64 heat-map peak value in [0, 1]
+    uv          (N, 2)  float64 bottom centre (pixels)
+    box         (N, 4)  float64 2D box x1, y1, x2, y2 (pixels)
+    heading_uv  (N, 2)  float64 unit vector from the footprint's rear towards its front (image space)
+    size_lwh    (N, 3)  float64 length, width, height (m)
+    vtype       (N,)    int64 argmax of vtype_prob (index into training.sample.VEHICLE_TYPES)
+    vtype_prob  (N, C)  float64 class probabilities
+    """
+
+    score: np.ndarray
+    uv: np.ndarray
+    box: np.ndarray
+    heading_uv: np.ndarray
+    size_lwh: np.ndarray
+    vtype: np.ndarray
+    vtype_prob: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = len(self.score)
+        expected = {"score": (n,), "uv": (n, 2), "box": (n, 4), "heading_uv": (n, 2), "size_lwh": (n, 3),
+                    "vtype": (n,)}
+        for name, shape in expected.items():
+            if getattr(self, name).shape != shape:
+                raise ValueError(f"Detections.{name} must have shape {shape}, got {getattr(self, name).shape}")
+        if self.vtype_prob.ndim != 2 or len(self.vtype_prob) != n:
+            raise ValueError(f"Detections.vtype_prob must have shape ({n}, C), got {self.vtype_prob.shape}")
+
+    def __len__(self) -> int:
+        return len(self.score)
+
+    def scaled(self, sx: float, sy: float, dx: float = 0.0, dy: float = 0.0) -> Detections:
+        """The same detections in another image where u' = sx*u + dx and v' = sy*v + dy (e.g. the original
+        image of a resized or cropped network input); headings are rescaled by (sx, sy) and renormalised."""
+        if not (sx > 0 and sy > 0):
+            raise ValueError(f"scale factors must be > 0, got sx={sx}, sy={sy}")
+        scale, shift = np.array([sx, sy]), np.array([dx, dy])
+        heading = self.heading_uv * scale
+        heading /= np.maximum(np.linalg.norm(heading, axis=1, keepdims=True), HEADING_EPS)
+        return Detections(self.score.copy(), self.uv * scale + shift, self.box * np.tile(scale, 2) + np.tile(shift, 2),
+                          heading, self.size_lwh.copy(), self.vtype.copy(), self.vtype_prob.copy())
+
+
+def peak_mask(heat: np.ndarray) -> np.ndarray:
+    """(h, w) bool: cells equal to the maximum of their 3x3 neighbourhood (plateaus keep every cell)."""
+    padded = np.pad(heat, 1, constant_values=-np.inf)
+    pooled = np.lib.stride_tricks.sliding_window_view(padded, (3, 3)).max(axis=(-2, -1))
+    return heat == pooled
+
+
+def decode(heat: np.ndarray, size: np.ndarray, heading: np.ndarray, vtype_prob: np.ndarray, offset: np.ndarray,
+           stride: int, score_thr: float = 0.3, top_k: int = 100) -> Detections:
+    """Detections of one image from the exported model's outputs without the batch axis:
+    heat (1, h, w), size (5, h, w), heading (2, h, w), vtype_prob (C, h, w), offset (4, h, w); coordinates in
+    input pixels. Peaks at or above score_thr, the top_k highest first (ties in row-major order)."""
+    if heat.ndim != 3 or heat.shape[0] != 1:
+        raise ValueError(f"heat must have shape (1, h, w), got {heat.shape}")
+    h, w = heat.shape[1:]
+    for name, arr, c in (("size", size, 5), ("heading", heading, 2), ("offset", offset, 4),
+                         ("vtype_prob", vtype_prob, vtype_prob.shape[0])):
+        if arr.shape != (c, h, w):
+            raise ValueError(f"{name} must have shape ({c}, {h}, {w}), got {arr.shape}")
+    if stride < 1:
+        raise ValueError(f"stride must be >= 1, got {stride}")
+    if top_k < 0:
+        raise ValueError(f"top_k must be >= 0, got {top_k}")
+    hm = heat[0].astype(np.float64)
+    rows, cols = np.nonzero(peak_mask(hm) & (hm >= score_thr))
+    order = np.argsort(-hm[rows, cols], kind="stable")[:top_k]
+    rows, cols = rows[order], cols[order]
+    off = offset[:, rows, cols].astype(np.float64)
+    uv = np.stack([cell_centres(w, stride)[cols] + off[0] * stride, cell_centres(h, stride)[rows] + off[1] * stride],
+                  axis=1)
+    box_wh = size[3:5, rows, cols].astype(np.float64).T * BOX_SCALE_PX
+    box_c = uv + off[2:4].T * box_wh
+    hd = heading[:, rows, cols].astype(np.float64).T
+    hd /= np.maximum(np.linalg.norm(hd, axis=1, keepdims=True), HEADING_EPS)
+    prob = vtype_prob[:, rows, cols].astype(np.float64).T
+    return Detections(score=hm[rows, cols], uv=uv, box=np.concatenate([box_c - box_wh / 2, box_c + box_wh / 2], axis=1),
+                      heading_uv=hd, size_lwh=size[0:3, rows, cols].astype(np.float64).T,
+                      vtype=prob.argmax(axis=1), vtype_prob=prob)

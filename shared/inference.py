@@ -1,0 +1,86 @@
+"""Run an exported detector (ONNX) on one image: resize so the longer side is the model's input size,
+pad to a multiple of 32, infer with ONNX Runtime, decode, and map the detections back to the original
+image's pixels. NumPy, OpenCV and ONNX Runtime only (no PyTorch): the detect service uses this.
+
+Execution providers are chosen at start from what the installed ONNX Runtime offers, in the order
+TensorRT -> CUDA -> CPU unless given; an fp16 model is meant for GPUs, the fp32 one for CPUs (fp16 runs
+slower on CPU execution providers).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from shared.decode import CONFIG_KEY, Detections, decode
+
+PAD_MULTIPLE = 32
+PREFERRED_PROVIDERS = ("TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider")
+
+
+def available_providers(wanted: tuple[str, ...] = PREFERRED_PROVIDERS) -> list[str]:
+    import onnxruntime as ort
+
+    have = set(ort.get_available_providers())
+    return [p for p in wanted if p in have]
+
+
+class OnnxDetector:
+    """An exported detector. `detect(grey)` -> Detections in the image's own pixels."""
+
+    def __init__(self, path: str | Path, providers: list[str] | None = None, threads: int = 2,
+                 score_thr: float = 0.3, top_k: int = 200) -> None:
+        import onnxruntime as ort
+
+        path = Path(path)
+        if not path.is_file():
+            raise ValueError(f"detector model not found: {path}")
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = threads
+        opts.inter_op_num_threads = 1
+        try:
+            self.session = ort.InferenceSession(str(path), opts, providers=providers or available_providers())
+        except Exception as e:  # onnxruntime raises its own exception types for bad files
+            raise ValueError(f"{path}: not a loadable ONNX model ({e})") from e
+        meta = self.session.get_modelmeta().custom_metadata_map
+        if CONFIG_KEY not in meta:
+            raise ValueError(f"{path}: model metadata has no {CONFIG_KEY!r} (export it with `roadside export`)")
+        self.config = json.loads(meta[CONFIG_KEY])
+        self.stride = int(self.config["stride"])
+        self.long_side = int(self.config.get("input_long_side", 640))
+        self.input_name = self.session.get_inputs()[0].name
+        self.path = path
+        self.score_thr = score_thr
+        self.top_k = top_k
+
+    @property
+    def providers(self) -> list[str]:
+        return self.session.get_providers()
+
+    def input_shape(self, height: int, width: int) -> tuple[float, int, int]:
+        """(scale, network height, network width) for an image of this size."""
+        scale = self.long_side / max(height, width)
+        h, w = round(height * scale), round(width * scale)
+        return scale, -(-h // PAD_MULTIPLE) * PAD_MULTIPLE, -(-w // PAD_MULTIPLE) * PAD_MULTIPLE
+
+    def preprocess(self, grey: np.ndarray) -> tuple[np.ndarray, float]:
+        """(1, 1, H, W) float32 network input and the resize factor."""
+        if grey.ndim != 2 or grey.dtype != np.uint8:
+            raise ValueError(f"detector input must be a (H, W) uint8 grey image, got {grey.shape} {grey.dtype}")
+        scale, hp, wp = self.input_shape(*grey.shape)
+        h, w = round(grey.shape[0] * scale), round(grey.shape[1] * scale)
+        small = cv2.resize(grey, (w, h), interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR)
+        x = np.full((1, 1, hp, wp), 0.5, np.float32)
+        x[0, 0, :h, :w] = small.astype(np.float32) / 255.0
+        return x, scale
+
+    def detect(self, grey: np.ndarray) -> Detections:
+        x, scale = self.preprocess(grey)
+        outs = self.session.run(None, {self.input_name: x})
+        det = decode(*(o[0] for o in outs), stride=self.stride, score_thr=self.score_thr, top_k=self.top_k)
+        # network pixel p (centre convention) <- image pixel q: p + 0.5 = (q + 0.5) * scale
+        inv = 1.0 / scale
+        return det.scaled(inv, inv, 0.5 * inv - 0.5, 0.5 * inv - 0.5)

@@ -1,0 +1,433 @@
+"""Detector: targets, decode, loss, model (shapes, MACs, a short overfit) and ONNX export parity."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+from torch.utils.data import default_collate
+
+from shared.decode import BOX_SCALE_PX, Detections, cell_centres, decode, model_stride, peak_mask
+from training.loss import LossConfig, detector_loss, heat_loss
+from training.model import Detector, DetectorConfig, count_macs, load_detector, save_detector
+from training.sample import VEHICLE_TYPES, Sample
+from training.targets import build_targets, gaussian_sigma_px
+
+TINY = DetectorConfig(width_mult=0.25, decoder_channels=16, head_channels=8, stride=4)
+NAN3 = [np.nan, np.nan, np.nan]
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_torch_thread():
+    """Tiny models gain nothing from threads, and on a busy 2-core machine thread barriers cost seconds."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def make_sample(bottom_uv, box, heading_uv=None, size_lwh=None, vtype=None, weight=None, hw=(64, 96),
+                image: np.ndarray | None = None) -> Sample:
+    n = len(bottom_uv)
+    return Sample(image if image is not None else np.zeros(hw, np.uint8), bottom_uv, box,
+                  heading_uv if heading_uv is not None else [[1.0, 0.0]] * n,
+                  size_lwh if size_lwh is not None else [[4.5, 1.8, 1.5]] * n,
+                  vtype if vtype is not None else [0] * n, weight if weight is not None else [1.0] * n, source="test")
+
+
+def one_hot_prob(vtype: np.ndarray) -> np.ndarray:
+    """(C, h, w) probabilities that pick each cell's target type (type 0 where none)."""
+    return np.eye(len(VEHICLE_TYPES))[np.maximum(vtype, 0)].transpose(2, 0, 1)
+
+
+def decode_targets(t: dict[str, np.ndarray], stride: int) -> Detections:
+    return decode(t["heat"][None], t["size"], t["heading"], one_hot_prob(t["vtype"]), t["offset"], stride)
+
+
+# --- targets ---------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("stride", [1, 2, 4])
+def test_peak_is_one_at_bottom_centre_cell(stride):
+    s = make_sample([[21.3, 41.9]], [[10, 20, 34, 44]])
+    t = build_targets(s, stride)
+    assert t["heat"].shape == (64 // stride, 96 // stride)
+    row, col = np.unravel_index(np.argmax(t["heat"]), t["heat"].shape)
+    assert (col, row) == (int((21.3 + 0.5) // stride), int((41.9 + 0.5) // stride))
+    assert t["heat"][row, col] == 1.0
+    assert np.sum(t["heat"] == 1.0) == 1
+
+
+def test_tiny_box_still_gets_its_peak():
+    t = build_targets(make_sample([[22.9, 41.1]], [[22, 40, 24, 42]]), 4)
+    assert t["heat"][10, 5] == 1.0 and t["weight"][10, 5] == 1.0
+
+
+def test_gaussian_sigma_and_values():
+    box = np.array([[10.0, 20.0, 40.0, 60.0]])  # diagonal 50 px
+    sigma = 0.5 * np.sqrt(50.0)
+    assert gaussian_sigma_px(box)[0] == pytest.approx(sigma)
+    t = build_targets(make_sample([[30.0, 40.0]], box), stride=1)
+    assert t["heat"][40, 33] == pytest.approx(np.exp(-9 / sigma**2), rel=1e-6)
+    assert t["heat"][42, 29] == pytest.approx(np.exp(-5 / sigma**2), rel=1e-6)
+    # stride 4: cell (col 8, row 10) has its centre at input pixel (33.5, 41.5)
+    t4 = build_targets(make_sample([[30.0, 40.0]], box), stride=4)
+    assert cell_centres(9, 4)[8] == 33.5
+    assert t4["heat"][10, 8] == pytest.approx(np.exp(-(3.5**2 + 1.5**2) / sigma**2), rel=1e-6)
+    assert t4["weight"][10, 8] == t4["heat"][10, 8]
+
+
+@pytest.mark.parametrize("stride", [1, 2, 4])
+def test_offsets_reconstruct_centres(stride):
+    s = make_sample([[21.3, 41.9], [70.05, 20.6]], [[10, 22, 34, 44], [58.2, 5.1, 83.9, 24.7]], hw=(64, 96))
+    t = build_targets(s, stride)
+    h, w = t["heat"].shape
+    cu, cv = np.meshgrid(cell_centres(w, stride), cell_centres(h, stride))
+    u = cu + t["offset"][0].astype(np.float64) * stride
+    v = cv + t["offset"][1].astype(np.float64) * stride
+    for k in range(2):
+        row, col = int((s.bottom_uv[k, 1] + 0.5) // stride), int((s.bottom_uv[k, 0] + 0.5) // stride)
+        assert u[row, col] == pytest.approx(s.bottom_uv[k, 0], abs=1e-5)
+        assert v[row, col] == pytest.approx(s.bottom_uv[k, 1], abs=1e-5)
+        assert -0.5 <= t["offset"][0, row, col] < 0.5 and -0.5 <= t["offset"][1, row, col] < 0.5
+    owned = t["weight"] > 0
+    centres = {tuple(np.round(p, 4)) for p in np.stack([u[owned], v[owned]], 1)}
+    assert centres == {tuple(np.round(p, 4)) for p in s.bottom_uv}
+    box_w = t["size"][3] * BOX_SCALE_PX
+    box_cx = u + t["offset"][2] * box_w
+    row, col = int((41.9 + 0.5) // stride), int((21.3 + 0.5) // stride)
+    assert box_w[row, col] == pytest.approx(24.0, rel=1e-6)
+    assert box_cx[row, col] == pytest.approx(22.0, abs=1e-5)
+
+
+def test_box_centre_mode():
+    s = make_sample([[21.3, 41.9]], [[10, 22, 34, 44]])
+    t = build_targets(s, 4, center="box")
+    row, col = np.unravel_index(np.argmax(t["heat"]), t["heat"].shape)
+    assert (col, row) == (int(22.5 // 4), int(33.5 // 4))
+    assert np.all(t["offset"][2:, row, col] == 0)
+    d = decode_targets(t, 4)
+    np.testing.assert_allclose(d.uv, [[22.0, 33.0]], atol=1e-6)
+    np.testing.assert_allclose(d.box, s.box, atol=1e-5)
+    with pytest.raises(ValueError, match="center"):
+        build_targets(s, 4, center="top")
+
+
+def test_weight_zero_vehicle_is_ignored_not_a_peak():
+    s = make_sample([[20.0, 40.0], [70.0, 30.0]], [[10, 20, 30, 44], [60, 10, 80, 34]], weight=[1.0, 0.0])
+    t = build_targets(s, 2)
+    assert t["heat"][15, 35] == 0.0 and t["ignore"][15, 35]  # its bottom-centre cell
+    assert t["ignore"][8, 33] and t["ignore"][5, 39]  # inside its 2D box
+    assert not t["ignore"][20, 10] and t["heat"][20, 10] == 1.0  # the other vehicle's peak
+    assert not t["ignore"][:, :20].any() and t["ignore"].sum() > 0
+    assert t["vtype"][15, 35] == -1 and t["weight"][15, 35] == 0
+
+
+def test_ignore_does_not_mask_a_vehicle_to_detect():
+    s = make_sample([[20.0, 40.0], [22.0, 40.0]], [[10, 20, 30, 44], [12, 20, 32, 44]], weight=[1.0, 0.0])
+    t = build_targets(s, 2)
+    assert t["heat"][20, 10] == 1.0 and not t["ignore"][20, 10]
+    assert not t["ignore"][t["heat"] >= 0.05].any()
+
+
+def test_unknown_heading_size_and_type_get_no_weight_for_those_terms_only():
+    s = make_sample([[20.0, 40.0], [70.0, 30.0]], [[10, 20, 30, 44], [60, 10, 80, 34]],
+                    heading_uv=[[np.nan, np.nan], [0.6, 0.8]], size_lwh=[NAN3, [4.0, 1.8, 1.4]], vtype=[-1, 3])
+    t = build_targets(s, 4)
+    first = t["weight"] > 0
+    first[:, 12:] = False
+    assert first.any()
+    assert not t["heading_mask"][first].any() and np.all(t["heading"][:, first] == 0)
+    assert not t["size_mask"][:3, first].any() and t["size_mask"][3:, first].all()
+    assert np.all(t["vtype"][first] == -1)
+    assert t["heading_mask"][7, 17] and t["vtype"][7, 17] == 3 and t["size_mask"][:, 7, 17].all()
+    for value in t.values():
+        assert np.isfinite(value).all()
+
+
+def test_overlapping_vehicles_cell_owned_by_highest_value():
+    s = make_sample([[20.0, 40.0], [26.0, 40.0]], [[10, 20, 30, 44], [16, 20, 36, 44]], vtype=[1, 2])
+    t = build_targets(s, 1)
+    assert t["vtype"][40, 22] == 1 and t["vtype"][40, 24] == 2
+    assert t["heat"][40, 23] == pytest.approx(max(np.exp(-9 / gaussian_sigma_px(s.box)[0] ** 2),
+                                                  np.exp(-9 / gaussian_sigma_px(s.box)[1] ** 2)))
+
+
+def test_targets_reject_bad_input():
+    with pytest.raises(ValueError, match="stride 5"):
+        build_targets(make_sample([[20.0, 40.0]], [[10, 20, 30, 44]]), 5)
+    with pytest.raises(ValueError, match="empty 2D box"):
+        build_targets(make_sample([[20.0, 40.0]], [[10, 20, 10, 44]]), 4)
+
+
+def test_no_vehicles():
+    t = build_targets(make_sample(np.zeros((0, 2)), np.zeros((0, 4)), heading_uv=np.zeros((0, 2)),
+                                  size_lwh=np.zeros((0, 3)), vtype=[], weight=[]), 4)
+    assert t["heat"].max() == 0 and np.all(t["vtype"] == -1) and not t["ignore"].any()
+    assert len(decode_targets(t, 4)) == 0
+
+
+# --- decode ----------------------------------------------------------------------------------------------------
+
+
+def hand_maps(h=8, w=10):
+    heat = np.zeros((1, h, w), np.float32)
+    heat[0, 2, 3], heat[0, 2, 4], heat[0, 1, 3] = 0.9, 0.8, 0.5  # a peak and lower neighbours
+    heat[0, 5, 7], heat[0, 6, 7] = 0.7, 0.69
+    heat[0, 6, 1] = 0.2  # a peak below the threshold
+    size = np.ones((5, h, w), np.float32)
+    size[:, 2, 3] = [4.5, 1.8, 1.5, 1.0, 0.5]  # box 32 x 16 px
+    offset = np.zeros((4, h, w), np.float32)
+    offset[:, 2, 3] = [0.25, -0.5, 0.1, -0.25]
+    heading = np.zeros((2, h, w), np.float32)
+    heading[:, 2, 3] = [0.3, 0.4]
+    heading[:, 5, 7] = [-1.0, 0.0]
+    prob = np.full((5, h, w), 0.2, np.float32)
+    prob[:, 2, 3] = [0.1, 0.1, 0.6, 0.1, 0.1]
+    return heat, size, heading, prob, offset
+
+
+def test_decode_two_peaks_exact():
+    d = decode(*hand_maps(), stride=4)
+    assert len(d) == 2
+    np.testing.assert_allclose(d.score, [0.9, 0.7], rtol=1e-6)
+    # cell (col 3, row 2) centre = (13.5, 9.5); offset (0.25, -0.5) * 4
+    np.testing.assert_allclose(d.uv, [[14.5, 7.5], [29.5, 21.5]])
+    np.testing.assert_allclose(d.box[0], [14.5 + 3.2 - 16, 7.5 - 4 - 8, 14.5 + 3.2 + 16, 7.5 - 4 + 8], atol=1e-6)
+    np.testing.assert_allclose(d.heading_uv, [[0.6, 0.8], [-1.0, 0.0]], atol=1e-6)
+    np.testing.assert_allclose(d.size_lwh[0], [4.5, 1.8, 1.5], rtol=1e-6)
+    assert d.vtype[0] == 2 and d.vtype_prob.shape == (2, 5)
+
+
+def test_decode_threshold_and_top_k():
+    maps = hand_maps()
+    assert len(decode(*maps, stride=4, score_thr=0.1)) == 3
+    assert len(decode(*maps, stride=4, score_thr=0.75)) == 1
+    top = decode(*maps, stride=4, score_thr=0.1, top_k=2)
+    np.testing.assert_allclose(top.score, [0.9, 0.7], rtol=1e-6)
+    assert len(decode(*maps, stride=4, top_k=0)) == 0
+
+
+def test_peak_mask_plateau_and_border():
+    heat = np.array([[0.5, 0.5, 0.1], [0.2, 0.1, 0.0], [0.0, 0.0, 0.3]])
+    np.testing.assert_array_equal(peak_mask(heat), [[1, 1, 0], [0, 0, 0], [0, 0, 1]])
+
+
+@pytest.mark.parametrize(("stride", "center"), [(1, "bottom"), (2, "bottom"), (4, "bottom"), (4, "box")])
+def test_decode_of_targets_recovers_vehicles(stride, center):
+    s = make_sample([[21.3, 41.9], [70.05, 20.6]], [[10, 22, 34, 44], [58.2, 5.1, 83.9, 24.7]],
+                    heading_uv=[[0.6, 0.8], [-0.28, 0.96]], size_lwh=[[4.5, 1.8, 1.5], [12.0, 2.5, 3.5]],
+                    vtype=[1, 3])
+    d = decode_targets(build_targets(s, stride, center), stride)
+    order = np.argsort(d.uv[:, 0])
+    centre = s.bottom_uv if center == "bottom" else (s.box[:, :2] + s.box[:, 2:]) / 2
+    np.testing.assert_allclose(d.uv[order], centre, atol=1e-6)
+    np.testing.assert_allclose(d.box[order], s.box, atol=1e-5)
+    np.testing.assert_allclose(d.heading_uv[order], s.heading_uv, atol=1e-6)
+    np.testing.assert_allclose(d.size_lwh[order], s.size_lwh, rtol=1e-6)
+    np.testing.assert_array_equal(d.vtype[order], s.vtype)
+    np.testing.assert_array_equal(d.score, [1.0, 1.0])
+
+
+def test_detections_scaled():
+    d = decode(*hand_maps(), stride=4)
+    s = d.scaled(2.0, 0.5, dx=10.0, dy=-1.0)
+    np.testing.assert_allclose(s.uv, d.uv * [2.0, 0.5] + [10.0, -1.0])
+    np.testing.assert_allclose(s.box, d.box * [2.0, 0.5, 2.0, 0.5] + [10.0, -1.0, 10.0, -1.0])
+    expected = np.array([0.6 * 2, 0.8 * 0.5]) / np.hypot(1.2, 0.4)
+    np.testing.assert_allclose(s.heading_uv[0], expected, atol=1e-6)
+    np.testing.assert_array_equal(s.score, d.score)
+    with pytest.raises(ValueError, match="sx"):
+        d.scaled(0.0, 1.0)
+
+
+def test_decode_and_detections_reject_bad_shapes():
+    heat, size, heading, prob, offset = hand_maps()
+    with pytest.raises(ValueError, match="size"):
+        decode(heat, size[:3], heading, prob, offset, stride=4)
+    with pytest.raises(ValueError, match="heat"):
+        decode(heat[0], size, heading, prob, offset, stride=4)
+    with pytest.raises(ValueError, match="uv"):
+        Detections(np.zeros(2), np.zeros((3, 2)), np.zeros((2, 4)), np.zeros((2, 2)), np.zeros((2, 3)),
+                   np.zeros(2, np.int64), np.zeros((2, 5)))
+
+
+# --- loss ------------------------------------------------------------------------------------------------------
+
+
+def test_topk_picks_exactly_the_top_fraction():
+    rng = np.random.default_rng(0)
+    target = torch.zeros(2, 20, 25)
+    pred = torch.from_numpy(rng.random((2, 20, 25)).astype(np.float32))
+    ignore = torch.zeros(2, 20, 25, dtype=torch.bool)
+    err = np.sort((pred.numpy() ** 2).ravel())[::-1]
+    assert heat_loss(pred, target, ignore, 0.01).item() == pytest.approx(err[:10].mean(), rel=1e-6)
+    assert heat_loss(pred, target, ignore, 0.1).item() == pytest.approx(err[:100].mean(), rel=1e-6)
+    assert heat_loss(pred, target, ignore, None).item() == pytest.approx(err.mean(), rel=1e-6)
+    ignore.view(-1)[torch.argmax(pred)] = True  # the worst pixel is ignored: the next 10 count
+    assert heat_loss(pred, target, ignore, 0.01).item() == pytest.approx(err[1:11].mean(), rel=1e-6)
+
+
+def batch_of(samples: list[Sample], stride: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    images = torch.from_numpy(np.stack([s.image for s in samples])[:, None].astype(np.float32) / 255)
+    return images, default_collate([build_targets(s, stride) for s in samples])
+
+
+def synthetic_sample() -> Sample:
+    """Two bright 'vehicles' on a grey 64 x 64 image, bottom centres near their lower edges."""
+    image = np.full((64, 64), 90, np.uint8)
+    image[20:35, 8:31] = 230
+    image[38:55, 38:59] = 200
+    return make_sample([[19.0, 32.0], [48.0, 52.0]], [[8, 20, 31, 35], [38, 38, 59, 55]],
+                       heading_uv=[[1.0, 0.0], [0.0, 1.0]], size_lwh=[[4.5, 1.8, 1.5], [10.0, 2.5, 3.2]],
+                       vtype=[0, 2], image=image)
+
+
+def test_loss_topk_ablation_changes_value_and_perfect_regression_is_zero():
+    torch.manual_seed(0)
+    model = Detector(TINY)
+    images, targets = batch_of([synthetic_sample()], 4)
+    out = model(images)
+    total, parts = detector_loss(out, targets)
+    _, parts_all = detector_loss(out, targets, LossConfig(topk_fraction=None))
+    assert parts["heat"] != pytest.approx(parts_all["heat"], rel=1e-3)
+    assert parts["size"] == parts_all["size"]
+    assert total.item() == pytest.approx(parts["total"])
+    perfect = {"heat": targets["heat"][:, None], "size": targets["size"].clamp(min=1e-3),
+               "heading": targets["heading"], "offset": targets["offset"],
+               "vtype": 50.0 * nn.functional.one_hot(targets["vtype"].clamp(min=0), 5).permute(0, 3, 1, 2).float()}
+    _, parts_perfect = detector_loss(perfect, targets)
+    assert all(value == pytest.approx(0.0, abs=1e-6) for value in parts_perfect.values())
+    with pytest.raises(ValueError, match="topk_fraction"):
+        LossConfig(topk_fraction=0.0)
+
+
+def test_loss_without_vehicles_is_finite():
+    empty = make_sample(np.zeros((0, 2)), np.zeros((0, 4)), heading_uv=np.zeros((0, 2)), size_lwh=np.zeros((0, 3)),
+                        vtype=[], weight=[], hw=(64, 64))
+    images, targets = batch_of([empty], 4)
+    total, parts = detector_loss(Detector(TINY)(images), targets)
+    assert np.isfinite(total.item()) and parts["size"] == 0.0
+
+
+# --- model -----------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("stride", [1, 2, 4])
+def test_model_output_shapes(stride):
+    model = Detector(DetectorConfig(width_mult=0.25, decoder_channels=8, head_channels=8, stride=stride)).eval()
+    with torch.no_grad():
+        out = model(torch.rand(2, 1, 64, 96))
+    expected = {"heat": 1, "size": 5, "heading": 2, "vtype": len(VEHICLE_TYPES), "offset": 4}
+    assert {k: tuple(v.shape) for k, v in out.items()} == {k: (2, c, 64 // stride, 96 // stride)
+                                                          for k, c in expected.items()}
+    assert out["heat"].min() >= 0 and out["heat"].max() <= 1 and out["size"].min() > 0
+    assert out["heading"].abs().max() <= 1
+
+
+def test_model_rejects_bad_input_and_config():
+    with pytest.raises(ValueError, match="multiples of 32"):
+        Detector(TINY)(torch.rand(1, 1, 48, 64))
+    with pytest.raises(ValueError, match="stride"):
+        DetectorConfig(stride=8)
+    with pytest.raises(ValueError, match="width_mult"):
+        DetectorConfig(width_mult=0.0)
+
+
+def test_count_macs_exact():
+    conv = nn.Conv2d(1, 8, 3, padding=1)
+    assert count_macs(conv, 32, 48) == 32 * 48 * 8 * 9
+    strided = nn.Sequential(nn.Conv2d(1, 6, 3, stride=2, padding=1), nn.Conv2d(6, 6, 3, padding=1, groups=3),
+                            nn.Flatten(), nn.Linear(6 * 16 * 16, 10))
+    assert count_macs(strided, 32, 32) == 16 * 16 * 6 * 9 + 16 * 16 * 6 * 2 * 9 + 6 * 16 * 16 * 10
+
+
+def test_default_model_fits_the_mac_budget():
+    macs = count_macs(Detector(), 512, 512)
+    assert 0.3e9 < macs < 0.8e9
+
+
+def test_save_and_load(tmp_path):
+    model = Detector(TINY).eval()
+    save_detector(model, tmp_path / "d.pt")
+    loaded = load_detector(tmp_path / "d.pt")
+    assert loaded.config == TINY
+    x = torch.rand(1, 1, 64, 64)
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(x)["heat"], model(x)["heat"])
+
+
+@pytest.fixture(scope="module")
+def trained(one_torch_thread):
+    """A tiny model overfitted on the synthetic sample (eval mode, batch-norm statistics recomputed on it);
+    returns (model, per-step loss parts)."""
+    torch.manual_seed(0)
+    model = Detector(TINY)
+    images, targets = batch_of([synthetic_sample()], 4)
+    opt = torch.optim.Adam(model.parameters(), lr=5e-3)
+    losses = []
+    for _ in range(40):
+        total, parts = detector_loss(model(images), targets)
+        opt.zero_grad()
+        total.backward()
+        opt.step()
+        losses.append(parts)
+    for m in model.modules():
+        if isinstance(m, nn.BatchNorm2d):
+            m.reset_running_stats()
+            m.momentum = None  # a cumulative average: one pass sets the statistics of this batch
+    with torch.no_grad():
+        model(images.expand(8, -1, -1, -1))  # 8 copies: the unbiased variance is close to the batch one
+    return model.eval(), losses
+
+
+def test_tiny_model_overfits_one_sample(trained):
+    model, losses = trained
+    assert losses[-1]["total"] < losses[0]["total"] / 4
+    assert losses[-1]["heat"] < losses[0]["heat"] / 4
+    sample = synthetic_sample()
+    with torch.no_grad():
+        out = model(torch.from_numpy(sample.image[None, None].astype(np.float32) / 255))
+    prob = torch.softmax(out["vtype"], 1)
+    d = decode(*(out[k][0].numpy() for k in ("heat", "size", "heading")), prob[0].numpy(), out["offset"][0].numpy(),
+               stride=4)
+    assert len(d) == 2
+
+
+@pytest.mark.skipif(importlib.util.find_spec("onnxconverter_common") is None,
+                    reason="onnxconverter-common is not installed (needed for the fp16 export)")
+def test_export_parity(trained, tmp_path):
+    from training.export import export_onnx, parity
+
+    model, _ = trained
+    export_onnx(model, tmp_path / "d.onnx", tmp_path / "d16.onnx", (64, 64))
+    images = np.stack([synthetic_sample().image, np.fliplr(synthetic_sample().image)])
+    report = parity(model, tmp_path / "d.onnx", tmp_path / "d16.onnx", images)
+    assert report["detections_torch"] >= 2
+    assert report["heat_max_abs_diff_fp32"] < 1e-4
+    assert report["detections_match_fp32"] and report["detections_match_fp16"], report
+    wide = parity(model, tmp_path / "d.onnx", None, np.tile(images, (1, 1, 2)))  # dynamic width: 64 x 128
+    assert wide["detections_match_fp32"] and "detections_fp16" not in wide
+
+
+def test_model_stride_needs_the_export_metadata():
+    assert model_stride({"detector_config": json.dumps({"stride": 2})}) == 2
+    with pytest.raises(ValueError, match="detector_config"):
+        model_stride({})
+
+
+def test_bench_detector_smoke():
+    run = subprocess.run([sys.executable, "-m", "bench.detector", "--size", "64", "--runs", "2", "--warmup", "1"],
+                         cwd=Path(__file__).resolve().parents[1], capture_output=True, text=True, timeout=120,
+                         check=True)
+    report = json.loads(run.stdout)
+    assert report["model"] == "untrained-for-timing-only"
+    assert report["macs"] == count_macs(Detector(), 64, 64)
+    assert report["cpu_fp32"]["median_ms"] > 0

@@ -1,0 +1,1 @@
+"""Detector training (needs the optional `train` extra: torch). Nothing here is imported by the services."""

@@ -1,0 +1,86 @@
+"""The paper's multi-task loss: total = heat + beta_size * size + beta_heading * heading + beta_vtype * vtype
++ beta_offset * offset.
+
+heat     per-pixel squared error over pixels not ignored, averaged over the top `topk_fraction` of them in
+         the batch (hard-example selection; None averages all of them: the paper's ablation)
+size     squared error of log(pred) vs log(target), summed over channels with a known target
+heading  squared error, summed over the two components
+vtype    cross-entropy of the logits
+offset   squared error, summed over the four components
+The regression terms are weighted per cell by the targets' `weight` (and masks) and divided by the sum of
+those weights, so they are means per vehicle cell.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from training.model import SIZE_EPS
+
+WEIGHT_FLOOR = 1e-6  # keeps a term at 0 (not NaN) for a batch without any weighted cell
+
+
+@dataclass(frozen=True)
+class LossConfig:
+    """topk_fraction: share of non-ignored heat pixels per batch kept for the heat term (None: all).
+    beta_*: weights of the regression and classification terms (the paper uses 0.01 for size, heading, type;
+    offset is this project's addition for stride > 1)."""
+
+    topk_fraction: float | None = 0.01
+    beta_size: float = 0.01
+    beta_heading: float = 0.01
+    beta_vtype: float = 0.01
+    beta_offset: float = 0.1
+
+    def __post_init__(self) -> None:
+        if self.topk_fraction is not None and not 0 < self.topk_fraction <= 1:
+            raise ValueError(f"topk_fraction must be in (0, 1] or None, got {self.topk_fraction}")
+        for name in ("beta_size", "beta_heading", "beta_vtype", "beta_offset"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+
+
+def heat_loss(pred: torch.Tensor, target: torch.Tensor, ignore: torch.Tensor,
+              topk_fraction: float | None) -> torch.Tensor:
+    """Mean squared error over the round(topk_fraction * n) largest of the n non-ignored pixels (at least one);
+    all n when topk_fraction is None. pred, target (B, h, w) float; ignore (B, h, w) bool."""
+    err = ((pred - target) ** 2)[~ignore]
+    if err.numel() == 0:
+        return pred.sum() * 0.0
+    if topk_fraction is None:
+        return err.mean()
+    k = max(1, round(topk_fraction * err.numel()))
+    return torch.topk(err, k, sorted=False).values.mean()
+
+
+def _weighted(err: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """sum(weight * err) / sum(weight) for per-cell err and weight (B, h, w)."""
+    return (weight * err).sum() / weight.sum().clamp(min=WEIGHT_FLOOR)
+
+
+def detector_loss(outputs: dict[str, torch.Tensor], targets: dict[str, torch.Tensor],
+                  config: LossConfig | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+    """Total loss and its parts (floats, unweighted by beta, plus "total") for logging.
+
+    outputs: Detector.forward of a batch (heat (B, 1, h, w), size (B, 5, h, w), ... vtype logits);
+    targets: build_targets of each sample stacked on a leading batch axis, as tensors.
+    """
+    cfg = config or LossConfig()
+    weight = targets["weight"]
+    heat = heat_loss(outputs["heat"][:, 0], targets["heat"], targets["ignore"], cfg.topk_fraction)
+    size_mask = targets["size_mask"].to(weight.dtype)
+    log_err = (torch.log(outputs["size"]) - torch.log(targets["size"].clamp(min=SIZE_EPS))) ** 2
+    size = _weighted((log_err * size_mask).sum(dim=1), weight * (size_mask.sum(dim=1) > 0))
+    heading_err = ((outputs["heading"] - targets["heading"]) ** 2).sum(dim=1)
+    heading = _weighted(heading_err, weight * targets["heading_mask"])
+    vtype_known = targets["vtype"] >= 0
+    ce = F.cross_entropy(outputs["vtype"], targets["vtype"].clamp(min=0), reduction="none")
+    vtype = _weighted(ce, weight * vtype_known)
+    offset = _weighted(((outputs["offset"] - targets["offset"]) ** 2).sum(dim=1), weight)
+    total = (heat + cfg.beta_size * size + cfg.beta_heading * heading + cfg.beta_vtype * vtype
+             + cfg.beta_offset * offset)
+    parts = {"heat": heat, "size": size, "heading": heading, "vtype": vtype, "offset": offset, "total": total}
+    return total, {name: float(value.detach()) for name, value in parts.items()}

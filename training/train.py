@@ -1,0 +1,160 @@
+"""Train the detector on simulator recordings and/or COCO-style annotation files.
+
+Every image is resized so its longer side is `DetectorConfig.input_long_side` (the size the detect
+service feeds the network), then augmented random crops are trained with the paper's loss. The
+learning rate follows a one-cycle cosine schedule over the run; with `minutes` the number of steps
+is chosen from the measured speed of the first steps so the run ends on time with the schedule
+complete. Writes `model.pt` (config + weights), `train_log.jsonl` (loss parts every `log_every`
+steps) and `train.json` (the settings, data and timing).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field, replace
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from sim.recording import Recording
+from training.augment import AugmentConfig, augment
+from training.data import Batcher, SampleRef, samples_from_coco, samples_from_recording
+from training.loss import LossConfig, detector_loss
+from training.model import Detector, DetectorConfig, count_macs, save_detector
+from training.sample import Sample
+from training.targets import build_targets
+
+WARMUP_STEPS = 20  # steps timed before the step count is fixed (when a time budget is given)
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    recordings: tuple[str, ...] = ()
+    coco: tuple[str, ...] = ()  # COCO-style annotation files (images next to them or in `images_dir`)
+    out: str = "out/train"
+    steps: int = 4000
+    minutes: float | None = None  # time budget: fewer steps if the budget would be exceeded
+    batch_size: int = 16
+    crop: int = 256
+    lr: float = 2e-3
+    weight_decay: float = 1e-4
+    every: int = 1  # use every n-th frame of each camera
+    center: str = "bottom"  # "box": the 2D-box centre instead of the bottom centre (the paper's ablation)
+    seed: int = 0
+    threads: int = 2
+    log_every: int = 25
+    model: DetectorConfig = field(default_factory=DetectorConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    augment: AugmentConfig = field(default_factory=AugmentConfig)
+
+    def __post_init__(self) -> None:
+        if not self.recordings and not self.coco:
+            raise ValueError("no training data: give at least one recording or COCO annotation file")
+        for name in ("steps", "batch_size", "crop", "threads", "log_every", "every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.crop % 32:
+            raise ValueError(f"crop must be a multiple of 32, got {self.crop}")
+        if self.minutes is not None and not self.minutes > 0:
+            raise ValueError(f"minutes must be > 0, got {self.minutes}")
+
+
+def input_scale(width: int, height: int, long_side: int) -> float:
+    """Resize factor that brings an image's longer side to `long_side`."""
+    return long_side / max(width, height)
+
+
+def training_refs(cfg: TrainConfig) -> list[SampleRef]:
+    """SampleRefs of all the training data, each at the network's input scale."""
+    refs: list[SampleRef] = []
+    for path in cfg.recordings:
+        rec = Recording(path)
+        for entry in rec.meta["cameras"]:
+            scale = input_scale(entry["width"], entry["height"], cfg.model.input_long_side)
+            refs += samples_from_recording(path, [entry["name"]], every=cfg.every, scale=scale)
+    for path in cfg.coco:
+        for ref in samples_from_coco(path):
+            h, w = ref.image_hw if ref.image_hw is not None else ref.load().shape
+            refs.append(replace(ref, scale=input_scale(w, h, cfg.model.input_long_side)))
+    if not refs:
+        raise ValueError("the training data has no images")
+    return refs
+
+
+def batch_tensors(samples: list[Sample], stride: int, center: str) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """Images (B, 1, H, W) in [0, 1] and the stacked targets of a batch."""
+    images = torch.from_numpy(np.stack([s.image for s in samples])[:, None].astype(np.float32) / 255.0)
+    targets = [build_targets(s, stride, center) for s in samples]
+    return images, {k: torch.from_numpy(np.stack([t[k] for t in targets])) for k in targets[0]}
+
+
+def _lr(step: int, total: int, peak: float) -> float:
+    warm = max(1, min(200, total // 20))
+    if step < warm:
+        return peak * (step + 1) / warm
+    return peak * 0.5 * (1 + math.cos(math.pi * (step - warm) / max(1, total - warm)))
+
+
+def train(cfg: TrainConfig, log=print) -> dict:
+    """Run one training; returns the summary also written to `out/train.json`."""
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(cfg.seed)
+    torch.set_num_threads(cfg.threads)
+    rng = np.random.default_rng(cfg.seed)
+    refs = training_refs(cfg)
+    n_pos = sum(r.n_positive for r in refs)
+    log(f"[train] {len(refs)} images, {n_pos} vehicles to detect")
+    aug = partial(augment, out_hw=(cfg.crop, cfg.crop), config=cfg.augment)
+    batcher = Batcher(refs, aug, cfg.batch_size, rng)
+    model = Detector(cfg.model)
+    model.train()
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    total = cfg.steps
+    step, t_start, t_warm = 0, time.perf_counter(), None
+    with open(out / "train_log.jsonl", "w") as log_file:
+        while step < total:
+            for samples in batcher:
+                if step >= total:
+                    break
+                images, targets = batch_tensors(samples, cfg.model.stride, cfg.center)
+                for g in opt.param_groups:
+                    g["lr"] = _lr(step, total, cfg.lr)
+                loss, parts = detector_loss(model(images), targets, cfg.loss)
+                if not torch.isfinite(loss):
+                    raise FloatingPointError(f"loss became {loss.item()} at step {step}: lower the learning rate")
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
+                opt.step()
+                step += 1
+                if step == WARMUP_STEPS:
+                    t_warm = time.perf_counter()
+                    if cfg.minutes is not None:
+                        per_step = (t_warm - t_start) / WARMUP_STEPS
+                        total = max(WARMUP_STEPS + 1, min(cfg.steps, int(cfg.minutes * 60 / per_step)))
+                        log(f"[train] {per_step:.2f} s per step: {total} steps fit in {cfg.minutes:g} min")
+                if step % cfg.log_every == 0 or step == total:
+                    rec = {"step": step, "lr": _lr(step - 1, total, cfg.lr), "s": time.perf_counter() - t_start,
+                           **{k: round(v, 6) for k, v in parts.items()}}
+                    log_file.write(json.dumps(rec) + "\n")
+                    log_file.flush()
+                    log(f"[train] step {step}/{total} loss {parts['total']:.4f} heat {parts['heat']:.4f}")
+                if step % 500 == 0:
+                    save_detector(model, out / "model.pt")
+    model.eval()
+    save_detector(model, out / "model.pt")
+    summary = {
+        "steps": step,
+        "seconds": round(time.perf_counter() - t_start, 1),
+        "images": len(refs),
+        "vehicles": n_pos,
+        "macs_per_512x512": count_macs(model, 512, 512),
+        "config": json.loads(json.dumps(asdict(cfg), default=str)),
+    }
+    (out / "train.json").write_text(json.dumps(summary, indent=1))
+    return summary
