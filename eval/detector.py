@@ -102,11 +102,12 @@ def evaluate(recording: str | Path, detect: Callable[[np.ndarray], Detections], 
     """Score `detect(grey image) -> Detections` (original pixels) on every `every`-th frame."""
     rec = Recording(recording)
     names = cameras or rec.camera_names
+    modality = {c["name"]: c.get("modality", "visible") for c in rec.meta["cameras"]}
     per: dict[str, dict] = {}
     t_total, n_frames = 0.0, 0
     for name in names:
         cam = rec.cameras[name]
-        kind = "thermal" if rec._camera_entry(name).get("modality") == "thermal" else cam.kind
+        kind = "thermal" if modality[name] == "thermal" else cam.kind
         lift = GroundLifter(*ground_lookup(cam, rec.terrain))
         truth = {g["t_ns"]: g for g in rec.ground_truth(name)}
         acc = per.setdefault(kind, {"scores": [], "hits": [], "n_pos": 0, "loc": [], "yaw": [], "size": [],
