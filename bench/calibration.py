@@ -23,7 +23,7 @@ import numpy as np
 
 from bench.calibration_real import default_data_root, real_data_rows
 from calibration.fit import CalibConfig, calibrate
-from calibration.landmarks import Landmarks
+from calibration.landmarks import landmarks_from_rows
 from calibration.masks import build_masks, calibrated_area
 from shared.ground import ground_lookup
 from sim.landmarks import pick_landmarks
@@ -35,13 +35,8 @@ ROI_M = 25.0
 BANDS_M = ((25.0, 50.0), (50.0, 100.0), (100.0, 200.0))
 
 
-def _landmarks(records: list[dict]) -> Landmarks:
-    return Landmarks(tuple(r["id"] for r in records), np.array([[r["u"], r["v"]] for r in records]),
-                     np.array([[r["lat"], r["lon"]] for r in records]), -np.ones(len(records), int))
-
-
 def score_camera(cam, site, records: list[dict], n: int, stride: int) -> dict:
-    lm = _landmarks(records[:n])
+    lm = landmarks_from_rows(records[:n], f"{cam.name} landmarks")
     circle = (cam.cx, cam.cy, cam.image_circle_radius_px()) if cam.kind == "fisheye" else None
     cfg = CalibConfig(cam.kind, cam.width, cam.height, image_circle=circle, fov_deg=2 * cam.max_angle_deg)
     t0 = time.perf_counter()

@@ -256,15 +256,16 @@ def _fit_camera(
     return sol.x[:11], sol.x[11:].reshape(n, 2)
 
 
-def _normalised_residuals(p: np.ndarray, dxy: np.ndarray, uv: np.ndarray, obj: np.ndarray, cfg: CalibConfig):
-    """Per landmark: pixel residual (px) and the combined residual in noise units
+def _normalised_residuals(
+    p: np.ndarray, dxy: np.ndarray, uv: np.ndarray, obj: np.ndarray, cfg: CalibConfig
+) -> np.ndarray:
+    """Per landmark, the combined residual in noise units
     sqrt(|pixel residual|^2 / pixel_sigma^2 + |ground correction|^2 / map_sigma^2)."""
     pts = obj.copy()
     pts[:, :2] += dxy
     proj, ok = _camera(p, cfg).project(pts)
     res_px = np.where(ok, np.linalg.norm(proj - uv, axis=1), np.inf)
-    norm = np.sqrt((res_px / cfg.pixel_sigma_px) ** 2 + (np.linalg.norm(dxy, axis=1) / cfg.map_sigma_m) ** 2)
-    return res_px, norm
+    return np.sqrt((res_px / cfg.pixel_sigma_px) ** 2 + (np.linalg.norm(dxy, axis=1) / cfg.map_sigma_m) ** 2)
 
 
 # ---- ground planes --------------------------------------------------------------------------
@@ -321,7 +322,7 @@ def calibrate(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame) -> Calibration:
     use = np.ones(n, bool)
     # Reject the worst landmark while it is inconsistent with the others, refitting each time.
     while use.sum() > MIN_LANDMARKS:
-        _, norm = _normalised_residuals(p, dxy, lm.uv[use], obj[use], cfg)
+        norm = _normalised_residuals(p, dxy, lm.uv[use], obj[use], cfg)
         worst = int(np.argmax(norm))
         if norm[worst] <= cfg.outlier_sigma:
             break

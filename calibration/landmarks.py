@@ -72,24 +72,29 @@ def load_landmarks(path: str | Path) -> tuple[Landmarks, dict]:
             raise ValueError(f"{path}: expected an object with a 'landmarks' list")
         rows = data["landmarks"]
         header = {k: data[k] for k in ("camera", "kind", "width", "height") if k in data}
+    return landmarks_from_rows(rows, str(path)), header
+
+
+def landmarks_from_rows(rows: list[dict], where: str) -> Landmarks:
+    """Landmarks from dicts with id, u, v, lat, lon and an optional segment (extra keys are ignored);
+    `where` (a file name) starts every error message."""
     ids, uv, latlon, seg = [], [], [], []
     for n, row in enumerate(rows, 1):
         lid = str(row.get("id", f"#{n}")).strip()
         try:
             vals = [float(row[k]) for k in ("u", "v", "lat", "lon")]
         except (KeyError, TypeError, ValueError):
-            raise ValueError(f"{path}: landmark {lid!r}: u, v, lat and lon must all be numbers") from None
+            raise ValueError(f"{where}: landmark {lid!r}: u, v, lat and lon must all be numbers") from None
         if not all(math.isfinite(x) for x in vals):
-            raise ValueError(f"{path}: landmark {lid!r}: u, v, lat, lon must be finite, got {vals}")
+            raise ValueError(f"{where}: landmark {lid!r}: u, v, lat, lon must be finite, got {vals}")
         ids.append(lid)
         uv.append(vals[:2])
         latlon.append(vals[2:])
         s = row.get("segment")
         seg.append(int(s) if s not in (None, "") else -1)
-    lm = Landmarks(
+    return Landmarks(
         tuple(ids), np.array(uv, float).reshape(-1, 2), np.array(latlon, float).reshape(-1, 2), np.array(seg, int)
     )
-    return lm, header
 
 
 def validate_landmarks(

@@ -18,6 +18,7 @@ import numpy as np
 
 from calibration.fit import Calibration
 from shared.geo import GeoFrame
+from shared.raster import bilinear, bilinear_cells
 
 FORMAT = "roadside-lookup-masks"
 VERSION = 1
@@ -45,27 +46,11 @@ class LookupMasks:
         uv (N, 2) pixels -> (latlon (N, 2) float64 degrees, xy (N, 2) float64 metres, valid (N,)).
         A position is valid when its four neighbouring pixel centres are all valid.
         """
-        uv = np.asarray(uv, np.float64).reshape(-1, 2)
-        h, w = self.valid.shape
-        finite = np.all(np.isfinite(uv), axis=1)
-        u = np.where(finite, uv[:, 0], -10.0)
-        v = np.where(finite, uv[:, 1], -10.0)
-        inside = finite & (u >= 0) & (v >= 0) & (u <= w - 1) & (v <= h - 1)
-        u0 = np.clip(np.floor(u).astype(np.int64), 0, w - 2)
-        v0 = np.clip(np.floor(v).astype(np.int64), 0, h - 2)
-        fu = np.clip(u - u0, 0, 1)[:, None]
-        fv = np.clip(v - v0, 0, 1)[:, None]
+        cells = bilinear_cells(uv, *self.valid.shape)
+        v0, u0, _, _, inside = cells
         ok = inside & self.valid[v0, u0] & self.valid[v0, u0 + 1] & self.valid[v0 + 1, u0] & self.valid[v0 + 1, u0 + 1]
-
-        def interp(a: np.ndarray) -> np.ndarray:
-            a00, a01 = a[v0, u0], a[v0, u0 + 1]
-            a10, a11 = a[v0 + 1, u0], a[v0 + 1, u0 + 1]
-            if a00.ndim == 1:
-                a00, a01, a10, a11 = (x[:, None] for x in (a00, a01, a10, a11))
-            return (a00 * (1 - fu) + a01 * fu) * (1 - fv) + (a10 * (1 - fu) + a11 * fu) * fv
-
-        latlon = np.column_stack([interp(self.lat)[:, 0], interp(self.lon)[:, 0]])
-        xy = interp(self.xy)  # index first, then promote: never convert the whole (H, W, 2) map
+        latlon = np.column_stack([bilinear(self.lat, cells)[:, 0], bilinear(self.lon, cells)[:, 0]])
+        xy = bilinear(self.xy, cells)
         latlon[~ok] = np.nan
         xy[~ok] = np.nan
         return latlon, xy, ok

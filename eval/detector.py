@@ -21,6 +21,7 @@ import numpy as np
 
 from shared.decode import Detections
 from shared.ground import ground_lookup
+from shared.raster import bilinear, bilinear_cells
 from sim.recording import Recording
 from training.data import samples_from_recording
 
@@ -80,17 +81,8 @@ class GroundLifter:
         self.xyz = np.where(valid[..., None], xyz, np.nan)
 
     def __call__(self, uv: np.ndarray) -> np.ndarray:
-        h, w = self.xyz.shape[:2]
-        u = np.clip(uv[:, 0], 0, w - 1)
-        v = np.clip(uv[:, 1], 0, h - 1)
-        u0 = np.minimum(np.floor(u).astype(int), w - 2)
-        v0 = np.minimum(np.floor(v).astype(int), h - 2)
-        fu, fv = (u - u0)[:, None], (v - v0)[:, None]
-        g = self.xyz
-        out = (g[v0, u0] * (1 - fu) * (1 - fv) + g[v0, u0 + 1] * fu * (1 - fv)
-               + g[v0 + 1, u0] * (1 - fu) * fv + g[v0 + 1, u0 + 1] * fu * fv)
-        inside = (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
-        return np.where(inside[:, None], out, np.nan)
+        cells = bilinear_cells(uv, *self.xyz.shape[:2])
+        return np.where(cells[4][:, None], bilinear(self.xyz, cells), np.nan)
 
 
 def _angle_diff(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -49,12 +49,14 @@ def _pinhole() -> Camera:
     )
 
 
-def _synthetic_landmarks(cam: Camera, n: int, rng, max_range_m: float, pixel_sigma=0.0, map_sigma=0.0) -> Landmarks:
+def _synthetic_landmarks(
+    cam: Camera, n: int, rng, max_range_m: float, pixel_sigma=0.0, map_sigma=0.0, terrain: Terrain = TERRAIN
+) -> Landmarks:
     """n well-spread ground points seen by the camera, with optional noise."""
     pts = []
     while len(pts) < n:
         xy = cam.pose.position_m[:2] + rng.uniform(-max_range_m, max_range_m, 2)
-        p = np.array([*xy, TERRAIN.height(*xy)])
+        p = np.array([*xy, terrain.height(*xy)])
         uv, ok = cam.project(p[None])
         if ok[0] and cam.in_image(uv, margin_px=20)[0] and np.linalg.norm(xy - cam.pose.position_m[:2]) < max_range_m:
             if (
@@ -134,17 +136,7 @@ def test_gross_map_mistake_under_the_camera_is_rejected():
 def test_pinhole_range_bands_follow_a_ground_that_is_not_one_plane():
     terrain = Terrain(0.0, 0.0, (Bump(0.0, 0.0, 15.0, 0.8),))  # a hump in front of the camera
     cam = _pinhole()
-    rng = np.random.default_rng(6)
-    pts = []
-    while len(pts) < 24:
-        xy = cam.pose.position_m[:2] + rng.uniform(-70, 70, 2)
-        p = np.array([*xy, terrain.height(*xy)])
-        uv, ok = cam.project(p[None])
-        if ok[0] and cam.in_image(uv, margin_px=20)[0] and np.linalg.norm(xy - cam.pose.position_m[:2]) < 70:
-            pts.append((uv[0], xy))
-    uv = np.array([p[0] for p in pts])
-    ll = GEO.to_geodetic(np.column_stack([[p[1] for p in pts], np.zeros(len(pts))]))[:, :2]
-    lm = Landmarks(tuple(f"L{i}" for i in range(len(pts))), uv, ll, -np.ones(len(pts), int))
+    lm = _synthetic_landmarks(cam, 24, np.random.default_rng(6), 70.0, terrain=terrain)
     truth, valid = ground_lookup(cam, terrain)
     grid = cam.pixel_grid().reshape(-1, 2)[::7]
     t = truth.reshape(-1, 3)[::7]
