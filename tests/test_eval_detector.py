@@ -72,7 +72,7 @@ def test_an_oracle_detector_scores_perfectly(small_recording):
     assert set(result["per_kind"]) == {"fisheye", "thermal"}
 
 
-def test_onnx_detector_input_size_and_missing_model(tmp_path):
+def test_onnx_detector_rejects_missing_and_corrupt_models(tmp_path):
     with pytest.raises(ValueError, match="not found"):
         OnnxDetector(tmp_path / "none.onnx")
     bad = tmp_path / "bad.onnx"
