@@ -2,9 +2,9 @@
 
 Every image is resized so its longer side is `DetectorConfig.input_long_side` (the size the detect
 service feeds the network), then augmented random crops are trained with the paper's loss. The
-learning rate follows a one-cycle cosine schedule over the run; with `minutes` the number of steps
-is chosen from the measured speed of the first steps so the run ends on time with the schedule
-complete. Writes `model.pt` (config + weights), `train_log.jsonl` (loss parts every `log_every`
+learning rate follows a one-cycle cosine schedule over the run; with `minutes` the schedule follows
+the clock (fraction of the budget spent), so a run on a busy machine still ends on time with the
+schedule complete. Writes `model.pt` (config + weights), `train_log.jsonl` (loss parts every `log_every`
 steps) and `train.json` (the settings, data and timing).
 """
 
@@ -99,6 +99,14 @@ def _lr(step: int, total: int, peak: float) -> float:
     return peak * 0.5 * (1 + math.cos(math.pi * (step - warm) / max(1, total - warm)))
 
 
+def _lr_at(frac: float, peak: float) -> float:
+    """The same one-cycle schedule over a fraction of a time budget (robust to a busy machine)."""
+    warm = 0.03
+    if frac < warm:
+        return peak * max(frac, 1e-3) / warm
+    return peak * 0.5 * (1 + math.cos(math.pi * min(1.0, (frac - warm) / (1 - warm))))
+
+
 def train(cfg: TrainConfig, log=print) -> dict:
     """Run one training; returns the summary also written to `out/train.json`."""
     out = Path(cfg.out)
@@ -115,15 +123,26 @@ def train(cfg: TrainConfig, log=print) -> dict:
     model.train()
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     total = cfg.steps
-    step, t_start, t_warm = 0, time.perf_counter(), None
+    budget_s = None if cfg.minutes is None else cfg.minutes * 60
+    step, t_start = 0, time.perf_counter()
+
+    def lr_now() -> float:
+        if budget_s is None:
+            return _lr(step, total, cfg.lr)
+        return _lr_at((time.perf_counter() - t_start) / budget_s, cfg.lr)
+
+    def done() -> bool:
+        return step >= total or (budget_s is not None and time.perf_counter() - t_start >= budget_s)
+
     with open(out / "train_log.jsonl", "w") as log_file:
-        while step < total:
+        while not done():
             for samples in batcher:
-                if step >= total:
+                if done():
                     break
                 images, targets = batch_tensors(samples, cfg.model.stride, cfg.center)
+                lr = lr_now()
                 for g in opt.param_groups:
-                    g["lr"] = _lr(step, total, cfg.lr)
+                    g["lr"] = lr
                 loss, parts = detector_loss(model(images), targets, cfg.loss)
                 if not torch.isfinite(loss):
                     raise FloatingPointError(f"loss became {loss.item()} at step {step}: lower the learning rate")
@@ -133,17 +152,16 @@ def train(cfg: TrainConfig, log=print) -> dict:
                 opt.step()
                 step += 1
                 if step == WARMUP_STEPS:
-                    t_warm = time.perf_counter()
-                    if cfg.minutes is not None:
-                        per_step = (t_warm - t_start) / WARMUP_STEPS
-                        total = max(WARMUP_STEPS + 1, min(cfg.steps, int(cfg.minutes * 60 / per_step)))
-                        log(f"[train] {per_step:.2f} s per step: {total} steps fit in {cfg.minutes:g} min")
-                if step % cfg.log_every == 0 or step == total:
-                    rec = {"step": step, "lr": _lr(step - 1, total, cfg.lr), "s": time.perf_counter() - t_start,
+                    if budget_s is not None:
+                        per_step = (time.perf_counter() - t_start) / WARMUP_STEPS
+                        log(f"[train] {per_step:.2f} s per step: about {int(budget_s / per_step)} steps "
+                            f"in {cfg.minutes:g} min (the schedule follows the clock)")
+                if step % cfg.log_every == 0 or done():
+                    rec = {"step": step, "lr": lr, "s": time.perf_counter() - t_start,
                            **{k: round(v, 6) for k, v in parts.items()}}
                     log_file.write(json.dumps(rec) + "\n")
                     log_file.flush()
-                    log(f"[train] step {step}/{total} loss {parts['total']:.4f} heat {parts['heat']:.4f}")
+                    log(f"[train] step {step} loss {parts['total']:.4f} heat {parts['heat']:.4f}")
                 if step % 500 == 0:
                     save_detector(model, out / "model.pt")
     model.eval()
