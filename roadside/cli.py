@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -240,6 +241,111 @@ def _run_eval(args) -> int:
     return 0
 
 
+def _add_up(sub) -> None:
+    p = sub.add_parser("up", help="start the four services as OS processes (Ctrl-C stops them)")
+    p.add_argument("--site", required=True, type=Path,
+                   help="site folder or site.yaml (a name such as state_ellsworth means deploy/sites/NAME)")
+    p.add_argument("--source", help="recording, image folders, video file or stream URL (overrides ingest.source)")
+    p.add_argument("--pace", help="1 (real time), N (N x real time) or max (as fast as the pipeline goes)")
+    p.add_argument("--loop", action="store_true", help="repeat the source")
+    p.add_argument("--record", type=Path, help="append tracks to this JSON-lines file")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
+                   help="override a setting in every service (repeatable)")
+    p.add_argument("--no-restart", action="store_true", help="do not restart a service that dies")
+    p.add_argument("--log-dir", type=Path, help="write each service's log to LOG_DIR/<service>.log")
+
+
+def site_path(site: Path) -> Path:
+    """A site argument: a file, a folder, or the name of a folder under deploy/sites/."""
+    if site.exists():
+        return site
+    named = Path(__file__).resolve().parent.parent / "deploy" / "sites" / str(site)
+    if named.exists():
+        return named
+    raise ValueError(f"site not found: {site} (nor {named})")
+
+
+def _run_up(args) -> int:
+    from roadside.launcher import Launcher, UpConfig
+
+    sets = list(args.set)
+    if args.source:
+        sets.append(f"ingest.source={Path(args.source).resolve() if '://' not in args.source else args.source}")
+    if args.pace:
+        sets.append(f"ingest.pace={args.pace}")
+    if args.loop:
+        sets.append("ingest.loop=true")
+    if args.record:
+        sets.append(f"fuse_track.record={args.record.resolve()}")
+    site = site_path(args.site)
+    from shared.service import parse_sets
+    from shared.settings import load_settings
+
+    load_settings(site, **parse_sets(sets))  # fail here, once, on a bad site file or flag
+    return Launcher(UpConfig(site=site, sets=sets, restart=not args.no_restart, log_dir=args.log_dir)).run(
+        log=lambda s: print(s, file=sys.stderr))
+
+
+def _add_tracks(sub) -> None:
+    p = sub.add_parser("tracks", help="print live tracks (what a connected vehicle receives)")
+    p.add_argument("--site", default="state_ellsworth", help="site name")
+    p.add_argument("--connect", action="append", default=[],
+                   help="Zenoh endpoint: the cabinet's router tcp/HOST:7447 (default: the local fuse_track)")
+    p.add_argument("--port-base", type=int, default=7451, help="embedded default's first service port")
+    p.add_argument("--count", type=int, help="stop after this many messages")
+    p.add_argument("--timeout", type=float, help="stop after this many seconds without tracks")
+    p.add_argument("--json", action="store_true", help="one JSON line per message")
+
+
+def _run_tracks(args) -> int:
+    from shared.client import TrackClient
+    from shared.settings import BusSettings
+
+    n = 0
+    with TrackClient(args.site, args.connect or None, BusSettings(port_base=args.port_base)) as client:
+        for tracks in client.stream(timeout_s=args.timeout):
+            rows = tracks.rows()
+            if args.json:
+                print(json.dumps({"t_ns": tracks.t_capture_ns, "seq": tracks.seq, "tracks": rows}), flush=True)
+            else:
+                print(f"t={tracks.t_capture_ns / 1e9:.2f} s  {len(rows)} tracks", flush=True)
+                for r in rows:
+                    speed = math.hypot(r["vx"], r["vy"])
+                    print(f"  {r['id']:>5} {r['type']:<10} lat {r['lat']:.7f} lon {r['lon']:.7f} "
+                          f"yaw {r['yaw']:+.2f} speed {speed:5.1f} m/s  {','.join(r['cameras'])}")
+            n += 1
+            if args.count and n >= args.count:
+                break
+    return 0 if n else 1
+
+
+def _add_health(sub) -> None:
+    p = sub.add_parser("health", help="exit 0 when a service's liveliness token is on the bus")
+    p.add_argument("--site", required=True, type=Path)
+    p.add_argument("--service", required=True, choices=["ingest", "detect", "localize", "fuse_track"])
+    p.add_argument("--timeout", type=float, default=3.0)
+
+
+def _run_health(args) -> int:
+    from shared.bus import wait_for_peers
+    from shared.keys import alive_key
+    from shared.settings import load_settings
+
+    settings = load_settings(site_path(args.site))
+    import zenoh
+
+    from shared.bus import zenoh_config
+
+    session = zenoh.open(zenoh_config(settings.bus.model_copy(update={"listen": []}), None, 0))
+    try:
+        key = alive_key(settings.site, args.service, "x").rsplit("/", 1)[0] + "/*"
+        n = wait_for_peers(session, key, 1, args.timeout)
+    finally:
+        session.close()
+    print(f"{args.service}: {'alive' if n else 'not seen'} ({n} tokens)")
+    return 0 if n else 1
+
+
 def _add_bench(sub) -> None:
     p = sub.add_parser("bench", help="run a benchmark; prints one JSON document")
     p.add_argument("name", choices=sorted(BENCHMARKS))
@@ -262,9 +368,13 @@ def main(argv: list[str] | None = None) -> int:
     _add_train(sub)
     _add_export(sub)
     _add_eval(sub)
+    _add_up(sub)
+    _add_tracks(sub)
+    _add_health(sub)
     args = parser.parse_args(argv)
     runners = {"sim": _run_sim, "demo": _run_demo, "calibrate": _run_calibrate, "bench": _run_bench,
-               "train": _run_train, "export": _run_export, "eval": _run_eval}
+               "train": _run_train, "export": _run_export, "eval": _run_eval, "up": _run_up,
+               "tracks": _run_tracks, "health": _run_health}
     try:
         return runners[args.job](args)
     except (ValueError, FileNotFoundError, RuntimeError) as exc:

@@ -1,0 +1,660 @@
+"""Tracking accuracy of a tracks file (the fuse_track recorder's JSON lines) against a recording's ground truth.
+
+Ground truth
+------------
+`GroundTruth` merges every camera's `gt/<camera>.jsonl` of the recording into one trajectory per vehicle id
+(bottom centre `xyz` over time; the cameras capture at slightly different times, so the merged trajectory is
+denser than any one camera's). `Trajectory.position_at(t)` interpolates linearly; it answers None outside the
+observed span (beyond `max_extrapolation_s`, where it extrapolates the end segment) and inside a gap between
+samples longer than `max_gap_s` (the vehicle was out of every camera's view: a straight line there could cut a
+curve; a gap of up to 1.05 frame intervals is always bridged, for low-rate recordings).
+
+GT objects (which vehicles must be tracked at time t), for a set of chosen cameras
+----------------------------------------------------------------------------------
+A vehicle is a GT object at t when all hold:
+1. seen: at least one chosen camera has a frame with capture time within +-`visibility_window_frames` frame
+   intervals of t in which the vehicle's bottom centre is `in_image` and `visible_fraction` >=
+   `min_visible_fraction`;
+2. its ground-truth position at t is defined (see above);
+3. that position lies in the evaluation area: within the evaluation radius of at least one chosen camera's
+   ground position (recording.json `pose.position_m`, x and y). The evaluation radius of a camera is its ROI
+   radius (the paper's: 25 m around a fisheye camera, `roi_radius_fisheye_m`; "< 200 m within its field of
+   view" for a long-range pinhole/thermal camera, `roi_radius_pinhole_m`, the field of view being enforced by 1),
+   or `eval_radius_m` when that is set and larger (then trajectory errors are split into in-ROI and out-ROI).
+Parked vehicles are GT objects like the others when they are seen. For one camera's own tracks the chosen
+cameras are that camera alone: its GT objects are the vehicles *it* sees in *its* area.
+
+Tracks that are not scored (`ignore_unscored_tracks`, default on): a track position with no GT object within
+the match gate is neither a match nor a false positive when it lies outside the evaluation area, or when it is
+within the gate of a ground-truth vehicle that is not a GT object at t (mostly hidden, seen by no chosen camera,
+outside the area): a tracker is not penalised for following a vehicle the evaluation does not ask for.
+
+Matching and metrics
+--------------------
+Every tracks line (one tick, at its capture time `t_ns`) is one motmetrics frame: the GT objects at `t_ns`
+(positions interpolated at `t_ns`) against the line's tracks, on the ground (x, y), squared-distance matrix
+with gate `match_gate_m` (max_d2 = gate^2, `motmetrics.distances.norm2squared_matrix`). A track's identity is
+(tracker, id): ids are unique per tracker instance, so a restart is an identity change. Lines are taken in
+capture-time order; lines outside the recording's time span are skipped. With `fill_silent_ticks` (default),
+every frame time of the first chosen camera with no tracks line within half a frame interval becomes an empty
+frame: a silent (or dead, or restarting) tracker misses every GT object then, and an empty tracks file scores
+MOTA 0 rather than nothing.
+
+`traj_err_in_roi_m` is the paper's trajectory error: for each matched tracked position inside the ROI (within
+the ROI radius of a chosen camera), the distance to the ground-truth trajectory of the vehicle it is matched to
+(the polyline of its samples within +-`traj_window_s` of the tick; the projection distance, so a time lag along
+the path is not counted), averaged; `traj_err_out_roi_m` the same for matched positions outside the ROI.
+`pos_err_m` is the time-synchronised distance (track position vs GT at the same `t_ns`) of all matches.
+
+Handoff: each GT object's region at t is its nearest chosen camera on the ground. A crossing is a change of
+region between two consecutive GT-object samples of a vehicle at most `handoff_window_s` apart; it is tracked
+when the vehicle is matched within `handoff_window_s` before the crossing (in the old region's samples) and
+after it (in the new region's), and kept when both matches are the same (tracker, id).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import motmetrics as mm
+import numpy as np
+
+from sim.recording import Recording
+
+_MATCH_TYPES = ("MATCH", "SWITCH")
+_MM_METRICS = (
+    "mota", "idf1", "num_switches", "precision", "recall", "num_frames", "mostly_tracked", "mostly_lost",
+    "num_fragmentations", "num_objects", "num_matches", "num_misses", "num_false_positives",
+)
+
+
+@dataclass(frozen=True)
+class TrackingEvalConfig:
+    """The evaluation policy (see the module docstring). Distances in metres, times in seconds."""
+
+    match_gate_m: float = 1.5  # a track and a GT object farther apart on the ground never match
+    min_visible_fraction: float = 0.3  # a camera "sees" a vehicle: bottom centre in image and this much visible
+    visibility_window_frames: float = 1.0  # ... in a frame within +- this many frame intervals of the tick
+    roi_radius_fisheye_m: float = 25.0  # the paper's fisheye ROI
+    roi_radius_pinhole_m: float = 200.0  # the paper's long-range (thermal) ROI: < 200 m in the field of view
+    roi_radius_m: float | None = None  # one ROI radius for every camera (overrides the two above)
+    eval_radius_m: float | None = None  # larger evaluation area (out-ROI part); None: the area is the ROI
+    max_extrapolation_s: float = 0.2  # GT positions beyond the observed span by more than this are undefined
+    max_gap_s: float = 0.5  # no interpolation across longer gaps in a vehicle's merged trajectory
+    traj_window_s: float = 1.0  # the part of the GT trajectory a tracked position is projected on: tick +- this
+    ignore_unscored_tracks: bool = True  # tracks on non-GT vehicles / outside the area are not false positives
+    fill_silent_ticks: bool = True  # frame times without any tracks line count as empty ticks
+    handoff_window_s: float = 1.0  # a crossing is tracked if matched within this time before and after it
+
+
+@dataclass
+class Trajectory:
+    """One vehicle's merged ground-truth trajectory: sample times (ns, increasing) and bottom centres (m)."""
+
+    vehicle_id: int | str
+    t_ns: np.ndarray  # (N,) int64
+    xyz: np.ndarray  # (N, 3) float64
+    parked: bool = False
+    type: str = ""
+
+    def _extrapolate(self, t: int, i: int, j: int, max_gap_ns: int) -> np.ndarray:
+        """Position at t on the line through samples i and j (constant at i when that segment is a gap)."""
+        ti, tj = self.t_ns[i], self.t_ns[j]
+        if i == j or abs(int(tj) - int(ti)) > max_gap_ns or ti == tj:
+            return self.xyz[i].copy()
+        f = (t - int(ti)) / (int(tj) - int(ti))
+        return self.xyz[i] + f * (self.xyz[j] - self.xyz[i])
+
+    def position_at(self, t_ns: int, max_extrapolation_ns: int, max_gap_ns: int) -> np.ndarray | None:
+        """Bottom centre (3,) at t_ns, linearly interpolated; None where undefined (see the module docstring)."""
+        ts, n, t = self.t_ns, len(self.t_ns), int(t_ns)
+        if n == 0 or t < int(ts[0]) - max_extrapolation_ns or t > int(ts[-1]) + max_extrapolation_ns:
+            return None
+        i = int(np.searchsorted(ts, t, side="right"))  # ts[i-1] <= t < ts[i]
+        if i == 0:
+            return self._extrapolate(t, 0, min(1, n - 1), max_gap_ns)
+        if i == n:  # at or after the last sample
+            if int(ts[-1]) == t:
+                return self.xyz[-1].copy()
+            return self._extrapolate(t, n - 1, max(n - 2, 0), max_gap_ns)
+        a, b = i - 1, i
+        ta, tb = int(ts[a]), int(ts[b])
+        if tb - ta <= max_gap_ns:
+            return self.xyz[a] + (t - ta) / (tb - ta) * (self.xyz[b] - self.xyz[a])
+        if t - ta <= max_extrapolation_ns:  # just after the last sample before a gap
+            return self._extrapolate(t, a, a - 1, max_gap_ns) if a > 0 else self.xyz[a].copy()
+        if tb - t <= max_extrapolation_ns:  # just before the first sample after a gap
+            return self._extrapolate(t, b, b + 1, max_gap_ns) if b + 1 < n else self.xyz[b].copy()
+        return None
+
+    def distance_to_path(self, xy: np.ndarray, t_ns: int, window_ns: int, max_gap_ns: int) -> float:
+        """Ground distance from xy to the trajectory polyline of the samples within t_ns +- window_ns (plus the
+        samples bracketing that window; no segment across a gap longer than max_gap_ns)."""
+        ts = self.t_ns
+        lo = max(int(np.searchsorted(ts, int(t_ns) - window_ns, side="left")) - 1, 0)
+        hi = min(int(np.searchsorted(ts, int(t_ns) + window_ns, side="right")) + 1, len(ts))
+        if hi <= lo:
+            return float("nan")
+        pts = self.xyz[lo:hi, :2]
+        p = np.asarray(xy, float)[:2]
+        best = float(np.min(np.linalg.norm(pts - p, axis=1)))
+        if len(pts) >= 2:
+            ok = np.diff(ts[lo:hi]) <= max_gap_ns
+            a, b = pts[:-1][ok], pts[1:][ok]
+            if len(a):
+                ab = b - a
+                den = np.maximum(np.sum(ab * ab, axis=1), 1e-12)
+                f = np.clip(np.sum((p - a) * ab, axis=1) / den, 0.0, 1.0)
+                best = min(best, float(np.min(np.linalg.norm(a + f[:, None] * ab - p, axis=1))))
+        return best
+
+
+@dataclass
+class _CameraFrames:
+    name: str
+    kind: str
+    xy: np.ndarray  # (2,) ground position
+    t_ns: np.ndarray  # (F,) frame capture times
+    ids: list[list]  # per frame: vehicle ids listed
+    in_image: list[np.ndarray]  # per frame: bool per listed vehicle
+    visible_fraction: list[np.ndarray]  # per frame: float per listed vehicle
+    _seen_cache: dict[float, list[frozenset]] = field(default_factory=dict)
+
+    def seen(self, min_visible_fraction: float) -> list[frozenset]:
+        """Per frame, the ids of the vehicles this camera sees (bottom centre in image, visible enough)."""
+        key = float(min_visible_fraction)
+        if key not in self._seen_cache:
+            self._seen_cache[key] = [
+                frozenset(v for v, ok in zip(ids, inim & (vf >= key), strict=True) if ok)
+                for ids, inim, vf in zip(self.ids, self.in_image, self.visible_fraction, strict=True)
+            ]
+        return self._seen_cache[key]
+
+
+class GroundTruth:
+    """The ground-truth trajectory model and visibility of a recording (config-independent; build it once)."""
+
+    def __init__(self, recording: Recording | str | Path) -> None:
+        self.recording = recording if isinstance(recording, Recording) else Recording(recording)
+        meta = self.recording.meta
+        self.cameras: dict[str, _CameraFrames] = {}
+        samples: dict[Any, list[tuple[int, list[float]]]] = {}
+        info: dict[Any, tuple[bool, str]] = {}
+        for entry in meta["cameras"]:
+            name = entry["name"]
+            try:
+                pos = entry["pose"]["position_m"]
+                xy = np.array([float(pos[0]), float(pos[1])])
+            except (KeyError, IndexError, TypeError, ValueError):
+                raise ValueError(f"{self.recording.path}: camera {name!r} has no pose.position_m") from None
+            times, ids_l, inim_l, vf_l = [], [], [], []
+            for n, frame in enumerate(self.recording.ground_truth(name), 1):
+                try:
+                    t = int(frame["t_ns"])
+                    ids, inim, vf = [], [], []
+                    for v in frame["vehicles"]:
+                        vid = v["id"]
+                        ids.append(vid)
+                        inim.append(bool(v.get("in_image", False)))
+                        vf.append(float(v.get("visible_fraction") or 0.0))
+                        samples.setdefault(vid, []).append((t, [float(c) for c in v["xyz"][:3]]))
+                        info.setdefault(vid, (bool(v.get("parked", False)), str(v.get("type", ""))))
+                except (KeyError, TypeError, ValueError) as exc:
+                    raise ValueError(f"{self.recording.path / entry['gt']}:{n}: bad ground truth: {exc!r}") from None
+                times.append(t)
+                ids_l.append(ids)
+                inim_l.append(np.array(inim, bool))
+                vf_l.append(np.array(vf, float))
+            order = np.argsort(np.array(times, np.int64), kind="stable")
+            self.cameras[name] = _CameraFrames(
+                name=name, kind=str(entry.get("kind", "pinhole")), xy=xy,
+                t_ns=np.array(times, np.int64)[order], ids=[ids_l[i] for i in order],
+                in_image=[inim_l[i] for i in order], visible_fraction=[vf_l[i] for i in order])
+        self.trajectories: dict[Any, Trajectory] = {}
+        for vid, s in samples.items():
+            t = np.array([a for a, _ in s], np.int64)
+            xyz = np.array([b for _, b in s], float).reshape(-1, 3)
+            ut, inv = np.unique(t, return_inverse=True)  # several cameras at one instant: average
+            acc = np.zeros((len(ut), 3))
+            np.add.at(acc, inv, xyz)
+            acc /= np.bincount(inv, minlength=len(ut))[:, None]
+            parked, vtype = info[vid]
+            self.trajectories[vid] = Trajectory(vid, ut, acc, parked, vtype)
+        self._ids = list(self.trajectories)
+        self._start = np.array([self.trajectories[v].t_ns[0] for v in self._ids], np.int64)
+        self._end = np.array([self.trajectories[v].t_ns[-1] for v in self._ids], np.int64)
+        hz = meta.get("hz")
+        if isinstance(hz, int | float) and hz > 0:
+            self.frame_interval_ns = round(1e9 / float(hz))
+        else:
+            diffs = [np.diff(c.t_ns) for c in self.cameras.values() if len(c.t_ns) > 1]
+            self.frame_interval_ns = int(np.median(np.concatenate(diffs))) if diffs else 100_000_000
+        all_t = [c.t_ns for c in self.cameras.values() if len(c.t_ns)]
+        self.t_min_ns = int(min(t[0] for t in all_t)) if all_t else 0
+        self.t_max_ns = int(max(t[-1] for t in all_t)) if all_t else -1
+
+    # -- queries -------------------------------------------------------------------------------------------
+
+    def check_cameras(self, cameras: str | Sequence[str] | None) -> list[str]:
+        if cameras is None:
+            return list(self.cameras)
+        names = [c.strip() for c in cameras.split(",") if c.strip()] if isinstance(cameras, str) else list(cameras)
+        bad = [c for c in names if c not in self.cameras]
+        if bad or not names:
+            raise ValueError(f"unknown camera(s) {bad or names!r}; the recording has {', '.join(self.cameras)}")
+        return names
+
+    def roi_radius_m(self, camera: str, config: TrackingEvalConfig) -> float:
+        if config.roi_radius_m is not None:
+            return float(config.roi_radius_m)
+        kind = self.cameras[camera].kind
+        return float(config.roi_radius_fisheye_m if kind == "fisheye" else config.roi_radius_pinhole_m)
+
+    def area_radius_m(self, camera: str, config: TrackingEvalConfig) -> float:
+        return max(self.roi_radius_m(camera, config), float(config.eval_radius_m or 0.0))
+
+    def max_gap_ns(self, config: TrackingEvalConfig) -> int:
+        """The longest gap between trajectory samples that is interpolated (at least 1.05 frame intervals)."""
+        return max(round(config.max_gap_s * 1e9), round(1.05 * self.frame_interval_ns))
+
+    def _within(self, xy: np.ndarray, cameras: Sequence[str], radius) -> np.ndarray:
+        xy = np.asarray(xy, float).reshape(-1, 2)
+        cam = np.array([self.cameras[c].xy for c in cameras]).reshape(-1, 2)
+        rad = np.array([radius(c) for c in cameras], float)
+        d = np.linalg.norm(xy[:, None, :] - cam[None, :, :], axis=2)
+        return np.any(d <= rad[None, :], axis=1)
+
+    def in_roi(self, xy: np.ndarray, cameras: Sequence[str], config: TrackingEvalConfig) -> np.ndarray:
+        """(N,) bool: ground points within the ROI of at least one of the cameras."""
+        return self._within(xy, cameras, lambda c: self.roi_radius_m(c, config))
+
+    def in_area(self, xy: np.ndarray, cameras: Sequence[str], config: TrackingEvalConfig) -> np.ndarray:
+        """(N,) bool: ground points within the evaluation area of at least one of the cameras."""
+        return self._within(xy, cameras, lambda c: self.area_radius_m(c, config))
+
+    def positions_at(self, t_ns: int, config: TrackingEvalConfig) -> dict[Any, np.ndarray]:
+        """Every vehicle whose ground-truth position at t_ns is defined -> its bottom centre (3,)."""
+        ext = round(config.max_extrapolation_s * 1e9)
+        gap = self.max_gap_ns(config)
+        cand = np.nonzero((self._start - ext <= t_ns) & (self._end + ext >= t_ns))[0]
+        out = {}
+        for k in cand:
+            vid = self._ids[k]
+            p = self.trajectories[vid].position_at(t_ns, ext, gap)
+            if p is not None:
+                out[vid] = p
+        return out
+
+    def seen_by(self, t_ns: int, cameras: Sequence[str], config: TrackingEvalConfig) -> set:
+        """Ids of the vehicles that a camera sees in a frame within +- the visibility window of t_ns."""
+        w = round(config.visibility_window_frames * self.frame_interval_ns)
+        out: set = set()
+        for c in cameras:
+            cf = self.cameras[c]
+            lo = int(np.searchsorted(cf.t_ns, t_ns - w, side="left"))
+            hi = int(np.searchsorted(cf.t_ns, t_ns + w, side="right"))
+            seen = cf.seen(config.min_visible_fraction)
+            for k in range(lo, hi):
+                out |= seen[k]
+        return out
+
+    def gt_objects(self, t_ns: int, cameras: Sequence[str], config: TrackingEvalConfig,
+                   positions: Mapping[Any, np.ndarray] | None = None) -> dict[Any, np.ndarray]:
+        """The GT objects at t_ns (see the module docstring) -> their bottom centres (3,)."""
+        pos = self.positions_at(t_ns, config) if positions is None else positions
+        ids = [v for v in self.seen_by(t_ns, cameras, config) if v in pos]
+        if not ids:
+            return {}
+        inside = self.in_area(np.array([pos[v][:2] for v in ids]), cameras, config)
+        return {v: pos[v] for v, ok in zip(ids, inside, strict=True) if ok}
+
+
+def _ground_truth(recording: Recording | GroundTruth | str | Path) -> GroundTruth:
+    return recording if isinstance(recording, GroundTruth) else GroundTruth(recording)
+
+
+# -- tracks input ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class TrackLine:
+    """One tracks line (tick): capture time, tracker instance, track ids and ground positions (N, 2)."""
+
+    line: int
+    t_ns: int
+    tracker: str
+    ids: list[int]
+    xy: np.ndarray
+
+    def keys(self) -> list[tuple[str, int]]:
+        return [(self.tracker, i) for i in self.ids]
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_finite_number(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _parse_line(obj: Any, where: str) -> TrackLine:
+    if not isinstance(obj, dict):
+        raise ValueError(f"{where}: expected a JSON object, got {type(obj).__name__}")
+    for key in ("t_ns", "tracker", "tracks"):
+        if key not in obj:
+            raise ValueError(f"{where}: missing key {key!r}")
+    if not _is_int(obj["t_ns"]) or obj["t_ns"] < 0:
+        raise ValueError(f"{where}: t_ns must be a non-negative integer (ns), got {obj['t_ns']!r}")
+    if not isinstance(obj["tracker"], str):
+        raise ValueError(f"{where}: tracker must be a string, got {obj['tracker']!r}")
+    if not isinstance(obj["tracks"], list):
+        raise ValueError(f"{where}: tracks must be a list")
+    ids, xy = [], []
+    for k, tr in enumerate(obj["tracks"]):
+        if not isinstance(tr, dict):
+            raise ValueError(f"{where}: track {k} is not an object")
+        for key in ("id", "x", "y"):
+            if key not in tr:
+                raise ValueError(f"{where}: track {k} is missing key {key!r}")
+        if not _is_int(tr["id"]):
+            raise ValueError(f"{where}: track {k} id must be an integer, got {tr['id']!r}")
+        if not (_is_finite_number(tr["x"]) and _is_finite_number(tr["y"])):
+            raise ValueError(f"{where}: track {k} (id {tr['id']}) has a non-finite or non-numeric position "
+                             f"x={tr['x']!r} y={tr['y']!r}")
+        ids.append(tr["id"])
+        xy.append((float(tr["x"]), float(tr["y"])))
+    if len(set(ids)) != len(ids):
+        raise ValueError(f"{where}: duplicate track id in one line")
+    return TrackLine(0, obj["t_ns"], obj["tracker"], ids, np.array(xy, float).reshape(-1, 2))
+
+
+def load_tracks(source: str | Path | Iterable[Mapping | Any]) -> list[TrackLine]:
+    """Read and validate tracks: a JSON-lines file path, or an iterable of line dicts ({"t_ns", "tracker",
+    "tracks": [{"id", "x", "y", ...}]}) or `shared.messages.Tracks` messages. Blank lines are skipped.
+    Raises ValueError naming the (1-based) line of anything malformed (bad JSON, missing key, NaN, ...)."""
+    out: list[TrackLine] = []
+    if isinstance(source, str | Path):
+        path = Path(source)
+        if not path.is_file():
+            raise ValueError(f"tracks file missing: {path}")
+        with path.open() as f:
+            for n, text in enumerate(f, 1):
+                if not text.strip():
+                    continue
+                where = f"{path}: line {n}"
+                try:
+                    obj = json.loads(text)
+                except json.JSONDecodeError as exc:
+                    raise ValueError(f"{where}: not valid JSON: {exc}") from None
+                line = _parse_line(obj, where)
+                line.line = n
+                out.append(line)
+        return out
+    for n, obj in enumerate(source, 1):
+        if hasattr(obj, "rows") and hasattr(obj, "t_capture_ns"):  # a Tracks message
+            obj = {"t_ns": int(obj.t_capture_ns), "tracker": getattr(obj, "tracker", ""), "tracks": obj.rows()}
+        line = _parse_line(obj, f"tracks line {n}")
+        line.line = n
+        out.append(line)
+    return out
+
+
+# -- matching -------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class FrameMatch:
+    """One evaluated tick: GT objects (id -> ground xy), scored tracks ((tracker, id) -> xy), matches."""
+
+    t_ns: int
+    gt_xy: dict[Any, np.ndarray]
+    track_xy: dict[tuple[str, int], np.ndarray]
+    matched: dict[Any, tuple[str, int]]  # GT id -> track identity, for the matched GT objects
+
+
+@dataclass
+class MatchResult:
+    accumulator: mm.MOTAccumulator
+    frames: list[FrameMatch]
+    cameras: list[str]
+    lines: int = 0
+    lines_outside_recording: int = 0
+    silent_ticks_filled: int = 0
+    ignored_track_positions: int = 0
+    track_identities: set = field(default_factory=set)  # every (tracker, id) in the evaluated lines
+
+
+def match_tracks(ground_truth: GroundTruth, tracks: str | Path | Iterable, cameras: str | Sequence[str] | None = None,
+                 config: TrackingEvalConfig | None = None) -> MatchResult:
+    """Match the tracks to the GT objects of `cameras`, tick by tick (motmetrics accumulator + per-tick matches)."""
+    cfg = config or TrackingEvalConfig()
+    gt = ground_truth
+    cams = gt.check_cameras(cameras)
+    lines = load_tracks(tracks)
+    iv = gt.frame_interval_ns
+    lo_t, hi_t = gt.t_min_ns - iv, gt.t_max_ns + iv
+    kept = [ln for ln in lines if lo_t <= ln.t_ns <= hi_t]
+    res = MatchResult(mm.MOTAccumulator(auto_id=False), [], cams, lines=len(lines),
+                      lines_outside_recording=len(lines) - len(kept))
+    ticks: list[tuple[int, TrackLine | None]] = [(ln.t_ns, ln) for ln in kept]
+    if cfg.fill_silent_ticks:
+        times = np.sort(np.array([ln.t_ns for ln in kept], np.int64))
+        for r in gt.cameras[cams[0]].t_ns:
+            k = int(np.searchsorted(times, r))
+            near = [times[j] for j in (k - 1, k) if 0 <= j < len(times)]
+            if not near or min(abs(int(x) - int(r)) for x in near) > iv // 2:
+                ticks.append((int(r), None))
+                res.silent_ticks_filled += 1
+    ticks.sort(key=lambda x: (x[0], x[1].line if x[1] is not None else -1))
+
+    gate2 = float(cfg.match_gate_m) ** 2
+    gt_index: dict[Any, int] = {}
+    hyp_index: dict[tuple[str, int], int] = {}
+    for frame_id, (t, line) in enumerate(ticks):
+        pos = gt.positions_at(t, cfg)
+        objs = gt.gt_objects(t, cams, cfg, pos)
+        gids = list(objs)
+        g_xy = np.array([objs[v][:2] for v in gids], float).reshape(-1, 2)
+        keys = line.keys() if line is not None else []
+        h_xy = line.xy if line is not None else np.zeros((0, 2))
+        res.track_identities.update(keys)
+        if cfg.ignore_unscored_tracks and len(keys):
+            d2_gt = np.sum((h_xy[:, None, :] - g_xy[None, :, :]) ** 2, axis=2)
+            near_gt = np.any(d2_gt <= gate2, axis=1) if len(gids) else np.zeros(len(keys), bool)
+            others = np.array([p[:2] for v, p in pos.items() if v not in objs], float).reshape(-1, 2)
+            d2_o = np.sum((h_xy[:, None, :] - others[None, :, :]) ** 2, axis=2)
+            near_other = np.any(d2_o <= gate2, axis=1) if len(others) else np.zeros(len(keys), bool)
+            outside = ~gt.in_area(h_xy, cams, cfg)
+            keep = near_gt | ~(near_other | outside)
+            res.ignored_track_positions += int(np.sum(~keep))
+            keys = [k for k, ok in zip(keys, keep, strict=True) if ok]
+            h_xy = h_xy[keep]
+        oids = [gt_index.setdefault(v, len(gt_index)) for v in gids]
+        hids = [hyp_index.setdefault(k, len(hyp_index)) for k in keys]
+        if oids and hids:
+            dist = mm.distances.norm2squared_matrix(g_xy, h_xy, max_d2=gate2)
+        else:
+            dist = np.empty((len(oids), len(hids)))
+        res.accumulator.update(oids, hids, dist, frameid=frame_id)
+        res.frames.append(FrameMatch(t, {v: g_xy[i] for i, v in enumerate(gids)},
+                                     {k: h_xy[i] for i, k in enumerate(keys)}, {}))
+    if res.frames:
+        ev = res.accumulator.mot_events
+        ev = ev[ev.Type.isin(_MATCH_TYPES)]
+        gt_of = list(gt_index)
+        hyp_of = list(hyp_index)
+        for (frame_id, _), o, h in zip(ev.index, ev.OId.to_numpy(), ev.HId.to_numpy(), strict=True):
+            res.frames[int(frame_id)].matched[gt_of[int(o)]] = hyp_of[int(h)]
+    return res
+
+
+# -- measures -------------------------------------------------------------------------------------------------
+
+
+def _mean_std(values: list[float]) -> tuple[float, float]:
+    if not values:
+        return float("nan"), float("nan")
+    a = np.asarray(values, float)
+    return float(a.mean()), float(a.std())
+
+
+def handoff_measure(frames: Sequence[FrameMatch], camera_xy_m: Mapping[str, Sequence[float]],
+                    handoff_window_s: float = 1.0) -> dict:
+    """Identity kept across camera regions (region = the nearest camera on the ground).
+
+    Returns: `handoff_crossings` (tracked crossings: matched within the window on both sides),
+    `handoff_crossings_kept` (same (tracker, id) on both sides), `handoff_crossing_kept_fraction` (per crossing),
+    `handoff_vehicles` (GT vehicles with at least one tracked crossing), `handoff_kept_fraction` (of those, the
+    fraction whose every tracked crossing kept the identity), `handoff_crossings_untracked` (crossings without
+    a match on one side). Fractions are NaN when there is no tracked crossing."""
+    names = list(camera_xy_m)
+    cam = np.array([camera_xy_m[c][:2] for c in names], float).reshape(-1, 2)
+    window = round(handoff_window_s * 1e9)
+    per_vehicle: dict[Any, list[tuple[int, int, tuple | None]]] = {}
+    for fm in sorted(frames, key=lambda f: f.t_ns):
+        for vid, xy in fm.gt_xy.items():
+            region = int(np.argmin(np.linalg.norm(cam - np.asarray(xy)[:2], axis=1))) if len(cam) else 0
+            per_vehicle.setdefault(vid, []).append((fm.t_ns, region, fm.matched.get(vid)))
+    crossings = kept = untracked = 0
+    vehicles_crossed = vehicles_kept = 0
+    for seq in per_vehicle.values():
+        v_cross = v_kept = 0
+        for i in range(1, len(seq)):
+            t_prev, r_prev, _ = seq[i - 1]
+            t_cur, r_cur, _ = seq[i]
+            if r_prev == r_cur or t_cur - t_prev > window:
+                continue
+            before = next((m for t, r, m in reversed(seq[:i]) if t_prev - t <= window and r == r_prev and m), None)
+            after = next((m for t, r, m in seq[i:] if t - t_cur <= window and r == r_cur and m), None)
+            if before is None or after is None:
+                untracked += 1
+                continue
+            v_cross += 1
+            v_kept += before == after
+        crossings += v_cross
+        kept += v_kept
+        if v_cross:
+            vehicles_crossed += 1
+            vehicles_kept += v_kept == v_cross
+    return {
+        "handoff_crossings": crossings,
+        "handoff_crossings_kept": kept,
+        "handoff_crossing_kept_fraction": kept / crossings if crossings else float("nan"),
+        "handoff_vehicles": vehicles_crossed,
+        "handoff_kept_fraction": vehicles_kept / vehicles_crossed if vehicles_crossed else float("nan"),
+        "handoff_crossings_untracked": untracked,
+    }
+
+
+def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows_or_path: str | Path | Iterable,
+                    cameras: str | Sequence[str] | None = None, config: TrackingEvalConfig | None = None) -> dict:
+    """Tracking accuracy of a tracks file (or rows) on a recording, over the GT objects of `cameras` (all by
+    default). Keys (see the module docstring for the policy):
+
+    - CLEAR MOT / ID (py-motmetrics): `mota`, `idf1`, `id_switches`, `precision`, `recall`, `num_frames` (ticks
+      evaluated), `num_objects` (GT object instances), `num_matches`, `num_misses`, `num_false_positives`,
+      `mostly_tracked`, `mostly_lost`, `fragmentations`;
+    - trajectory error (m): `traj_err_in_roi_m`, `traj_err_in_roi_std_m`, `traj_err_in_roi_n` (matched positions
+      in the ROI), `traj_err_out_roi_m`, `traj_err_out_roi_std_m`, `traj_err_out_roi_n` (the rest: only with a
+      larger `eval_radius_m`); `pos_err_m`, `pos_err_std_m` (time-synchronised distance of all matches);
+    - counts: `tracks` (scored (tracker, id) identities), `tracks_total` (all identities in the evaluated lines),
+      `trackers`, `gt_vehicles` (distinct GT objects), `lines`, `lines_outside_recording`, `silent_ticks_filled`,
+      `ignored_track_positions`;
+    - handoff (see `handoff_measure`): `handoff_kept_fraction`, `handoff_crossings`, ...;
+    - `cameras`, `config`. Undefined ratios are NaN.
+    """
+    cfg = config or TrackingEvalConfig()
+    gt = _ground_truth(recording)
+    res = match_tracks(gt, tracks_rows_or_path, cameras, cfg)
+    cams = res.cameras
+    out: dict[str, Any] = {}
+    if res.frames:
+        summary = mm.metrics.create().compute(res.accumulator, metrics=list(_MM_METRICS), name="tracks")
+        s = {k: float(v) for k, v in summary.iloc[0].to_dict().items()}
+    else:
+        s = {k: float("nan") for k in ("mota", "idf1", "precision", "recall")}
+        s.update({k: 0.0 for k in _MM_METRICS if k not in s})
+    out.update({
+        "mota": s["mota"], "idf1": s["idf1"], "id_switches": int(s["num_switches"]), "precision": s["precision"],
+        "recall": s["recall"], "num_frames": len(res.frames), "num_objects": int(s["num_objects"]),
+        "num_matches": int(s["num_matches"]), "num_misses": int(s["num_misses"]),
+        "num_false_positives": int(s["num_false_positives"]), "mostly_tracked": int(s["mostly_tracked"]),
+        "mostly_lost": int(s["mostly_lost"]), "fragmentations": int(s["num_fragmentations"]),
+    })
+    window = round(cfg.traj_window_s * 1e9)
+    gap = gt.max_gap_ns(cfg)
+    err_in, err_out, pos_err = [], [], []
+    for fm in res.frames:
+        if not fm.matched:
+            continue
+        vids = list(fm.matched)
+        t_xy = np.array([fm.track_xy[fm.matched[v]] for v in vids])
+        in_roi = gt.in_roi(t_xy, cams, cfg)
+        for v, xy, roi in zip(vids, t_xy, in_roi, strict=True):
+            d = gt.trajectories[v].distance_to_path(xy, fm.t_ns, window, gap)
+            (err_in if roi else err_out).append(d)
+            pos_err.append(float(np.linalg.norm(xy - fm.gt_xy[v])))
+    for name, vals in (("in_roi", err_in), ("out_roi", err_out)):
+        m, sd = _mean_std(vals)
+        out[f"traj_err_{name}_m"], out[f"traj_err_{name}_std_m"], out[f"traj_err_{name}_n"] = m, sd, len(vals)
+    out["pos_err_m"], out["pos_err_std_m"] = _mean_std(pos_err)
+    scored = {k for fm in res.frames for k in fm.track_xy}
+    out.update({
+        "tracks": len(scored), "tracks_total": len(res.track_identities),
+        "trackers": len({k[0] for k in res.track_identities}),
+        "gt_vehicles": len({v for fm in res.frames for v in fm.gt_xy}),
+        "lines": res.lines, "lines_outside_recording": res.lines_outside_recording,
+        "silent_ticks_filled": res.silent_ticks_filled, "ignored_track_positions": res.ignored_track_positions,
+    })
+    out.update(handoff_measure(res.frames, {c: gt.cameras[c].xy for c in cams}, cfg.handoff_window_s))
+    out["cameras"] = cams
+    out["config"] = asdict(cfg)
+    return out
+
+
+def evaluate_many(recording: Recording | GroundTruth | str | Path, sources: Mapping[str, str | Path | Iterable],
+                  cameras: str | Sequence[str] | None = None,
+                  source_cameras: Mapping[str, str | Sequence[str]] | None = None,
+                  config: TrackingEvalConfig | None = None) -> dict:
+    """Evaluate several track sources on the same ground truth (built once), e.g. fused tracks against each
+    camera's own tracks: `evaluate_many(rec, {"fused": rows, "C_NE": rows_ne, ...})`.
+
+    The cameras of a source: `source_cameras[name]` if given, else [name] when `name` is a camera of the
+    recording (one camera's tracks are scored on what that camera sees, in its own area), else `cameras` (all
+    by default). Returns {"sources": {name: evaluate_tracks result}, "traj_err_best_single_camera_m": the lowest
+    `traj_err_in_roi_m` among the single-camera sources (NaN if none), "best_single_camera": its name (None),
+    "mota_best_single_camera" / "idf1_best_single_camera": the highest among the single-camera sources}."""
+    cfg = config or TrackingEvalConfig()
+    gt = _ground_truth(recording)
+    results: dict[str, dict] = {}
+    for name, src in sources.items():
+        if source_cameras and name in source_cameras:
+            cams = gt.check_cameras(source_cameras[name])
+        elif name in gt.cameras:
+            cams = [name]
+        else:
+            cams = gt.check_cameras(cameras)
+        results[name] = evaluate_tracks(gt, src, cams, cfg)
+    single = {n: r for n, r in results.items() if len(r["cameras"]) == 1}
+
+    def best(key: str, lowest: bool) -> tuple[str | None, float]:
+        vals = [(r[key], n) for n, r in single.items() if not math.isnan(r[key])]
+        if not vals:
+            return None, float("nan")
+        v, n = min(vals) if lowest else max(vals)
+        return n, v
+
+    best_name, best_err = best("traj_err_in_roi_m", lowest=True)
+    return {
+        "sources": results,
+        "traj_err_best_single_camera_m": best_err,
+        "best_single_camera": best_name,
+        "mota_best_single_camera": best("mota", lowest=False)[1],
+        "idf1_best_single_camera": best("idf1", lowest=False)[1],
+    }

@@ -1,0 +1,132 @@
+"""`roadside up`: the four services as separate OS processes, no Docker.
+
+Starts fuse_track, localize, detect, then ingest (`python -m services.<name> --site ... --set ...`),
+each with its own process group. A service that dies is restarted after `restart_delay_s` (like
+compose's `restart: unless-stopped`); ingest finishing its source (exit 0) ends the run: the others
+get `drain_s` to finish the frames in flight, then SIGTERM. Ctrl-C or SIGTERM stops everything
+cleanly (SIGTERM, then SIGKILL after `stop_timeout_s`).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ORDER = ("fuse_track", "localize", "detect", "ingest")
+
+
+@dataclass
+class UpConfig:
+    site: Path
+    sets: list[str] = field(default_factory=list)  # section.field=value overrides for every service
+    restart: bool = True
+    restart_delay_s: float = 1.0
+    drain_s: float = 3.0
+    stop_timeout_s: float = 5.0
+    log_dir: Path | None = None  # each service's stderr to <log_dir>/<service>.log (else inherited)
+    services: tuple[str, ...] = ORDER
+
+
+class Launcher:
+    def __init__(self, cfg: UpConfig) -> None:
+        for s in cfg.services:
+            if s not in ORDER:
+                raise ValueError(f"unknown service {s!r} (services: {', '.join(ORDER)})")
+        if not (Path(cfg.site).is_file() or (Path(cfg.site) / "site.yaml").is_file()):
+            raise ValueError(f"site file not found: {cfg.site}")
+        self.cfg = cfg
+        self.procs: dict[str, subprocess.Popen] = {}
+        self.restarts: dict[str, int] = dict.fromkeys(cfg.services, 0)
+        self.stopping = False
+        self.peak_rss_mb: dict[str, float] = {}
+
+    def sample_memory(self) -> None:
+        """Record each service's peak resident memory (MB)."""
+        import psutil
+
+        for s, proc in self.procs.items():
+            try:
+                rss = psutil.Process(proc.pid).memory_info().rss / 2**20
+            except (psutil.NoSuchProcess, psutil.AccessDenied):
+                continue
+            self.peak_rss_mb[s] = max(self.peak_rss_mb.get(s, 0.0), round(rss, 1))
+
+    def command(self, service: str) -> list[str]:
+        cmd = [sys.executable, "-m", f"services.{service}", "--site", str(self.cfg.site)]
+        for s in self.cfg.sets:
+            cmd += ["--set", s]
+        return cmd
+
+    def start(self, service: str) -> subprocess.Popen:
+        err = None
+        if self.cfg.log_dir is not None:
+            self.cfg.log_dir.mkdir(parents=True, exist_ok=True)
+            err = open(self.cfg.log_dir / f"{service}.log", "a")
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        proc = subprocess.Popen(self.command(service), stdout=err, stderr=err, env=env, start_new_session=True)
+        self.procs[service] = proc
+        return proc
+
+    def stop(self, service: str) -> int | None:
+        proc = self.procs.get(service)
+        if proc is None or proc.poll() is not None:
+            return None if proc is None else proc.returncode
+        try:
+            os.killpg(proc.pid, signal.SIGTERM)
+        except ProcessLookupError:
+            return proc.poll()
+        try:
+            return proc.wait(self.cfg.stop_timeout_s)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            return proc.wait()
+
+    def stop_all(self) -> None:
+        self.stopping = True
+        for s in reversed(self.cfg.services):  # ingest first, fuse_track last (it writes the tracks file)
+            self.stop(s)
+
+    def run(self, log=print) -> int:
+        """Run until ingest ends (or forever with a looping/live source), Ctrl-C or SIGTERM."""
+        def on_signal(*_):
+            self.stopping = True
+
+        old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        status = 0
+        try:
+            for s in self.cfg.services:
+                self.start(s)
+                log(f"[up] started {s} (pid {self.procs[s].pid})")
+            while not self.stopping:
+                time.sleep(0.2)
+                self.sample_memory()
+                for s, proc in list(self.procs.items()):
+                    rc = proc.poll()
+                    if rc is None:
+                        continue
+                    if s == "ingest" and rc == 0:
+                        log(f"[up] ingest finished its source; draining {self.cfg.drain_s:g} s")
+                        time.sleep(self.cfg.drain_s)
+                        self.stopping = True
+                        break
+                    log(f"[up] {s} exited with status {rc}")
+                    if not self.cfg.restart or rc == 2:
+                        # status 2: a configuration error (missing model, masks, source); restarting will not help
+                        status = rc or 1
+                        self.stopping = True
+                        break
+                    time.sleep(self.cfg.restart_delay_s)
+                    self.restarts[s] += 1
+                    self.start(s)
+                    log(f"[up] restarted {s} (pid {self.procs[s].pid}, restart {self.restarts[s]})")
+        finally:
+            self.stop_all()
+            for s, h in old.items():
+                signal.signal(s, h)
+        log("[up] stopped")
+        return status

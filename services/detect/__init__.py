@@ -1,0 +1,1 @@
+"""detect: Frames -> Detections (ONNX)."""

@@ -1,0 +1,124 @@
+"""detect: run the ONNX detector on every camera's newest frames and publish Detections.
+
+`python -m services.detect --site SITE`
+
+Subscribes to `roadside/<site>/cam/*/frame` with a latest-only ring per camera (`detect.ring`
+frames): a detector slower than the cameras drops old frames, it never queues them. Frames waiting
+from several cameras are taken oldest capture time first. Execution providers are chosen at start
+(TensorRT -> CUDA -> CPU); on a GPU the fp16 model (`detect.model_gpu`) is used, on CPU the fp32 one.
+Detections are published in original-sensor pixels on `roadside/<site>/cam/<camera>/detections`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import cv2
+import numpy as np
+
+from shared.bus import BadInput, Receiver, Stopper, declare_alive, open_session
+from shared.codec import encode
+from shared.inference import OnnxDetector, available_providers
+from shared.keys import camera_key
+from shared.messages import Detections, Frame
+from shared.service import run
+from shared.settings import Settings
+
+log = logging.getLogger("roadside.detect")
+IDLE_SLEEP_S = 0.0005
+
+
+def frame_image(frame: Frame) -> np.ndarray:
+    """(H, W) uint8 grey image of a Frame; ValueError for a corrupt one."""
+    if frame.encoding == "gray8":
+        return np.frombuffer(frame.data, np.uint8).reshape(frame.height, frame.width)
+    if frame.encoding == "bgr8":
+        return cv2.cvtColor(np.frombuffer(frame.data, np.uint8).reshape(frame.height, frame.width, 3),
+                            cv2.COLOR_BGR2GRAY)
+    img = cv2.imdecode(np.frombuffer(frame.data, np.uint8), cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise ValueError(f"camera {frame.camera} seq {frame.seq}: corrupt JPEG ({len(frame.data)} bytes)")
+    if img.shape != (frame.height, frame.width):
+        raise ValueError(f"camera {frame.camera} seq {frame.seq}: JPEG is {img.shape[1]}x{img.shape[0]}, "
+                         f"frame says {frame.width}x{frame.height}")
+    return img
+
+
+def load_detector(settings: Settings) -> OnnxDetector:
+    cfg = settings.detect
+    providers = cfg.providers or available_providers()
+    gpu = any(p != "CPUExecutionProvider" for p in providers)
+    path = settings.path(cfg.model_gpu) if gpu and cfg.model_gpu is not None else settings.path(cfg.model)
+    if not path.is_file() and gpu:
+        path = settings.path(cfg.model)
+    if not path.is_file():
+        raise ValueError(f"detector model not found: {path} (set detect.model in the site file)")
+    return OnnxDetector(path, providers=providers, threads=cfg.threads, score_thr=cfg.score_thr)
+
+
+def detections_message(frame: Frame, det, infer_ms: float, t_in_ns: int) -> Detections:
+    inv = 1.0 / frame.scale
+    # pixel centres: original q + 0.5 = (p + 0.5) / scale
+    d = det.scaled(inv, inv, 0.5 * inv - 0.5, 0.5 * inv - 0.5) if frame.scale != 1.0 else det
+    f4 = np.float32
+    return Detections(
+        site=frame.site, camera=frame.camera, seq=frame.seq, t_capture_ns=frame.t_capture_ns,
+        stamps=[*frame.stamps, ("detect_in", t_in_ns), ("detect", time.time_ns())],
+        width=round(frame.width / frame.scale), height=round(frame.height / frame.scale), infer_ms=round(infer_ms, 3),
+        score=d.score.astype(f4), uv=d.uv.astype(f4), box=d.box.astype(f4), heading_uv=d.heading_uv.astype(f4),
+        size_lwh=d.size_lwh.astype(f4), vtype=d.vtype.astype(np.int8))
+
+
+def main(settings: Settings, stopper: Stopper) -> int:
+    detector = load_detector(settings)
+    log.info("model %s on %s", detector.path, detector.providers)
+    cams = [c.name for c in settings.cameras]
+    bad = BadInput("detect")
+    session = open_session(settings, "detect")
+    try:
+        tokens = declare_alive(session, settings.site, "detect", cams)
+        receivers = {c: Receiver(session, camera_key(settings.site, c, "frame"), Frame, bad,
+                                 ring=settings.detect.ring) for c in cams}
+        pubs = {c: session.declare_publisher(camera_key(settings.site, c, "detections")) for c in cams}
+        waiting: list[tuple[int, Frame]] = []
+        done = 0
+        while not stopper.is_set():
+            for c, r in receivers.items():
+                for msg in r.poll():
+                    if msg.camera != c:
+                        bad(f"frame for camera {msg.camera} on the key of camera {c}", c)
+                        continue
+                    waiting.append((time.time_ns(), msg))
+            if not waiting:
+                time.sleep(IDLE_SLEEP_S)
+                continue
+            waiting.sort(key=lambda w: w[1].t_capture_ns)
+            # keep at most `ring` per camera (newest), as the channel does
+            per_cam: dict[str, int] = {}
+            kept = []
+            for w in reversed(waiting):
+                per_cam[w[1].camera] = per_cam.get(w[1].camera, 0) + 1
+                if per_cam[w[1].camera] <= settings.detect.ring:
+                    kept.append(w)
+            waiting = sorted(kept, key=lambda w: w[1].t_capture_ns)
+            t_in, frame = waiting.pop(0)
+            try:
+                img = frame_image(frame)
+            except ValueError as exc:
+                bad(str(exc), frame.camera)
+                continue
+            t0 = time.perf_counter()
+            det = detector.detect(img)
+            infer_ms = (time.perf_counter() - t0) * 1e3
+            pubs[frame.camera].put(encode(detections_message(frame, det, infer_ms, t_in)))
+            done += 1
+        log.info("stopped: %d frames detected, %d bad messages %s", done, bad.total, dict(bad.counts))
+        del tokens
+    finally:
+        session.close()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(run("detect", main))

@@ -1,0 +1,167 @@
+"""fuse_track: fuse every camera's objects by map region and track them (SORT) in world coordinates.
+
+`python -m services.fuse_track --site SITE`
+
+Subscribes to `roadside/<site>/cam/*/objects`; groups them into event-time ticks (capture time,
+bounded watermark: services/fuse_track/ticks.py); fuses by camera region with a distance-gated merge
+(fusion.py); tracks with SORT on [x, y, s, r, vx, vy, vs, vr] (tracker.py); publishes Tracks on
+`roadside/<site>/tracks`, answers `roadside/<site>/tracks/latest` with the newest Tracks (a vehicle that
+joins late gets the current tracks at once), and appends every Tracks message to the recording file
+(`fuse_track.record`, JSON lines, flushed per line so a kill loses nothing written before it).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from services.fuse_track.fusion import CameraRegion, Fusion, FusionConfig, ObjectBatch
+from services.fuse_track.ticks import Tick, TickBuffer, TickConfig
+from services.fuse_track.tracker import Tracker, TrackerConfig, TrackState
+from shared.bus import BadInput, Receiver, Stopper, declare_alive, open_session
+from shared.codec import encode
+from shared.geo import GeoFrame
+from shared.keys import all_cameras_key, latest_tracks_key, tracks_key
+from shared.messages import Objects, Tracks
+from shared.service import run
+from shared.settings import Settings
+
+log = logging.getLogger("roadside.fuse_track")
+POLL_S = 0.001
+
+
+def camera_positions(settings: Settings) -> tuple[dict[str, tuple[float, float]], GeoFrame]:
+    """Each camera's ground position (site metres) from its masks file's metadata (only that array is read),
+    and the site frame (settings.origin, else the first masks file's origin)."""
+    positions, geo = {}, None
+    site_geo = GeoFrame.from_dict(settings.origin) if settings.origin else None
+    for cam in settings.cameras:
+        path = settings.path(cam.masks) if cam.masks else None
+        if path is None or not Path(path).is_file():
+            raise ValueError(f"camera {cam.name}: lookup masks not found: {path} (fuse_track reads the camera "
+                             "position from them)")
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                meta = json.loads(str(z["meta"]))
+        except (OSError, ValueError, KeyError) as exc:
+            raise ValueError(f"{path}: not a lookup masks file ({exc})") from None
+        masks_geo = GeoFrame.from_dict(meta["geo_origin"])
+        site_geo = site_geo or masks_geo
+        pos = np.asarray(meta["camera"]["pose"]["position_m"], float)
+        if masks_geo != site_geo:
+            ll = masks_geo.to_geodetic(pos[None, :2])[0]
+            pos = site_geo.to_enu(ll[:1], ll[1:2], site_geo.alt0_m)[0]
+        positions[cam.name] = (float(pos[0]), float(pos[1]))
+        geo = site_geo
+    return positions, geo
+
+
+def tracks_message(settings: Settings, state: TrackState, tick: Tick, seq: int, geo: GeoFrame,
+                   t_closed_ns: int) -> Tracks:
+    latlon = geo.to_geodetic(state.xy)[:, :2] if len(state) else np.zeros((0, 2))
+    frames = [(cam, s, t_cap, t_arr) for cam, items in tick.batches.items() for t_cap, (s, t_arr, _) in items]
+    f4 = np.float32
+    return Tracks(
+        site=settings.site, seq=seq, t_capture_ns=int(tick.t_ref_ns), tracker=state.tracker,
+        stamps=[("tick_closed", t_closed_ns), ("fuse_track", time.time_ns())],
+        id=state.id.astype(np.int64), xy=state.xy.astype(np.float64), latlon=latlon.astype(np.float64),
+        velocity=state.velocity.astype(f4), yaw=state.yaw.astype(f4), size_lwh=state.size_lwh.astype(f4),
+        vtype=state.vtype.astype(np.int8), score=state.score.astype(f4), age=state.age.astype(np.int32),
+        hits=state.hits.astype(np.int32), cameras=[list(c) for c in state.cameras], frames=frames)
+
+
+class Recorder:
+    """Appends one JSON line per Tracks message; each line is flushed as it is written."""
+
+    def __init__(self, path: Path | None) -> None:
+        self.file = None
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self.file = path.open("a", buffering=1)
+
+    def write(self, msg: Tracks) -> None:
+        if self.file is not None:
+            self.file.write(json.dumps({"site": msg.site, "seq": msg.seq, "t_ns": msg.t_capture_ns,
+                                        "tracker": msg.tracker, "tracks": msg.rows()}) + "\n")
+
+    def close(self) -> None:
+        if self.file is not None:
+            self.file.close()
+
+
+def main(settings: Settings, stopper: Stopper) -> int:
+    cfg = settings.fuse_track
+    positions, geo = camera_positions(settings)
+    regions = [CameraRegion(c.name, positions[c.name], np.asarray(c.region_m) if c.region_m else None)
+               for c in settings.cameras]
+    fusion = Fusion(regions, FusionConfig(merge_gate_m=cfg.merge_gate_m))
+    tracker = Tracker(TrackerConfig(gate_m=cfg.gate_m, max_age_ticks=cfg.max_age_ticks, min_hits=cfg.min_hits))
+    ticks: TickBuffer = TickBuffer(positions, TickConfig(tick_ms=cfg.tick_ms, watermark_ms=cfg.watermark_ms,
+                                                         max_wait_ms=cfg.max_wait_ms,
+                                                         camera_timeout_ms=cfg.camera_timeout_ms))
+    recorder = Recorder(settings.path(cfg.record))
+    bad = BadInput("fuse_track")
+    session = open_session(settings, "fuse_track")
+    latest: list[bytes] = []
+    try:
+        tokens = declare_alive(session, settings.site, "fuse_track", [tracker.id.replace("tracker-", "t")])
+        receiver = Receiver(session, all_cameras_key(settings.site, "objects"), Objects, bad)
+        pub = session.declare_publisher(tracks_key(settings.site))
+
+        def answer(query) -> None:  # runs in Zenoh's thread: only hands over bytes already encoded
+            if latest:
+                query.reply(latest_tracks_key(settings.site), latest[-1])
+
+        queryable = session.declare_queryable(latest_tracks_key(settings.site), answer)
+        seq = 0
+        log.info("tracker %s, %d cameras, tick %g ms", tracker.id, len(regions), cfg.tick_ms)
+
+        def close(closed: list[Tick]) -> None:
+            nonlocal seq
+            for tick in closed:
+                t_closed = time.time_ns()
+                items = [b for _, _, b in tick.items()]
+                objs = ObjectBatch.concat(items) if items else ObjectBatch.empty()
+                fused = fusion.fuse(objs, tick.t_ref_ns, tracker.velocity_hints(objs))
+                state = tracker.update(fused, tick.t_ref_ns)
+                msg = tracks_message(settings, state, tick, seq, geo, t_closed)
+                payload = encode(msg)
+                pub.put(payload)
+                latest[:] = [payload]
+                recorder.write(msg)
+                seq += 1
+
+        while not stopper.is_set():
+            now = time.monotonic()
+            for o in receiver.poll():
+                if o.camera not in positions:
+                    bad(f"objects from camera {o.camera!r}, not at this site", o.camera)
+                    continue
+                try:
+                    batch = ObjectBatch.from_frame(o.camera, o.t_capture_ns, o.xy, o.yaw.astype(np.float64),
+                                                   o.size_lwh.astype(np.float64), o.vtype.astype(np.int64),
+                                                   o.score.astype(np.float64))
+                except ValueError as exc:
+                    bad(str(exc), o.camera)
+                    continue
+                if not ticks.add(o.camera, o.t_capture_ns, (o.seq, time.time_ns(), batch), now):
+                    bad(f"late: objects of {o.camera} captured at {o.t_capture_ns} after their tick closed", o.camera)
+            close(ticks.pop_ready(time.monotonic()))
+            time.sleep(POLL_S)
+        close(ticks.flush())
+        log.info("stopped: %d Tracks messages, %d ticks (%s), %d late, %d bad %s", seq, ticks.emitted,
+                 ticks.closed_by, ticks.late, bad.total, dict(bad.counts))
+        queryable.undeclare()
+        del tokens
+    finally:
+        recorder.close()
+        session.close()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(run("fuse_track", main))

@@ -1,0 +1,389 @@
+"""Multi-camera fusion of one tick's ground objects, before tracking (no transport here).
+
+The paper divides the map into regions by camera location and keeps each camera's detections in
+its own region. Here each camera has a region: a polygon in site metres, or by default its Voronoi
+cell (the points nearer to its ground position than to any other camera's that also uses the
+default), optionally cut at `max_range_m`. Then, for the objects of one tick:
+
+1. every object is brought to the tick's reference time with its velocity hint (optional, (N, 2)
+   m/s, e.g. `Tracker.velocity_hints`): cameras capture up to +-tick/2 apart, ~0.75 m at 15 m/s;
+2. objects inside their own camera's region seed groups; objects of different frames within
+   `merge_gate_m` join a group (Hungarian assignment per source frame, at most one object per frame);
+3. an object outside its camera's region joins a group within the gate with the low weight
+   `out_of_region_weight`; it is kept on its own only when no camera whose region contains it saw
+   anything within `merge_gate_m` (the occlusion fallback), else it is dropped;
+4. each group becomes one object: position the weighted mean (weight = score x region weight),
+   yaw the weighted circular mean after aligning 180-degree reversals to the heaviest member,
+   size the weighted mean, type the weighted vote, score the maximum; `sources` lists its cameras.
+
+A fused object is stated at its members' weighted mean capture time `t_ns` (each member shifted
+there with its hint), not at the tick time: the tracker does the last shift with its own velocity,
+so an object without a hint is never claimed to be at a time it was not seen.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+NS_PER_S = 1_000_000_000
+MAX_VTYPE = 127  # vtype travels as int8
+
+
+def check_columns(owner: str, columns: dict[str, tuple[np.ndarray, tuple[int, ...]]]) -> int:
+    """Shapes (N, *trailing), equal N and finite floats of struct-of-arrays columns; returns N.
+
+    Raises ValueError naming `owner.field` and the bad shape or value.
+    """
+    n = None
+    for name, (a, trailing) in columns.items():
+        if a.shape[1:] != trailing or a.ndim != 1 + len(trailing):
+            want = "(N" + "".join(f", {t}" for t in trailing) + ")"
+            raise ValueError(f"{owner}.{name} must have shape {want}, got {a.shape}")
+        if n is None:
+            n = len(a)
+        elif len(a) != n:
+            raise ValueError(f"{owner}.{name} has {len(a)} rows, expected {n} like the other fields")
+        if a.dtype.kind == "f" and not np.isfinite(a).all():
+            bad = a[~np.isfinite(a)].ravel()[0]
+            raise ValueError(f"{owner}.{name} contains a non-finite value ({bad})")
+    return n or 0
+
+
+def as_column(owner: str, name: str, value: object, dtype: type) -> np.ndarray:
+    """`value` as a numpy array of `dtype` (int64 or float64); ValueError naming the field when it is not
+    numeric (or, for int64, not integer)."""
+    a = value if isinstance(value, np.ndarray) else np.asarray(value)
+    if a.dtype.kind not in ("iub" if dtype is np.int64 else "iuf"):
+        raise ValueError(f"{owner}.{name} has dtype {a.dtype}, expected a {np.dtype(dtype).name} array")
+    return a.astype(dtype, copy=False)
+
+
+def wrap_angle(a: np.ndarray) -> np.ndarray:
+    """Angles (rad) wrapped to [-pi, pi)."""
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+@dataclass(frozen=True)
+class ObjectBatch:
+    """Ground objects of one tick, struct of arrays, N rows (N = 0 is fine).
+
+    camera (N,) str: the camera that saw it (for fused objects: the heaviest member's camera);
+    t_ns (N,) int64: capture time of the object's frame, ns; xy (N, 2) float64 metres, site ENU
+    frame; yaw (N,) float64 rad ENU, counter-clockwise from east; size_lwh (N, 3) float64 metres,
+    all > 0; vtype (N,) int64 index into VEHICLE_TYPES (0..127); score (N,) float64 in [0, 1];
+    sources: per object the cameras whose objects went into it; None (the default) means each
+    object's own camera; read it with `sources_of(i)`.
+    Validated on construction: ValueError naming the field.
+    """
+
+    camera: np.ndarray
+    t_ns: np.ndarray
+    xy: np.ndarray
+    yaw: np.ndarray
+    size_lwh: np.ndarray
+    vtype: np.ndarray
+    score: np.ndarray
+    sources: list[list[str]] | None = None
+
+    def __post_init__(self) -> None:
+        cam = np.asarray(self.camera)
+        if cam.dtype.kind not in "UO" and cam.size:
+            raise ValueError(f"ObjectBatch.camera must hold camera names (str), got dtype {cam.dtype}")
+        cam = cam.astype(str) if cam.size else cam.astype("U1").reshape(cam.shape)
+        cols = {
+            "camera": cam,
+            "t_ns": as_column("ObjectBatch", "t_ns", self.t_ns, np.int64),
+            "xy": as_column("ObjectBatch", "xy", self.xy, np.float64),
+            "yaw": as_column("ObjectBatch", "yaw", self.yaw, np.float64),
+            "size_lwh": as_column("ObjectBatch", "size_lwh", self.size_lwh, np.float64),
+            "vtype": as_column("ObjectBatch", "vtype", self.vtype, np.int64),
+            "score": as_column("ObjectBatch", "score", self.score, np.float64),
+        }
+        shapes = {"xy": (2,), "size_lwh": (3,)}
+        n = check_columns("ObjectBatch", {k: (v, shapes.get(k, ())) for k, v in cols.items()})
+        if n and not (cols["size_lwh"] > 0).all():
+            raise ValueError(f"ObjectBatch.size_lwh must be > 0 m, got {cols['size_lwh'].min()}")
+        if n and (cols["score"].min() < 0 or cols["score"].max() > 1):
+            bad = cols["score"][(cols["score"] < 0) | (cols["score"] > 1)][0]
+            raise ValueError(f"ObjectBatch.score must be within [0, 1], got {bad}")
+        if n and (cols["vtype"].min() < 0 or cols["vtype"].max() > MAX_VTYPE):
+            bad = cols["vtype"][(cols["vtype"] < 0) | (cols["vtype"] > MAX_VTYPE)][0]
+            raise ValueError(f"ObjectBatch.vtype must be within [0, {MAX_VTYPE}] (int8 on the wire), got {bad}")
+        sources = self.sources
+        if sources is not None and (len(sources) != n or not all(isinstance(s, list) and s for s in sources)):
+            raise ValueError(f"ObjectBatch.sources must be {n} non-empty lists of camera names, got {sources!r}")
+        for k, v in cols.items():
+            object.__setattr__(self, k, v)
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+    def sources_of(self, i: int) -> list[str]:
+        """The cameras whose objects went into row i."""
+        return list(self.sources[i]) if self.sources is not None else [str(self.camera[i])]
+
+    @classmethod
+    def empty(cls) -> ObjectBatch:
+        return cls(np.zeros(0, "U1"), np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0), np.zeros((0, 3)),
+                   np.zeros(0, np.int64), np.zeros(0))
+
+    @classmethod
+    def from_frame(cls, camera: str, t_ns: int, xy: np.ndarray, yaw: np.ndarray, size_lwh: np.ndarray,
+                   vtype: np.ndarray, score: np.ndarray) -> ObjectBatch:
+        """The objects of one camera frame (one camera name and capture time for all rows)."""
+        n = len(np.asarray(score).reshape(-1))
+        return cls(np.full(n, camera), np.full(n, int(t_ns), np.int64), xy, yaw, size_lwh, vtype, score)
+
+    @classmethod
+    def concat(cls, batches: Sequence[ObjectBatch]) -> ObjectBatch:
+        """The rows of several batches, in order."""
+        batches = [b for b in batches if len(b)]
+        if not batches:
+            return cls.empty()
+        cat = {k: np.concatenate([getattr(b, k) for b in batches])
+               for k in ("camera", "t_ns", "xy", "yaw", "size_lwh", "vtype", "score")}
+        if all(b.sources is None for b in batches):
+            return cls(**cat)
+        return cls(**cat, sources=[b.sources_of(i) for b in batches for i in range(len(b))])
+
+    def select(self, index: np.ndarray) -> ObjectBatch:
+        """The rows at `index` (integer indices or a boolean mask)."""
+        rows = np.arange(len(self))[index]
+        sources = None if self.sources is None else [self.sources[i] for i in rows]
+        return ObjectBatch(self.camera[rows], self.t_ns[rows], self.xy[rows], self.yaw[rows], self.size_lwh[rows],
+                           self.vtype[rows], self.score[rows], sources=sources)
+
+
+@dataclass(frozen=True)
+class CameraRegion:
+    """Where a camera's objects are preferred. position_xy: the camera's ground position (2,) m, site
+    frame. polygon_xy: (K, 2) m, K >= 3, site frame; None means the Voronoi cell among the cameras
+    that use the default. max_range_m: optionally also within this distance of position_xy."""
+
+    name: str
+    position_xy: tuple[float, float]
+    polygon_xy: np.ndarray | None = None
+    max_range_m: float | None = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not self.name:
+            raise ValueError(f"CameraRegion.name must be a non-empty string, got {self.name!r}")
+        pos = np.asarray(self.position_xy, np.float64)
+        if pos.shape != (2,) or not np.all(np.isfinite(pos)):
+            raise ValueError(f"CameraRegion.position_xy of {self.name} must be 2 finite metres, got {self.position_xy}")
+        object.__setattr__(self, "position_xy", (float(pos[0]), float(pos[1])))
+        if self.polygon_xy is not None:
+            poly = np.asarray(self.polygon_xy, np.float64)
+            if poly.ndim != 2 or poly.shape[1] != 2 or len(poly) < 3 or not np.all(np.isfinite(poly)):
+                raise ValueError(f"CameraRegion.polygon_xy of {self.name} must be (K >= 3, 2) finite metres, "
+                                 f"got shape {poly.shape}")
+            object.__setattr__(self, "polygon_xy", poly)
+        if self.max_range_m is not None and not (np.isfinite(self.max_range_m) and self.max_range_m > 0):
+            raise ValueError(f"CameraRegion.max_range_m of {self.name} must be > 0, got {self.max_range_m}")
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    """merge_gate_m: objects of different frames closer than this (at the tick's reference time) are
+    one vehicle; out_of_region_weight: weight of an object outside its camera's region relative to
+    one inside (~ the variance ratio of in- and out-of-region localization, (0.22 / 0.49)^2 in the
+    paper); min_score: objects below it are ignored (the paper fuses high-certainty detections only)."""
+
+    merge_gate_m: float = 3.0
+    out_of_region_weight: float = 0.2
+    min_score: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.merge_gate_m) and self.merge_gate_m > 0):
+            raise ValueError(f"merge_gate_m must be > 0, got {self.merge_gate_m}")
+        if not 0 < self.out_of_region_weight <= 1:
+            raise ValueError(f"out_of_region_weight must be within (0, 1], got {self.out_of_region_weight}")
+        if not 0 <= self.min_score <= 1:
+            raise ValueError(f"min_score must be within [0, 1], got {self.min_score}")
+
+
+def points_in_polygon(xy: np.ndarray, polygon: np.ndarray) -> np.ndarray:
+    """xy (N, 2), polygon (K, 2), same frame -> (N,) bool inside (even-odd rule)."""
+    a = polygon
+    b = np.roll(polygon, -1, axis=0)
+    x, y = xy[:, :1], xy[:, 1:]
+    crosses = (a[:, 1] > y) != (b[:, 1] > y)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x_at = a[:, 0] + (y - a[:, 1]) * (b[:, 0] - a[:, 0]) / (b[:, 1] - a[:, 1])
+    return np.count_nonzero(crosses & (x < x_at), axis=1) % 2 == 1
+
+
+class Fusion:
+    """Fuses the objects of one tick from several cameras; see the module docstring."""
+
+    def __init__(self, regions: Sequence[CameraRegion] = (), config: FusionConfig | None = None) -> None:
+        self.config = config or FusionConfig()
+        self.regions = list(regions)
+        names = [r.name for r in self.regions]
+        if len(set(names)) != len(names):
+            raise ValueError(f"regions must name each camera once, got {names}")
+        self._index = {name: i for i, name in enumerate(names)}
+        self._pos = np.array([r.position_xy for r in self.regions], np.float64).reshape(-1, 2)
+        self._voronoi = np.array([r.polygon_xy is None for r in self.regions], bool)
+        self._range = np.array([np.inf if r.max_range_m is None else r.max_range_m for r in self.regions])
+
+    @property
+    def cameras(self) -> list[str]:
+        return list(self._index)
+
+    def contains(self, xy: np.ndarray) -> np.ndarray:
+        """xy (N, 2) m site frame -> (N, C) bool: point n lies in the region of camera c (`cameras` order)."""
+        xy = np.asarray(xy, np.float64).reshape(-1, 2)
+        d = np.linalg.norm(xy[:, None, :] - self._pos[None], axis=2)  # (N, C)
+        inside = d <= self._range
+        if self._voronoi.any():
+            vor = np.flatnonzero(self._voronoi)
+            nearest = vor[np.argmin(d[:, vor], axis=1)]
+            inside[:, vor] &= nearest[:, None] == vor[None]
+        for c in np.flatnonzero(~self._voronoi):
+            inside[:, c] &= points_in_polygon(xy, self.regions[c].polygon_xy)
+        return inside
+
+    def fuse(self, objects: ObjectBatch, t_ref_ns: int, velocity: np.ndarray | None = None) -> ObjectBatch:
+        """One tick's objects (any cameras, any capture times) -> fused objects, one per vehicle.
+
+        velocity: optional (N, 2) float m/s (east, north) per object, used to bring each object to
+        `t_ref_ns` before gating and averaging; zeros (no shift) where unknown.
+        Returns an ObjectBatch whose `sources` lists the cameras merged into each row and whose
+        `t_ns` is the members' weighted mean capture time (xy is the position at that time).
+        """
+        n = len(objects)
+        vel = np.zeros((n, 2)) if velocity is None else as_column("fuse", "velocity", velocity, np.float64)
+        if vel.shape != (n, 2):
+            raise ValueError(f"fuse.velocity must have shape (N, 2) = ({n}, 2) like the objects, got {vel.shape}")
+        check_columns("fuse", {"velocity": (vel, (2,))})
+        keep = np.flatnonzero(objects.score >= self.config.min_score)
+        if len(keep) < n:
+            objects, vel = objects.select(keep), vel[keep]
+            n = len(objects)
+        if n == 0:
+            return ObjectBatch.empty()
+        dt_s = (int(t_ref_ns) - objects.t_ns) / NS_PER_S
+        p_ref = objects.xy + vel * dt_s[:, None]  # positions at the reference time
+        cam_idx = np.array([self._index.get(c, -1) for c in objects.camera.tolist()])
+        owners = self.contains(p_ref)  # (N, C)
+        in_region = (cam_idx >= 0) & owners[np.arange(n), np.maximum(cam_idx, 0)]
+        weight = np.maximum(objects.score, 1e-6) * np.where(in_region, 1.0, self.config.out_of_region_weight)
+        labels = self._group(objects, p_ref, in_region, weight, cam_idx, owners)
+        return self._merge(objects, vel, weight, labels)
+
+    def _group(self, objects: ObjectBatch, p_ref: np.ndarray, in_region: np.ndarray, weight: np.ndarray,
+               cam_idx: np.ndarray, owners: np.ndarray) -> np.ndarray:
+        """(N,) group label per object, -1 for dropped objects."""
+        gate = self.config.merge_gate_m
+        _, cam_code = np.unique(objects.camera, return_inverse=True)
+        _, source = np.unique(np.stack([cam_code.reshape(-1), objects.t_ns]), axis=1, return_inverse=True)
+        source = source.reshape(-1)  # the frame each object comes from
+        d = np.hypot(p_ref[:, None, 0] - p_ref[None, :, 0], p_ref[:, None, 1] - p_ref[None, :, 1])
+        d[source[:, None] == source[None]] = np.inf  # one frame never sees a vehicle twice
+        labels = np.full(len(objects), -1)
+        # 1. Objects in their own camera's region seed the groups.
+        seeds = np.flatnonzero(in_region)
+        labels[seeds] = self._cluster(seeds, d, source, weight, p_ref)
+        g = int(labels.max()) + 1
+        # 2. The others join a group within the gate (one object per frame and group).
+        out = np.flatnonzero(~in_region)
+        if g and len(out):
+            w = weight[seeds]
+            centre = np.stack([np.bincount(labels[seeds], w * p_ref[seeds, k], g) for k in range(2)], 1)
+            centre /= np.bincount(labels[seeds], w, g)[:, None]
+            has = np.zeros((g, source.max() + 1), bool)
+            has[labels[seeds], source[seeds]] = True
+            dg = np.hypot(p_ref[out, None, 0] - centre[None, :, 0], p_ref[out, None, 1] - centre[None, :, 1])
+            dg[has[:, source[out]].T] = np.inf
+            cost = np.where(dg <= gate, dg, 1e9)
+            for s in np.unique(source[out]):
+                r = np.flatnonzero(source[out] == s)
+                i, j = linear_sum_assignment(cost[r])
+                ok = cost[r[i], j] <= gate
+                labels[out[r[i[ok]]]] = j[ok]
+        # 3. Occlusion fallback: an object left over is kept when no camera whose region contains it
+        #    saw anything within the gate, and merged with the other objects kept so.
+        rest = out[labels[out] < 0]
+        if len(rest):
+            known = np.flatnonzero(cam_idx >= 0)
+            seen = (d[np.ix_(rest, known)] <= gate) & owners[np.ix_(rest, cam_idx[known])]
+            rest = rest[~seen.any(axis=1)]
+            labels[rest] = g + self._cluster(rest, d, source, weight, p_ref)
+        return labels
+
+    def _cluster(self, rows: np.ndarray, d: np.ndarray, source: np.ndarray, weight: np.ndarray,
+                 p_ref: np.ndarray) -> np.ndarray:
+        """Labels 0.. for `rows`: objects of different frames within the gate of a group's weighted centre
+        form one group (frame by frame, Hungarian assignment); objects with no such neighbour stand alone."""
+        gate = self.config.merge_gate_m
+        out = np.full(len(rows), -1)
+        linked = (d[np.ix_(rows, rows)] <= gate).any(axis=1)
+        lone = np.flatnonzero(~linked)
+        out[lone] = np.arange(len(lone))
+        first = len(lone)
+        members = np.flatnonzero(linked)
+        centre, wsum, has = np.zeros((0, 2)), np.zeros(0), np.zeros((0, source.max() + 1), bool)
+        for s in np.unique(source[rows[members]]):
+            mine = members[source[rows[members]] == s]
+            p, w = p_ref[rows[mine]], weight[rows[mine]]
+            taken = np.zeros(len(mine), bool)
+            if len(centre):
+                dg = np.hypot(p[:, None, 0] - centre[None, :, 0], p[:, None, 1] - centre[None, :, 1])
+                cost = np.where((dg <= gate) & ~has[:, s], dg, 1e9)
+                i, j = linear_sum_assignment(cost)
+                ok = cost[i, j] <= gate
+                i, j = i[ok], j[ok]
+                centre[j] = (centre[j] * wsum[j, None] + p[i] * w[i, None]) / (wsum[j] + w[i])[:, None]
+                wsum[j] += w[i]
+                has[j, s] = True
+                out[mine[i]] = first + j
+                taken[i] = True
+            new = np.flatnonzero(~taken)
+            out[mine[new]] = first + len(centre) + np.arange(len(new))
+            centre = np.concatenate([centre, p[new]])
+            wsum = np.concatenate([wsum, w[new]])
+            fresh = np.zeros((len(new), has.shape[1]), bool)
+            fresh[:, s] = True
+            has = np.concatenate([has, fresh])
+        return out
+
+    def _merge(self, objects: ObjectBatch, vel: np.ndarray, weight: np.ndarray, labels: np.ndarray) -> ObjectBatch:
+        kept = np.flatnonzero(labels >= 0)
+        lab, w = labels[kept], weight[kept]
+        g = int(lab.max()) + 1 if len(lab) else 0
+        if g == 0:
+            return ObjectBatch.empty()
+        wsum = np.bincount(lab, w, g)
+        t0 = int(objects.t_ns[kept].min())
+        t_rel_s = (objects.t_ns[kept] - t0) / NS_PER_S
+        t_out_s = np.bincount(lab, w * t_rel_s, g) / wsum
+        xy_at = objects.xy[kept] + vel[kept] * (t_out_s[lab] - t_rel_s)[:, None]
+        xy = np.stack([np.bincount(lab, w * xy_at[:, k], g) for k in range(2)], 1) / wsum[:, None]
+        # The heaviest member of each group anchors its yaw, camera and preferred values.
+        order = np.lexsort((-w, lab))
+        first = order[np.r_[True, lab[order][1:] != lab[order][:-1]]]
+        anchor_yaw = objects.yaw[kept][first]
+        d = wrap_angle(objects.yaw[kept] - anchor_yaw[lab])
+        d = wrap_angle(np.where(np.abs(d) > np.pi / 2, d + np.pi, d))  # a reversed heading counts as the same
+        mean_d = np.arctan2(np.bincount(lab, w * np.sin(d), g), np.bincount(lab, w * np.cos(d), g))
+        yaw = wrap_angle(anchor_yaw + mean_d)
+        size = np.stack([np.bincount(lab, w * objects.size_lwh[kept, k], g) for k in range(3)], 1) / wsum[:, None]
+        votes = np.zeros((g, int(objects.vtype[kept].max()) + 1))
+        np.add.at(votes, (lab, objects.vtype[kept]), w)
+        score = np.zeros(g)
+        np.maximum.at(score, lab, objects.score[kept])
+        if objects.sources is None:
+            members = [[c] for c in objects.camera[kept].tolist()]
+        else:
+            members = [objects.sources[i] for i in kept.tolist()]
+        sources: list[set[str]] = [set() for _ in range(g)]
+        for gi, cameras in zip(lab.tolist(), members, strict=True):
+            sources[gi].update(cameras)
+        return ObjectBatch(
+            camera=objects.camera[kept][first], t_ns=t0 + np.round(t_out_s * NS_PER_S).astype(np.int64), xy=xy,
+            yaw=yaw, size_lwh=size, vtype=np.argmax(votes, axis=1), score=score, sources=[sorted(s) for s in sources])

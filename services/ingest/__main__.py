@@ -1,0 +1,184 @@
+"""ingest: decode camera streams and publish Frames on `roadside/<site>/cam/<camera>/frame`.
+
+`python -m services.ingest --site SITE [--set ingest.source=PATH] [--set ingest.pace=max]`
+
+Playback pace: `1` real time, `N` N x real time, `max` as fast as the pipeline takes it (at most
+`max_in_flight` frames published and not yet detected; an acknowledgement that does not come within
+`ACK_TIMEOUT_S` is given up, so a detect restart does not stall playback). With `loop`, the source
+repeats with capture times shifted so event time keeps increasing. A frame that cannot be decoded
+(corrupt JPEG) is counted, logged and skipped. Exits 0 when the source ends.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import cv2
+import numpy as np
+
+from services.ingest.sources import SourceFrame, open_source
+from shared.bus import BadInput, Receiver, Stopper, declare_alive, open_session, wait_for_peers
+from shared.codec import encode
+from shared.keys import all_alive_key, all_cameras_key, camera_key
+from shared.messages import Detections, Frame
+from shared.service import run
+from shared.settings import CameraSettings, Settings
+
+log = logging.getLogger("roadside.ingest")
+ACK_TIMEOUT_S = 2.0
+PIPELINE_WAIT_S = 60.0
+REDUCED = {1: cv2.IMREAD_GRAYSCALE, 2: cv2.IMREAD_REDUCED_GRAYSCALE_2, 4: cv2.IMREAD_REDUCED_GRAYSCALE_4}
+
+
+def to_frame_fields(sf: SourceFrame, cam: CameraSettings, encoding: str, decode_scale: int) -> dict:
+    """The image part of a Frame: encoding, width, height, scale, data. ValueError for a bad image."""
+    if encoding == "jpeg" and sf.jpeg is not None:
+        if sf.jpeg[:2] != b"\xff\xd8":
+            raise ValueError(f"{sf.origin}: not a JPEG")
+        return {"encoding": "jpeg", "width": cam.width, "height": cam.height, "scale": 1.0, "data": sf.jpeg}
+    if sf.jpeg is not None:
+        grey = cv2.imdecode(np.frombuffer(sf.jpeg, np.uint8), REDUCED[decode_scale])
+        if grey is None:
+            raise ValueError(f"{sf.origin}: cannot decode image")
+    else:
+        img = sf.image
+        grey = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        if decode_scale > 1:
+            grey = cv2.resize(grey, (grey.shape[1] // decode_scale, grey.shape[0] // decode_scale),
+                              interpolation=cv2.INTER_AREA)
+    full_w, full_h = grey.shape[1] * decode_scale, grey.shape[0] * decode_scale
+    if abs(full_w - cam.width) > decode_scale or abs(full_h - cam.height) > decode_scale:
+        raise ValueError(f"{sf.origin}: image is {full_w}x{full_h}, camera {cam.name} is {cam.width}x{cam.height}")
+    scale = grey.shape[1] / cam.width
+    if encoding == "jpeg":
+        _, buf = cv2.imencode(".jpg", grey, [cv2.IMWRITE_JPEG_QUALITY, 90])
+        return {"encoding": "jpeg", "width": grey.shape[1], "height": grey.shape[0], "scale": scale,
+                "data": buf.tobytes()}
+    grey = np.ascontiguousarray(grey)
+    return {"encoding": "gray8", "width": grey.shape[1], "height": grey.shape[0], "scale": scale,
+            "data": grey.tobytes()}
+
+
+class Pacer:
+    """Real-time or N x real-time pacing on capture times."""
+
+    def __init__(self, pace: str, stopper: Stopper) -> None:
+        self.speed = None if pace == "max" else float(pace)
+        self.stopper = stopper
+        self.t0_ns = None
+        self.wall0 = 0.0
+
+    def wait(self, t_capture_ns: int) -> None:
+        if self.speed is None:
+            return
+        if self.t0_ns is None:
+            self.t0_ns, self.wall0 = t_capture_ns, time.monotonic()
+            return
+        due = self.wall0 + (t_capture_ns - self.t0_ns) / 1e9 / self.speed
+        delay = due - time.monotonic()
+        if delay > 0:
+            self.stopper.wait(delay)
+
+
+class Acks:
+    """Frames published and not yet detected (pace `max`): detections for (camera, seq) acknowledge."""
+
+    def __init__(self, receiver: Receiver, limit: int, stopper: Stopper) -> None:
+        self.receiver, self.limit, self.stopper = receiver, limit, stopper
+        self.pending: dict[tuple[str, int], float] = {}
+        self.timeouts = 0
+
+    def drain(self) -> None:
+        for msg in self.receiver.poll():
+            assert isinstance(msg, Detections)
+            self.pending.pop((msg.camera, msg.seq), None)
+
+    def wait_for_room(self) -> None:
+        while True:
+            self.drain()
+            now = time.monotonic()
+            for key, t in list(self.pending.items()):
+                if now - t > ACK_TIMEOUT_S:
+                    del self.pending[key]
+                    self.timeouts += 1
+            if len(self.pending) < self.limit or self.stopper.is_set():
+                return
+            time.sleep(0.0002)
+
+    def sent(self, camera: str, seq: int) -> None:
+        self.pending[(camera, seq)] = time.monotonic()
+
+
+def main(settings: Settings, stopper: Stopper) -> int:
+    cfg = settings.ingest
+    cams = {c.name: c for c in settings.cameras}
+    def resolve(src: str | None) -> str | None:
+        return src if not src or "://" in src else str(settings.path(src))
+
+    source = open_source(resolve(cfg.source) or "", list(cams), {c.name: resolve(c.source) for c in settings.cameras},
+                         cfg.fps)
+    bad = BadInput("ingest")
+    session = open_session(settings, "ingest")
+    try:
+        tokens = declare_alive(session, settings.site, "ingest", list(cams))
+        pubs = {c: session.declare_publisher(camera_key(settings.site, c, "frame")) for c in cams}
+        acks = None
+        if cfg.pace == "max":
+            acks = Acks(Receiver(session, all_cameras_key(settings.site, "detections"), Detections, bad),
+                        cfg.max_in_flight, stopper)
+        seen = wait_for_peers(session, all_alive_key(settings.site), len(cams) * 3 + 1, PIPELINE_WAIT_S)
+        log.info("source %s, %d cameras, pace %s; %d liveliness tokens on the bus", cfg.source, len(cams),
+                 cfg.pace, seen)
+        pacer = Pacer(cfg.pace, stopper)
+        seq = dict.fromkeys(cams, 0)
+        published = 0
+        loop_idx, offset_ns = 0, 0
+        while not stopper.is_set():
+            first = last = None
+            for sf in source:
+                if stopper.is_set():
+                    break
+                if sf.camera not in cams:
+                    continue
+                if cfg.max_frames is not None and seq[sf.camera] >= cfg.max_frames * (loop_idx + 1):
+                    if all(n >= cfg.max_frames * (loop_idx + 1) for n in seq.values()):
+                        break
+                    continue
+                t = sf.t_capture_ns + offset_ns
+                first = t if first is None else first
+                last = t
+                pacer.wait(t)
+                try:
+                    fields = to_frame_fields(sf, cams[sf.camera], cfg.encoding, cfg.decode_scale)
+                except ValueError as exc:
+                    bad(str(exc), sf.camera)
+                    continue
+                if acks is not None:
+                    acks.wait_for_room()
+                msg = Frame(site=settings.site, camera=sf.camera, seq=seq[sf.camera], t_capture_ns=t,
+                            camera_kind=cams[sf.camera].kind, stamps=[("ingest", time.time_ns())], **fields)
+                pubs[sf.camera].put(encode(msg))
+                if acks is not None:
+                    acks.sent(sf.camera, msg.seq)
+                seq[sf.camera] += 1
+                published += 1
+            if not cfg.loop or first is None:
+                break
+            loop_idx += 1
+            offset_ns += last - first + 100_000_000
+        if acks is not None:
+            deadline = time.monotonic() + ACK_TIMEOUT_S
+            while acks.pending and time.monotonic() < deadline and not stopper.is_set():
+                acks.drain()
+                time.sleep(0.005)
+        log.info("done: %d frames published, %d bad, %d ack timeouts", published, bad.total,
+                 acks.timeouts if acks else 0)
+        del tokens
+    finally:
+        session.close()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(run("ingest", main))

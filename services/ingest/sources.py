@@ -1,0 +1,209 @@
+"""Frame sources for ingest: where images come from and when they were captured.
+
+Every source yields `SourceFrame`s in capture-time order (merged over its cameras):
+- `RecordingSource`: a simulator recording (docs/recording-format.md); capture time from the file name.
+- `ImageFolderSource`: one folder of images per camera; capture time from each file name — integer
+  nanoseconds (`1718218800000000000.jpg`) or a date and time (`2023-12-19 11-00-00-034395.jpg`, as in
+  the real State/Ellsworth footage; taken as UTC unless a time zone is given) — or, when names carry no
+  time, from a frame rate.
+- `VideoSource`: a video file or an RTSP/HTTP stream through OpenCV; capture time from the stream's
+  position (files) or the wall clock at grab (live streams).
+
+Sources do not decode images they do not have to: a JPEG file is handed on as bytes and decoded (or
+passed through) by ingest.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from datetime import UTC, datetime, timezone
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
+DATETIME_RE = re.compile(r"(\d{4})-(\d{2})-(\d{2})[ _T](\d{2})[-:_](\d{2})[-:_](\d{2})(?:[-._](\d{1,9}))?")
+
+
+@dataclass
+class SourceFrame:
+    """One captured image: `jpeg` bytes (files) or a decoded `image` (video), never both."""
+
+    camera: str
+    t_capture_ns: int
+    jpeg: bytes | None = None
+    image: np.ndarray | None = None
+    origin: str = ""  # file name or stream position, for error messages
+
+
+def capture_time_from_name(name: str, tz: timezone = UTC) -> int | None:
+    """Capture time (ns since the epoch) from a file name, None when it carries none."""
+    stem = Path(name).stem
+    if stem.isdigit() and len(stem) >= 16:
+        return int(stem)
+    m = DATETIME_RE.search(stem)
+    if m is None:
+        return None
+    y, mo, d, h, mi, s, frac = m.groups()
+    try:
+        dt = datetime(int(y), int(mo), int(d), int(h), int(mi), int(s), tzinfo=tz)
+    except ValueError:
+        return None
+    ns = int((frac or "0").ljust(9, "0")[:9])
+    return int(dt.timestamp()) * 1_000_000_000 + ns
+
+
+def _merge(streams: dict[str, list[tuple[int, Path]]]) -> list[tuple[int, str, Path]]:
+    return sorted((t, cam, p) for cam, items in streams.items() for t, p in items)
+
+
+class RecordingSource:
+    """Frames of a simulator recording, all or some of its cameras."""
+
+    def __init__(self, path: str | Path, cameras: list[str] | None = None) -> None:
+        from sim.recording import Recording
+
+        self.recording = Recording(path)
+        names = cameras or self.recording.camera_names
+        self.items = _merge({c: self.recording.frames(c) for c in names})
+        if not self.items:
+            raise ValueError(f"recording {path} has no frames for cameras {names}")
+
+    def __iter__(self) -> Iterator[SourceFrame]:
+        for t, cam, p in self.items:
+            yield SourceFrame(cam, t, jpeg=p.read_bytes(), origin=str(p))
+
+
+class ImageFolderSource:
+    """Image sequences, one folder per camera: {camera: folder}."""
+
+    def __init__(self, folders: dict[str, str | Path], fps: float | None = None, tz: timezone = UTC,
+                 start_ns: int | None = None) -> None:
+        streams: dict[str, list[tuple[int, Path]]] = {}
+        for cam, folder in folders.items():
+            folder = Path(folder)
+            if not folder.is_dir():
+                raise ValueError(f"camera {cam}: image folder not found: {folder}")
+            files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+            if not files:
+                raise ValueError(f"camera {cam}: no images ({', '.join(IMAGE_SUFFIXES)}) in {folder}")
+            times = [capture_time_from_name(p.name, tz) for p in files]
+            if any(t is None for t in times):
+                if fps is None:
+                    bad = files[times.index(None)].name
+                    raise ValueError(f"camera {cam}: no capture time in file name {bad!r}; give a frame rate (fps)")
+                t0 = time.time_ns() if start_ns is None else start_ns
+                times = [t0 + round(i * 1e9 / fps) for i in range(len(files))]
+            streams[cam] = sorted(zip(times, files, strict=True))
+        self.items = _merge(streams)
+
+    def __iter__(self) -> Iterator[SourceFrame]:
+        for t, cam, p in self.items:
+            try:
+                data = p.read_bytes()
+            except OSError as exc:
+                raise ValueError(f"camera {cam}: cannot read {p}: {exc}") from None
+            yield SourceFrame(cam, t, jpeg=data, origin=str(p))
+
+
+class VideoSource:
+    """A video file or a live stream (rtsp://, http://...) of one camera, through OpenCV."""
+
+    def __init__(self, url: str, camera: str, fps: float | None = None) -> None:
+        self.url, self.camera = url, camera
+        self.live = "://" in url
+        if not self.live and not Path(url).is_file():
+            raise ValueError(f"camera {camera}: video file not found: {url}")
+        self.cap = cv2.VideoCapture(url)
+        if not self.cap.isOpened():
+            raise ValueError(f"camera {camera}: OpenCV cannot open {url}")
+        self.fps = fps or self.cap.get(cv2.CAP_PROP_FPS) or 10.0
+        self.t0_ns = time.time_ns()
+
+    def __iter__(self) -> Iterator[SourceFrame]:
+        n = 0
+        while True:
+            ok, img = self.cap.read()
+            if not ok:
+                break
+            if self.live:
+                t = time.time_ns()
+            else:
+                t = self.t0_ns + round(n * 1e9 / self.fps)
+            yield SourceFrame(self.camera, t, image=img, origin=f"{self.url}#{n}")
+            n += 1
+        self.cap.release()
+
+
+def open_source(source: str, cameras: list[str], camera_sources: dict[str, str | None],
+                fps: float | None = None) -> RecordingSource | ImageFolderSource | VideoSource | MergedSource:
+    """The source a site's settings describe.
+
+    `source` is a simulator recording, a folder of per-camera image folders (matched to camera names:
+    a sub-folder whose name equals or ends with `_<camera>` or `<camera>`), one image folder, a video
+    file or a stream URL. `camera_sources` (camera -> its own source) take precedence.
+    """
+    own = {c: s for c, s in camera_sources.items() if s}
+    if own:
+        parts = [open_source(s, [c], {}, fps) for c, s in own.items()]
+        rest = [c for c in cameras if c not in own]
+        if rest and source:
+            parts.append(open_source(source, rest, {}, fps))
+        return parts[0] if len(parts) == 1 else MergedSource(parts)
+    if not source:
+        raise ValueError("no source: set ingest.source in the site file or pass --source")
+    if "://" in source:
+        if len(cameras) != 1:
+            raise ValueError(f"a stream URL feeds one camera; give each camera its own source ({cameras})")
+        return VideoSource(source, cameras[0], fps)
+    path = Path(source).expanduser()
+    if not path.exists():
+        raise ValueError(f"source not found: {path}")
+    if path.is_file():
+        if len(cameras) != 1:
+            raise ValueError(f"a video file feeds one camera; give each camera its own source ({cameras})")
+        return VideoSource(str(path), cameras[0], fps)
+    if (path / "recording.json").is_file():
+        return RecordingSource(path, cameras)
+    subdirs = {p.name: p for p in path.iterdir() if p.is_dir()}
+    if not subdirs:
+        if len(cameras) != 1:
+            raise ValueError(f"{path} holds images of one camera; the site has {len(cameras)} cameras")
+        return ImageFolderSource({cameras[0]: path}, fps)
+    folders = {}
+    for cam in cameras:
+        match = [p for n, p in subdirs.items() if n == cam or n.endswith("_" + cam) or n.lower() == cam.lower()]
+        if len(match) != 1:
+            raise ValueError(f"camera {cam}: expected one sub-folder of {path} named {cam} or *_{cam}, "
+                             f"found {sorted(p.name for p in match) or 'none'} among {sorted(subdirs)}")
+        folders[cam] = match[0]
+    return ImageFolderSource(folders, fps)
+
+
+class MergedSource:
+    """Several sources merged in capture-time order."""
+
+    def __init__(self, parts: list) -> None:
+        self.parts = parts
+
+    def __iter__(self) -> Iterator[SourceFrame]:
+        import heapq
+
+        iters = [iter(p) for p in self.parts]
+        heap = []
+        for i, it in enumerate(iters):
+            f = next(it, None)
+            if f is not None:
+                heap.append((f.t_capture_ns, i, f))
+        heapq.heapify(heap)
+        while heap:
+            _, i, f = heapq.heappop(heap)
+            yield f
+            nxt = next(iters[i], None)
+            if nxt is not None:
+                heapq.heappush(heap, (nxt.t_capture_ns, i, nxt))
+

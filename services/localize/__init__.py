@@ -1,0 +1,1 @@
+"""localize: Detections -> Objects (lookup masks)."""

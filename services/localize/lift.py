@@ -1,0 +1,80 @@
+"""Lift image detections to the ground through a camera's lookup masks (no transport here).
+
+The bottom centre goes through the masks' bilinear lookup to latitude/longitude and site metres.
+The image-space heading becomes a world yaw through the local Jacobian of the lookup: the bottom
+centre and a point `step_px` along the heading are both lifted, and the yaw is the direction between
+them (where the forward point falls outside the calibrated area, the backward point is used).
+The detector regresses the 3D size in metres, so size needs no conversion.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from calibration.masks import LookupMasks
+from shared.geo import GeoFrame
+from shared.raster import bilinear, bilinear_cells
+
+
+class GroundLookup:
+    """The part of a camera's lookup masks that localize keeps in memory: site metres (float32) and
+    validity (about 11 MB for 1280x960, a third of the whole file); latitude/longitude are computed
+    exactly from metres for the few points looked up. When `site` differs from the masks' own origin
+    the metres are re-expressed in the site frame."""
+
+    def __init__(self, masks: LookupMasks, site: GeoFrame | None = None) -> None:
+        self.xy = masks.xy
+        self.valid = masks.valid
+        self.masks_geo = masks.geo
+        self.site_geo = site or masks.geo
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.valid.shape
+
+    def lookup(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """uv (N, 2) px -> (latlon (N, 2) deg, xy (N, 2) m site frame, valid (N,)); NaN where invalid."""
+        cells = bilinear_cells(uv, *self.valid.shape)
+        v0, u0, _, _, inside = cells
+        va = self.valid
+        ok = inside & va[v0, u0] & va[v0, u0 + 1] & va[v0 + 1, u0] & va[v0 + 1, u0 + 1]
+        xy = bilinear(self.xy, cells)
+        xy[~ok] = np.nan
+        latlon = np.full_like(xy, np.nan)
+        if ok.any():
+            latlon[ok] = self.masks_geo.to_geodetic(xy[ok])[:, :2]
+            if self.site_geo != self.masks_geo:
+                xy[ok] = self.site_geo.to_enu(latlon[ok, 0], latlon[ok, 1], self.site_geo.alt0_m)[:, :2]
+        return latlon, xy, ok
+
+
+@dataclass
+class Lifted:
+    """valid (N,) bool: inside the calibrated area; xy (N, 2) float64 m site ENU; latlon (N, 2) float64 deg;
+    yaw (N,) float64 rad counter-clockwise from east. Rows of invalid detections hold NaN."""
+
+    valid: np.ndarray
+    xy: np.ndarray
+    latlon: np.ndarray
+    yaw: np.ndarray
+
+
+def lift(masks: GroundLookup | LookupMasks, uv: np.ndarray, heading_uv: np.ndarray, step_px: float = 6.0) -> Lifted:
+    """uv (N, 2) px and heading_uv (N, 2) unit vectors in the masks' image -> Lifted."""
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    heading = np.asarray(heading_uv, np.float64).reshape(-1, 2)
+    if len(heading) != len(uv):
+        raise ValueError(f"uv has {len(uv)} rows, heading_uv {len(heading)}")
+    n = len(uv)
+    if n == 0:
+        return Lifted(np.zeros(0, bool), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0))
+    latlon, xy, ok = masks.lookup(uv)
+    _, fwd, ok_f = masks.lookup(uv + step_px * heading)
+    _, back, ok_b = masks.lookup(uv - step_px * heading)
+    d = np.where(ok_f[:, None], fwd - xy, xy - back)
+    yaw = np.arctan2(d[:, 1], d[:, 0])
+    valid = ok & (ok_f | ok_b) & (np.hypot(d[:, 0], d[:, 1]) > 1e-6)
+    yaw[~valid] = np.nan
+    return Lifted(valid, xy, latlon, yaw)

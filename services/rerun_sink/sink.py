@@ -1,0 +1,674 @@
+"""Log Tracks messages (and optionally camera frames with detections) to an explicit Rerun recording.
+
+View layout (the blueprint `TrackSink.blueprint()` builds):
+
+- **site view**, a 3D view of entity `world`, looked at from straight above (north up, east right). The
+  3D view is used so that coordinates stay the site ENU frame as they are (x east, y north, z up, metres;
+  hovering shows true site metres). A 2D view would need y flipped, because Rerun's 2D views have y down.
+  The basemap is a textured quad at z = 0, and tracks are drawn a little above it. Each tracker's
+  tracks are batched in one entity per kind (one log call per message, not per track):
+    - `world/basemap`                     Mesh3D, the orthophoto / rendered map (static)
+    - `world/tracks/<tracker>/trails`     LineStrips3D, one strip per track: its last positions (bounded)
+    - `world/tracks/<tracker>/positions`  Points3D, one point per track, labelled "<id> <type>"
+    - `world/tracks/<tracker>/footprints` LineStrips3D, per track the oriented length x width rectangle
+      (closed) and a segment from the centre to the front
+  Every track has its own colour, from a stable hash of (tracker, id), and the label "<id> <type>" on all
+  three (shown on the point, on hover for the lines). Each message replaces its tracker's drawings, so a
+  track that ended leaves the view at the next message but stays in the recording (scrub back to see it).
+- **plots**: `plots/speed/<tracker>/<id>` (m/s, one series per track, in the track's colour) and
+  `plots/tracks/<tracker>` (tracks per message).
+- **cameras** (only when frames are logged): `cameras/<name>/image`, `.../boxes` (2D boxes),
+  `.../bottom` (bottom centres), each in a 2D view of its own.
+
+Time: the timeline `capture` (a timestamp): a message's `t_ns`, the capture time of its frames.
+
+A tracks file is JSON lines, one Tracks message per line, as `Tracks.rows()` gives it::
+
+    {"site": str, "seq": int, "t_ns": int, "tracker": str,
+     "tracks": [{"id", "x", "y", "lat", "lon", "vx", "vy", "yaw", "length", "width", "height", "type",
+                 "score", "age", "hits", "cameras"}, ...]}
+
+x, y: metres, site ENU frame; yaw: radians, counter-clockwise from east; length, width, height: metres;
+vx, vy: m/s. `t_capture_ns` is accepted for `t_ns`. A row without x, y but with lat, lon is placed with the
+site origin, when one is given. Lines that are not such messages (bad JSON, missing keys, NaN or infinite
+numbers, another site) are skipped and counted.
+"""
+
+from __future__ import annotations
+
+import colorsys
+import json
+import logging
+import math
+import zlib
+from collections import deque
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from shared.geo import GeoFrame
+from shared.messages import check_name
+
+from .basemap import Basemap
+
+log = logging.getLogger(__name__)
+
+TIMELINE = "capture"
+WORLD = "world"
+Z_TRAIL_M = 0.05  # heights above the basemap (z = 0) so the drawings are not hidden in it
+Z_FOOTPRINT_M = 0.10
+Z_POSITION_M = 0.15
+_REQUIRED_ROW = ("id", "yaw", "length", "width")
+_OPTIONAL_NUMBERS = ("lat", "lon", "vx", "vy", "height", "score", "age", "hits")
+
+
+@dataclass(frozen=True)
+class TrackRow:
+    """One validated track of a Tracks message. x, y metres (site ENU frame); yaw rad (CCW from east);
+    length, width metres; vx, vy m/s (None when the row has none)."""
+
+    id: int
+    x: float
+    y: float
+    yaw: float
+    length: float
+    width: float
+    type: str
+    vx: float | None = None
+    vy: float | None = None
+
+
+@dataclass(frozen=True)
+class TracksMessage:
+    """One validated Tracks message: capture time `t_ns` (ns since epoch), its rows."""
+
+    site: str
+    seq: int
+    t_ns: int
+    tracker: str
+    rows: tuple[TrackRow, ...]
+
+
+def parse_tracks_message(obj: Any, origin: GeoFrame | None = None) -> TracksMessage:
+    """A Tracks-like dict (a tracks-file line, parsed) or a `shared.messages.Tracks` -> TracksMessage.
+
+    Raises ValueError naming the first problem (missing key, wrong type, NaN, ...)."""
+    if hasattr(obj, "rows") and hasattr(obj, "t_capture_ns"):  # a shared.messages.Tracks
+        obj = {"site": obj.site, "seq": obj.seq, "t_ns": obj.t_capture_ns, "tracker": obj.tracker, "tracks": obj.rows()}
+    if not isinstance(obj, Mapping):
+        raise ValueError(f"expected a JSON object, got {type(obj).__name__}")
+    for key in ("site", "tracks"):
+        if key not in obj:
+            raise ValueError(f"missing key {key!r}")
+    t_key = "t_ns" if "t_ns" in obj else "t_capture_ns"
+    if t_key not in obj:
+        raise ValueError("missing key 't_ns'")
+    site = obj["site"]
+    if not isinstance(site, str):
+        raise ValueError(f"'site' must be a string, got {site!r}")
+    t_ns = _int(obj[t_key], t_key)
+    if t_ns < 0:
+        raise ValueError(f"{t_key!r} must be >= 0, got {t_ns}")
+    seq = _int(obj.get("seq", 0), "seq")
+    tracker = obj.get("tracker", "")
+    if not isinstance(tracker, str):
+        raise ValueError(f"'tracker' must be a string, got {tracker!r}")
+    tracks = obj["tracks"]
+    if not isinstance(tracks, list):
+        raise ValueError(f"'tracks' must be a list, got {type(tracks).__name__}")
+    rows = []
+    for i, row in enumerate(tracks):
+        try:
+            rows.append(_parse_row(row, origin))
+        except ValueError as e:
+            raise ValueError(f"track {i}: {e}") from None
+    return TracksMessage(site=site, seq=seq, t_ns=t_ns, tracker=tracker, rows=tuple(rows))
+
+
+def _parse_row(row: Any, origin: GeoFrame | None) -> TrackRow:
+    if not isinstance(row, Mapping):
+        raise ValueError(f"expected an object, got {type(row).__name__}")
+    for key in _REQUIRED_ROW:
+        if key not in row:
+            raise ValueError(f"missing key {key!r}")
+    for key in _OPTIONAL_NUMBERS:
+        if row.get(key) is not None:
+            _float(row[key], key)
+    if "x" in row and "y" in row:
+        x, y = _float(row["x"], "x"), _float(row["y"], "y")
+    elif row.get("lat") is not None and row.get("lon") is not None and origin is not None:
+        x, y = (float(v) for v in origin.to_enu(np.array([row["lat"]]), np.array([row["lon"]]))[0, :2])
+    else:
+        raise ValueError("missing key 'x'" if "x" not in row else "missing key 'y'")
+    length, width = _float(row["length"], "length"), _float(row["width"], "width")
+    if length < 0 or width < 0:
+        raise ValueError(f"length and width must be >= 0, got {length}, {width}")
+    vtype = row.get("type", "unknown")
+    if not isinstance(vtype, str):
+        raise ValueError(f"'type' must be a string, got {vtype!r}")
+    has_v = row.get("vx") is not None and row.get("vy") is not None
+    return TrackRow(
+        id=_int(row["id"], "id"),
+        x=x,
+        y=y,
+        yaw=_float(row["yaw"], "yaw"),
+        length=length,
+        width=width,
+        type=vtype,
+        vx=float(row["vx"]) if has_v else None,
+        vy=float(row["vy"]) if has_v else None,
+    )
+
+
+def _float(v: Any, key: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise ValueError(f"{key!r} must be a number, got {v!r}")
+    f = float(v)
+    if not math.isfinite(f):
+        raise ValueError(f"{key!r} is {f}")
+    return f
+
+
+def _int(v: Any, key: str) -> int:
+    if isinstance(v, bool) or not isinstance(v, int | float) or not float(v).is_integer():
+        raise ValueError(f"{key!r} must be an integer, got {v!r}")
+    return int(v)
+
+
+def track_color(tracker: str, track_id: int) -> tuple[int, int, int]:
+    """A stable RGB colour for (tracker, id): the same in every run (crc32, not Python's salted hash)."""
+    h = zlib.crc32(f"{tracker}/{track_id}".encode())
+    hue = (h * 0.618033988749895) % 1.0
+    sat = 0.65 + 0.3 * ((h >> 8) & 0xFF) / 255.0
+    r, g, b = colorsys.hsv_to_rgb(hue, sat, 0.95)
+    return round(r * 255), round(g * 255), round(b * 255)
+
+
+def footprints_xy(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, length: np.ndarray, width: np.ndarray) -> np.ndarray:
+    """(N,) centres (m, site frame), yaw (rad, CCW from east), length, width (m) -> (N, 5, 2) float64 metres:
+    each oriented rectangle front-left, front-right, rear-right, rear-left, front-left (closed)."""
+    f = np.stack([np.cos(yaw), np.sin(yaw)], axis=-1) * (np.asarray(length) / 2)[:, None]
+    left = np.stack([-np.sin(yaw), np.cos(yaw)], axis=-1) * (np.asarray(width) / 2)[:, None]
+    c = np.stack([x, y], axis=-1)
+    return np.stack([c + f + left, c + f - left, c - f - left, c - f + left, c + f + left], axis=1)
+
+
+@dataclass
+class _TrackState:
+    color: tuple[int, int, int]
+    trail: deque  # of (x, y) metres, decimated to >= trail_min_step_m apart
+    last_t_ns: int
+    speed_t_ns: list[int] = field(default_factory=list)  # speeds not yet sent (capture ns, m/s)
+    speed_mps: list[float] = field(default_factory=list)
+
+
+@dataclass
+class _Span:
+    t_first_ns: int | None = None
+    t_last_ns: int | None = None
+    bounds: list[float] = field(default_factory=lambda: [math.inf, -math.inf, math.inf, -math.inf])
+
+    def add(self, t_ns: int, x: np.ndarray, y: np.ndarray) -> None:
+        self.t_first_ns = t_ns if self.t_first_ns is None else min(self.t_first_ns, t_ns)
+        self.t_last_ns = t_ns if self.t_last_ns is None else max(self.t_last_ns, t_ns)
+        if len(x):
+            b = self.bounds
+            b[:] = [min(b[0], x.min()), max(b[1], x.max()), min(b[2], y.min()), max(b[3], y.max())]
+
+
+class TrackSink:
+    """Logs Tracks messages to `recording` (an explicit `rr.RecordingStream`; nothing global is touched).
+
+    Constructing it logs the static scene: the world's axes (ENU, z up), the site (and origin) as a
+    recording property, and the basemap. Each message is one log call per entity and tracker (all its
+    tracks batched), so a busy site stays cheap. `max_trail_points` bounds each trail (points at least
+    `trail_min_step_m` apart); a track not listed for `forget_after_s` of capture time is forgotten, so the
+    state holds only current tracks (one that comes back sooner continues its trail). Per-track speeds are
+    buffered and sent as columns every `speed_flush_s` of capture time and by `flush()`.
+    `jpeg_quality` (1-100, or None for raw pixels) compresses logged camera frames."""
+
+    def __init__(
+        self,
+        recording: rr.RecordingStream,
+        site: str,
+        origin: GeoFrame | None = None,
+        basemap: Basemap | None = None,
+        *,
+        max_trail_points: int = 50,
+        trail_min_step_m: float = 0.5,
+        forget_after_s: float = 2.0,
+        speed_flush_s: float = 1.0,
+        jpeg_quality: int | None = 80,
+    ) -> None:
+        if not isinstance(recording, rr.RecordingStream):
+            raise ValueError(f"recording must be an rr.RecordingStream, got {type(recording).__name__}")
+        check_name("site", site)
+        if origin is not None and not isinstance(origin, GeoFrame):
+            raise ValueError(f"origin must be a GeoFrame or None, got {origin!r}")
+        if basemap is not None and not isinstance(basemap, Basemap):
+            raise ValueError(f"basemap must be a Basemap or None, got {type(basemap).__name__}")
+        if max_trail_points < 2:
+            raise ValueError(f"max_trail_points must be >= 2, got {max_trail_points}")
+        if not trail_min_step_m >= 0:
+            raise ValueError(f"trail_min_step_m must be >= 0, got {trail_min_step_m}")
+        if not forget_after_s >= 0:
+            raise ValueError(f"forget_after_s must be >= 0, got {forget_after_s}")
+        if not speed_flush_s >= 0:
+            raise ValueError(f"speed_flush_s must be >= 0, got {speed_flush_s}")
+        if jpeg_quality is not None and not 1 <= jpeg_quality <= 100:
+            raise ValueError(f"jpeg_quality must be in [1, 100] or None, got {jpeg_quality}")
+        self.rec = recording
+        self.site = site
+        self.origin = origin
+        self.basemap = basemap
+        self.max_trail_points = int(max_trail_points)
+        self.trail_min_step_m = float(trail_min_step_m)
+        self.forget_after_ns = int(forget_after_s * 1e9)
+        self.speed_flush_ns = int(speed_flush_s * 1e9)
+        self.jpeg_quality = jpeg_quality
+        self._tracks: dict[tuple[str, int], _TrackState] = {}
+        self._last_speed_flush_ns: int | None = None
+        self._cameras: set[str] = set()
+        self._span = _Span()
+        self.messages = 0
+        self.rows = 0
+        self.tracks_seen = 0
+        self.frames = 0
+        self._log_static()
+
+    # --- tracks -----------------------------------------------------------------------------------------
+
+    def log_tracks(self, message: Any) -> int:
+        """Log one Tracks message (a TracksMessage, a Tracks-like dict or a `shared.messages.Tracks`) at its
+        capture time; returns its number of tracks. Raises ValueError for a message that is not valid or
+        is from another site (nothing is logged then)."""
+        msg = message if isinstance(message, TracksMessage) else parse_tracks_message(message, self.origin)
+        if msg.site != self.site:
+            raise ValueError(f"message is from site {msg.site!r}, this sink logs site {self.site!r}")
+        rec = self.rec
+        base = f"{WORLD}/tracks/{_path_part(msg.tracker)}"
+        n = len(msg.rows)
+        x = np.array([r.x for r in msg.rows], np.float64)
+        y = np.array([r.y for r in msg.rows], np.float64)
+        yaw = np.array([r.yaw for r in msg.rows], np.float64)
+        length = np.array([r.length for r in msg.rows], np.float64)
+        width = np.array([r.width for r in msg.rows], np.float64)
+        labels = [f"{r.id} {r.type}" for r in msg.rows]
+        colors = np.zeros((n, 3), np.uint8)
+        trails = []
+        for i, row in enumerate(msg.rows):
+            state = self._track_state(msg.tracker, row, labels[i], msg.t_ns)
+            colors[i] = state.color
+            trails.append(_at_z(self._trail(state, row.x, row.y), Z_TRAIL_M))
+            if row.vx is not None:
+                state.speed_t_ns.append(msg.t_ns)
+                state.speed_mps.append(math.hypot(row.vx, row.vy))
+        rect = footprints_xy(x, y, yaw, length, width)  # (N, 5, 2)
+        nose = np.stack([np.column_stack([x, y]), (rect[:, 0] + rect[:, 1]) / 2], axis=1)  # (N, 2, 2)
+        rec.set_time(TIMELINE, timestamp=np.datetime64(msg.t_ns, "ns"))
+        rec.log(
+            f"{base}/trails",
+            rr.LineStrips3D(trails, colors=colors, labels=labels, show_labels=False, radii=rr.Radius.ui_points(1.5)),
+        )
+        rec.log(
+            f"{base}/positions",
+            rr.Points3D(_at_z(np.column_stack([x, y]), Z_POSITION_M), colors=colors, labels=labels, radii=0.4),
+        )
+        rec.log(
+            f"{base}/footprints",
+            rr.LineStrips3D(
+                [_at_z(s, Z_FOOTPRINT_M) for s in [*rect, *nose]],
+                colors=np.concatenate([colors, colors]),
+                labels=labels + labels,
+                show_labels=False,
+                radii=rr.Radius.ui_points(2.0),
+            ),
+        )
+        rec.log(f"plots/tracks/{_path_part(msg.tracker)}", rr.Scalars(n))
+        self._forget(msg.tracker, msg.t_ns)
+        if self._last_speed_flush_ns is None:
+            self._last_speed_flush_ns = msg.t_ns
+        elif msg.t_ns - self._last_speed_flush_ns >= self.speed_flush_ns:
+            self.flush()
+            self._last_speed_flush_ns = msg.t_ns
+        self.messages += 1
+        self.rows += n
+        self._span.add(msg.t_ns, x, y)
+        return n
+
+    def flush(self) -> None:
+        """Send the buffered per-track speeds (`plots/speed/<tracker>/<id>`). Call it when done."""
+        for key, state in self._tracks.items():
+            self._send_speeds(key, state)
+
+    def _track_state(self, tracker: str, row: TrackRow, label: str, t_ns: int) -> _TrackState:
+        key = (tracker, row.id)
+        state = self._tracks.get(key)
+        if state is None:
+            state = _TrackState(track_color(*key), deque(maxlen=self.max_trail_points), t_ns)
+            self._tracks[key] = state
+            self.tracks_seen += 1
+            self.rec.log(_speed_path(key), rr.SeriesLines(colors=[state.color], names=[label]), static=True)
+        state.last_t_ns = t_ns
+        return state
+
+    def _trail(self, state: _TrackState, x: float, y: float) -> np.ndarray:
+        """The track's trail ending at (x, y): (M, 2) float64 metres; stores (x, y) when it moved enough."""
+        trail = state.trail
+        if not trail or math.hypot(x - trail[-1][0], y - trail[-1][1]) >= self.trail_min_step_m:
+            trail.append((x, y))
+        pts = np.array(trail, np.float64)
+        return pts if trail[-1] == (x, y) else np.vstack([pts, [x, y]])
+
+    def _forget(self, tracker: str, t_ns: int) -> None:
+        for key, state in list(self._tracks.items()):
+            if key[0] == tracker and t_ns - state.last_t_ns > self.forget_after_ns:
+                self._send_speeds(key, state)
+                del self._tracks[key]
+
+    def _send_speeds(self, key: tuple[str, int], state: _TrackState) -> None:
+        if state.speed_t_ns:
+            self.rec.send_columns(
+                _speed_path(key),
+                indexes=[rr.TimeColumn(TIMELINE, timestamp=np.array(state.speed_t_ns, dtype="datetime64[ns]"))],
+                columns=rr.Scalars.columns(scalars=np.array(state.speed_mps, np.float64)),
+            )
+            state.speed_t_ns, state.speed_mps = [], []
+
+    @property
+    def live_tracks(self) -> int:
+        """How many tracks the sink holds state for (current ones, and ones that left < forget_after_s ago)."""
+        return len(self._tracks)
+
+    def trail_of(self, tracker: str, track_id: int) -> np.ndarray | None:
+        """The stored trail of a track: (M, 2) float64 metres, site frame, oldest first; None if not held."""
+        state = self._tracks.get((tracker, int(track_id)))
+        return None if state is None else np.array(state.trail, np.float64).reshape(-1, 2)
+
+    # --- camera frames ----------------------------------------------------------------------------------
+
+    def log_frame(self, camera: str, t_ns: int, image: np.ndarray | bytes, detections: Any = None) -> None:
+        """Log one camera frame at capture time `t_ns` (ns since epoch) under `cameras/<camera>`.
+
+        image: (H, W) uint8 grey or (H, W, 3) uint8 BGR (the bus's bgr8), or encoded JPEG/PNG bytes.
+        detections, in pixels of `image`: None; an object or mapping with `uv` (N, 2) bottom centres and
+        `box` (N, 4) x1 y1 x2 y2 (e.g. `shared.messages.Detections`); or a sequence of
+        ((u, v), (x1, y1, x2, y2)) pairs."""
+        check_name("camera", camera)
+        rec = self.rec
+        rec.set_time(TIMELINE, timestamp=np.datetime64(_int(t_ns, "t_ns"), "ns"))
+        path = f"cameras/{camera}"
+        rec.log(f"{path}/image", _image_archetype(image, self.jpeg_quality))
+        uv, box = _detection_arrays(detections)
+        rec.log(f"{path}/boxes", rr.Boxes2D(array=box, array_format=rr.Box2DFormat.XYXY, colors=[(255, 200, 0)]))
+        rec.log(f"{path}/bottom", rr.Points2D(uv, colors=[(255, 60, 60)], radii=rr.Radius.ui_points(3.0)))
+        self._cameras.add(camera)
+        self.frames += 1
+
+    # --- layout -----------------------------------------------------------------------------------------
+
+    def blueprint(self) -> rrb.Blueprint:
+        """The layout described in the module docstring; the site view frames the basemap, else the
+        area the tracks covered so far (else 100 m around the origin)."""
+        if self.basemap is not None:
+            x0, x1, y0, y1 = self.basemap.extent_m
+        elif self.rows:
+            x0, x1, y0, y1 = self._span.bounds
+        else:
+            x0, x1, y0, y1 = -50.0, 50.0, -50.0, 50.0
+        cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+        span = max(x1 - x0, y1 - y0, 40.0)
+        # Straight above, tilted 3 degrees south so that "up" on screen is unambiguously north.
+        eye = rrb.EyeControls3D(
+            kind=rrb.Eye3DKind.Orbital,
+            position=[cx, cy - 0.05 * span, 1.1 * span],
+            look_target=[cx, cy, 0.0],
+            eye_up=[0.0, 0.0, 1.0],
+        )
+        site_view = rrb.Spatial3DView(
+            origin=WORLD,
+            name=f"{self.site} (site ENU, m)",
+            eye_controls=eye,
+            line_grid=rrb.LineGrid3D(visible=self.basemap is None, spacing=10.0),
+        )
+        side: list[Any] = [
+            rrb.TimeSeriesView(origin="plots/speed", name="speed (m/s)"),
+            rrb.TimeSeriesView(origin="plots/tracks", name="tracks per tick"),
+        ]
+        if self._cameras:
+            side.append(rrb.Grid(*(rrb.Spatial2DView(origin=f"cameras/{c}", name=c) for c in sorted(self._cameras))))
+        return rrb.Blueprint(rrb.Horizontal(site_view, rrb.Vertical(*side), column_shares=[3, 2]))
+
+    def summary(self) -> dict:
+        """messages, rows, tracks (distinct tracks seen; one forgotten and back counts again), frames,
+        t_first_ns, t_last_ns, span_s (capture time)."""
+        s = self._span
+        span_s = (s.t_last_ns - s.t_first_ns) / 1e9 if s.t_first_ns is not None else 0.0
+        return {
+            "messages": self.messages,
+            "rows": self.rows,
+            "tracks": self.tracks_seen,
+            "frames": self.frames,
+            "t_first_ns": s.t_first_ns,
+            "t_last_ns": s.t_last_ns,
+            "span_s": span_s,
+        }
+
+    def _log_static(self) -> None:
+        rec = self.rec
+        rec.log(WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        props: dict[str, Any] = {"site": [self.site]}
+        if self.origin is not None:
+            props.update(
+                origin_lat_deg=[self.origin.lat0_deg],
+                origin_lon_deg=[self.origin.lon0_deg],
+                origin_alt_m=[self.origin.alt0_m],
+            )
+        rec.send_property("site", rr.AnyValues(**props))
+        if self.basemap is not None:
+            rec.log(f"{WORLD}/basemap", basemap_mesh(self.basemap), static=True)
+
+
+def basemap_mesh(basemap: Basemap) -> rr.Mesh3D:
+    """The basemap as a textured quad at z = 0 (site frame), its corners at `basemap.corners_m`."""
+    img = basemap.image
+    if img.ndim == 2:
+        img = np.repeat(img[:, :, None], 3, axis=2)
+    h, w = img.shape[:2]
+    u0, v0 = 0.5 / w, 0.5 / h  # half a pixel in, so opposite edges do not bleed into the border
+    return rr.Mesh3D(
+        vertex_positions=_at_z(basemap.corners_m, 0.0),
+        vertex_normals=[[0.0, 0.0, 1.0]] * 4,
+        vertex_texcoords=[[u0, v0], [1 - u0, v0], [1 - u0, 1 - v0], [u0, 1 - v0]],  # TL, TR, BR, BL; v down
+        triangle_indices=[[0, 2, 1], [0, 3, 2]],
+        albedo_texture=img,
+    )
+
+
+# --- file and live entry points ------------------------------------------------------------------------
+
+
+class _BadLines:
+    def __init__(self) -> None:
+        self.count = 0
+        self.first: tuple[int, str] | None = None
+
+    def add(self, where: int, reason: str) -> None:
+        self.count += 1
+        if self.first is None:
+            self.first = (where, reason)
+            log.warning("skipping bad tracks message %d: %s", where, reason)
+        else:
+            log.debug("skipping bad tracks message %d: %s", where, reason)
+
+
+def _as_origin(site_origin: GeoFrame | Mapping | None) -> GeoFrame | None:
+    if site_origin is None or isinstance(site_origin, GeoFrame):
+        return site_origin
+    if isinstance(site_origin, Mapping):
+        return GeoFrame.from_dict(site_origin)
+    raise ValueError(f"site_origin must be a GeoFrame or a {{lat_deg, lon_deg, alt_m}} mapping, got {site_origin!r}")
+
+
+def _as_basemap(basemap: Basemap | str | Path | None, origin: GeoFrame | None) -> Basemap | None:
+    if basemap is None or isinstance(basemap, Basemap):
+        return basemap
+    if isinstance(basemap, str | Path):
+        return Basemap.from_world_file(basemap, origin)
+    raise ValueError(f"basemap must be a Basemap or a world-file path, got {type(basemap).__name__}")
+
+
+def tracks_file_to_rrd(
+    tracks_path: str | Path,
+    out_rrd: str | Path,
+    *,
+    site_origin: GeoFrame | Mapping | None = None,
+    basemap: Basemap | str | Path | None = None,
+    frames: Iterable[Sequence] | None = None,
+    application_id: str = "roadside",
+    max_trail_points: int = 50,
+) -> dict:
+    """Convert a tracks file (JSON lines, see the module docstring) to a Rerun .rrd file.
+
+    site_origin: the site's GeoFrame (or its dict), for a lat/lon basemap and rows without x, y.
+    basemap: a Basemap, or the path of a basemap world file (see basemap.py).
+    frames: optional (camera, t_ns, image, detections) tuples, logged with `TrackSink.log_frame`.
+    Bad lines are skipped. Returns {"tracks_file", "rrd", "lines" (non-blank lines read), "messages",
+    "bad_lines", "first_bad_line" (1-based line number or None), "first_bad_reason", "rows", "tracks",
+    "frames", "t_first_ns", "t_last_ns", "span_s"}. Raises FileNotFoundError naming a missing tracks file."""
+    tracks_path, out_rrd = Path(tracks_path), Path(out_rrd)
+    if not tracks_path.is_file():
+        raise FileNotFoundError(f"tracks file not found: {tracks_path}")
+    origin = _as_origin(site_origin)
+    bm = _as_basemap(basemap, origin)
+    out_rrd.parent.mkdir(parents=True, exist_ok=True)
+    rec = rr.RecordingStream(application_id)
+    rec.save(out_rrd)
+    bad = _BadLines()
+    lines = 0
+    sink: TrackSink | None = None
+    try:
+        rec.send_recording_name(tracks_path.name)
+        with tracks_path.open(encoding="utf-8", errors="replace") as f:
+            for lineno, line in enumerate(f, 1):
+                if not line.strip():
+                    continue
+                lines += 1
+                try:
+                    msg = parse_tracks_message(json.loads(line), origin)
+                    if sink is None:
+                        sink = TrackSink(rec, msg.site, origin, bm, max_trail_points=max_trail_points)
+                    sink.log_tracks(msg)
+                except ValueError as e:  # json.JSONDecodeError is a ValueError too
+                    bad.add(lineno, f"{type(e).__name__}: {e}" if isinstance(e, json.JSONDecodeError) else str(e))
+        if sink is None:
+            sink = TrackSink(rec, "unknown", origin, bm, max_trail_points=max_trail_points)
+        sink.flush()
+        for frame in frames or ():
+            sink.log_frame(*frame)
+        rec.send_blueprint(sink.blueprint())
+    finally:
+        rec.flush()
+        rec.disconnect()
+    return {"tracks_file": str(tracks_path), "rrd": str(out_rrd), "lines": lines, **_counts(sink, bad)}
+
+
+def live(
+    messages: Iterable[Any],
+    recording: rr.RecordingStream,
+    *,
+    site_origin: GeoFrame | Mapping | None = None,
+    basemap: Basemap | str | Path | None = None,
+    max_trail_points: int = 50,
+) -> dict:
+    """Log Tracks messages as they come: `messages` yields Tracks-like dicts (a tracks-file line, parsed)
+    or `shared.messages.Tracks`, e.g. from the caller's Zenoh subscriber; `recording` is the caller's
+    stream (connected to a viewer, or saving). The site is the first valid message's. Bad messages are
+    skipped and counted; the layout is sent once, after the first valid message. Returns the summary of
+    `tracks_file_to_rrd` (line numbers are message numbers) when `messages` ends."""
+    origin = _as_origin(site_origin)
+    bm = _as_basemap(basemap, origin)
+    bad = _BadLines()
+    sink: TrackSink | None = None
+    n = 0
+    for n, obj in enumerate(messages, 1):
+        try:
+            msg = parse_tracks_message(obj, origin)
+            if sink is None:
+                sink = TrackSink(recording, msg.site, origin, bm, max_trail_points=max_trail_points)
+                sink.log_tracks(msg)
+                recording.send_blueprint(sink.blueprint())
+            else:
+                sink.log_tracks(msg)
+        except ValueError as e:
+            bad.add(n, str(e))
+    if sink is not None:
+        sink.flush()
+    return {"lines": n, **_counts(sink, bad)}
+
+
+def _counts(sink: TrackSink | None, bad: _BadLines) -> dict:
+    first = bad.first or (None, None)
+    out = {"bad_lines": bad.count, "first_bad_line": first[0], "first_bad_reason": first[1]}
+    if sink is None:
+        return {
+            "messages": 0,
+            **out,
+            "rows": 0,
+            "tracks": 0,
+            "frames": 0,
+            "t_first_ns": None,
+            "t_last_ns": None,
+            "span_s": 0.0,
+        }
+    s = sink.summary()
+    return {"messages": s.pop("messages"), **out, **s}
+
+
+# --- helpers -------------------------------------------------------------------------------------------
+
+
+def _speed_path(key: tuple[str, int]) -> str:
+    return f"plots/speed/{_path_part(key[0])}/{key[1]}"
+
+
+def _path_part(name: str) -> str:
+    return rr.escape_entity_path_part(name) if name else "default"
+
+
+def _at_z(xy: np.ndarray, z: float) -> np.ndarray:
+    xy = np.asarray(xy, dtype=np.float64)
+    return np.column_stack([xy, np.full(len(xy), z)])
+
+
+def _image_archetype(image: np.ndarray | bytes, jpeg_quality: int | None) -> rr.Image | rr.EncodedImage:
+    if isinstance(image, bytes | bytearray | memoryview):
+        data = bytes(image)
+        media = "image/png" if data[:4] == b"\x89PNG" else "image/jpeg"
+        return rr.EncodedImage(contents=data, media_type=media)
+    img = np.asarray(image)
+    if img.dtype != np.uint8 or not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 3)):
+        raise ValueError(f"frame image must be (H, W) or (H, W, 3) uint8, got {img.shape} {img.dtype}")
+    arch = rr.Image(img, color_model="L" if img.ndim == 2 else "BGR")
+    return arch.compress(jpeg_quality) if jpeg_quality is not None else arch
+
+
+def _detection_arrays(detections: Any) -> tuple[np.ndarray, np.ndarray]:
+    """-> uv (N, 2) float32 px, box (N, 4) float32 x1 y1 x2 y2 px."""
+    if detections is None:
+        return np.zeros((0, 2), np.float32), np.zeros((0, 4), np.float32)
+    if isinstance(detections, Mapping) or hasattr(detections, "uv"):
+        get = detections.get if isinstance(detections, Mapping) else lambda k: getattr(detections, k)
+        uv, box = np.asarray(get("uv"), np.float32), np.asarray(get("box"), np.float32)
+    else:
+        pairs = list(detections)
+        uv = np.array([p[0] for p in pairs], np.float32).reshape(-1, 2)
+        box = np.array([p[1] for p in pairs], np.float32).reshape(-1, 4)
+    if uv.ndim != 2 or uv.shape[1] != 2 or box.ndim != 2 or box.shape[1] != 4 or len(uv) != len(box):
+        raise ValueError(f"detections need uv (N, 2) and box (N, 4), got {uv.shape} and {box.shape}")
+    return uv, box

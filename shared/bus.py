@@ -1,0 +1,145 @@
+"""Zenoh at the edges: one helper builds every process's session from its settings, and small pieces
+every service uses (a decoding receiver that counts bad input, liveliness, clean shutdown).
+
+Heavy work never runs in a Zenoh callback: subscribers use Zenoh's channels (a ring that keeps only
+the newest samples for frames, a FIFO for the small messages) and the service's own loop receives.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import signal
+import threading
+import time
+from collections import Counter
+from collections.abc import Iterable
+
+import zenoh
+
+from shared.codec import DecodeError, decode
+from shared.keys import SERVICES, alive_key
+from shared.messages import Message
+from shared.settings import BusSettings, Settings
+
+log = logging.getLogger("roadside.bus")
+
+
+def zenoh_config(bus: BusSettings, service: str | None = None, client_index: int = 0) -> zenoh.Config:
+    """The Zenoh configuration of one process.
+
+    peer mode (embedded default): listen on this service's own loopback port and connect to every other
+    service's, multicast scouting off. A process that is not one of the services (a vehicle client, a
+    test) listens on `port_base + 4 + client_index` (0 = listen nowhere) and connects to all services.
+    client mode: connect to `bus.connect` (the router at the cabinet), listen nowhere.
+    """
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(bus.mode))
+    conf.insert_json5("scouting/multicast/enabled", json.dumps(bus.multicast_scouting))
+    listen = list(bus.listen)
+    if bus.mode == "peer":
+        others = [bus.service_endpoint(s) for s in SERVICES if s != service]
+        connect = [*bus.connect, *others]
+        if service is not None:
+            listen.append(bus.service_endpoint(service))
+        elif client_index > 0:
+            listen.append(f"tcp/{bus.host}:{bus.port_base + len(SERVICES) + client_index - 1}")
+    else:
+        if not bus.connect:
+            raise ValueError("bus.mode is client but bus.connect names no router (e.g. tcp/zenoh:7447)")
+        connect = list(bus.connect)
+    conf.insert_json5("connect/endpoints", json.dumps(connect))
+    conf.insert_json5("listen/endpoints", json.dumps(listen))
+    return conf
+
+
+def open_session(settings: Settings, service: str | None = None, client_index: int = 0) -> zenoh.Session:
+    return zenoh.open(zenoh_config(settings.bus, service, client_index))
+
+
+class BadInput:
+    """Counts rejected messages by reason and logs each reason once (then every 100th time)."""
+
+    def __init__(self, service: str) -> None:
+        self.service = service
+        self.counts: Counter[str] = Counter()
+
+    def __call__(self, reason: str, where: str = "") -> None:
+        key = reason.split(":")[0][:80]
+        self.counts[key] += 1
+        n = self.counts[key]
+        if n == 1 or n % 100 == 0:
+            log.warning("%s: dropped %s message (%d so far with this reason): %s", self.service, where or "a", n,
+                        reason)
+
+    @property
+    def total(self) -> int:
+        return sum(self.counts.values())
+
+
+class Receiver:
+    """A subscriber whose samples are decoded outside the callback. `ring` > 0 keeps only the newest
+    `ring` samples (frames); otherwise a FIFO of `fifo` samples."""
+
+    def __init__(self, session: zenoh.Session, key: str, expect: type[Message] | None, bad: BadInput,
+                 ring: int = 0, fifo: int = 4096) -> None:
+        handler = zenoh.handlers.RingChannel(ring) if ring > 0 else zenoh.handlers.FifoChannel(fifo)
+        self.sub = session.declare_subscriber(key, handler)
+        self.key = key
+        self.expect = expect
+        self.bad = bad
+
+    def _decode(self, sample) -> Message | None:
+        try:
+            return decode(sample.payload.to_bytes(), self.expect)
+        except DecodeError as exc:
+            self.bad(str(exc), str(sample.key_expr))
+            return None
+
+    def poll(self) -> list[Message]:
+        """Every message waiting now, decoded (bad ones counted and skipped)."""
+        out = []
+        while (sample := self.sub.try_recv()) is not None:
+            msg = self._decode(sample)
+            if msg is not None:
+                out.append(msg)
+        return out
+
+    def undeclare(self) -> None:
+        self.sub.undeclare()
+
+
+class Stopper:
+    """Set on SIGINT/SIGTERM (or by `stop()`); services loop `while not stopper.is_set()`."""
+
+    def __init__(self, install_signals: bool = True) -> None:
+        self.event = threading.Event()
+        if install_signals and threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, lambda *_: self.event.set())
+
+    def is_set(self) -> bool:
+        return self.event.is_set()
+
+    def stop(self) -> None:
+        self.event.set()
+
+    def wait(self, seconds: float) -> bool:
+        return self.event.wait(seconds)
+
+
+def declare_alive(session: zenoh.Session, site: str, service: str, instances: Iterable[str]) -> list:
+    """Liveliness tokens `roadside/<site>/alive/<service>/<instance>`; they vanish when the process dies."""
+    return [session.liveliness().declare_token(alive_key(site, service, i)) for i in instances]
+
+
+def wait_for_peers(session: zenoh.Session, key: str, want: int, timeout_s: float) -> int:
+    """Wait until `want` liveliness tokens match `key` (or the timeout); returns how many were seen."""
+    deadline = time.monotonic() + timeout_s
+    seen = 0
+    while time.monotonic() < deadline:
+        seen = sum(1 for r in session.liveliness().get(key, timeout=1.0) if r.ok is not None)
+        if seen >= want:
+            break
+        time.sleep(0.1)
+    return seen

@@ -1,0 +1,85 @@
+"""A vehicle's view of the bus: subscribe to a site's live tracks.
+
+    from shared.client import TrackClient
+
+    with TrackClient("state_ellsworth", connect=["tcp/192.168.1.10:7447"]) as client:
+        for tracks in client.stream():          # shared.messages.Tracks, newest first
+            for row in tracks.rows():           # id, x, y, lat, lon, vx, vy, yaw, length, ..., cameras
+                print(row["id"], row["lat"], row["lon"], row["type"])
+
+A client that joins late gets the current tracks at once: `stream()` first asks fuse_track's
+queryable (`roadside/<site>/tracks/latest`) for the newest message, then follows the live ones.
+`connect` is the cabinet's Zenoh router (or, on the embedded default, any service's loopback port).
+Bad messages are counted in `client.bad` and skipped.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Iterator
+
+import zenoh
+
+from shared.bus import BadInput, Receiver
+from shared.codec import DecodeError, decode
+from shared.keys import latest_tracks_key, tracks_key
+from shared.messages import Tracks
+from shared.settings import BusSettings
+
+
+class TrackClient:
+    def __init__(self, site: str, connect: list[str] | None = None, bus: BusSettings | None = None) -> None:
+        bus = bus or BusSettings()
+        endpoints = list(connect) if connect else [bus.service_endpoint("fuse_track")]
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"client"')
+        conf.insert_json5("connect/endpoints", json.dumps(endpoints))
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        self.site = site
+        self.bad = BadInput("tracks-client")
+        self.session = zenoh.open(conf)
+        self.receiver = Receiver(self.session, tracks_key(site), Tracks, self.bad)
+
+    def latest(self, timeout_s: float = 2.0) -> Tracks | None:
+        """The newest Tracks message fuse_track holds (None when none answers)."""
+        for reply in self.session.get(latest_tracks_key(self.site), timeout=timeout_s):
+            if reply.ok is None:
+                continue
+            try:
+                msg = decode(reply.ok.payload.to_bytes(), Tracks)
+            except DecodeError as exc:
+                self.bad(str(exc), "latest")
+                continue
+            return msg  # type: ignore[return-value]
+        return None
+
+    def stream(self, timeout_s: float | None = None, poll_s: float = 0.005) -> Iterator[Tracks]:
+        """The current tracks at once, then every new message; stops after `timeout_s` without one."""
+        last_seq = -1
+        current = self.latest()
+        if current is not None:
+            last_seq = current.seq
+            yield current
+        quiet_since = time.monotonic()
+        while True:
+            got = False
+            for msg in self.receiver.poll():
+                if msg.seq == last_seq:
+                    continue
+                got = True
+                yield msg  # type: ignore[misc]
+            if got:
+                quiet_since = time.monotonic()
+            elif timeout_s is not None and time.monotonic() - quiet_since > timeout_s:
+                return
+            time.sleep(poll_s)
+
+    def close(self) -> None:
+        self.session.close()
+
+    def __enter__(self) -> TrackClient:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

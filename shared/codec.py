@@ -1,0 +1,96 @@
+"""msgpack codec for the wire contract (shared/messages.py); nothing on the wire is ever unpickled.
+
+A message is a msgpack map `{"kind": "<frame|detections|objects|tracks>", ...fields}`. A numpy array
+travels as `{"dtype": "<f4", "shape": [N, 2], "data": <bytes>}` with its dtype from a small
+allow-list and is decoded with `numpy.frombuffer` (little-endian, C order). `decode` raises
+`DecodeError` with the reason for anything else: garbage bytes, an unknown kind, a wrong schema
+version, a disallowed dtype, a shape that does not match the bytes, a field that fails validation.
+"""
+
+from __future__ import annotations
+
+import math
+
+import msgpack
+import numpy as np
+from pydantic import ValidationError
+
+from shared.messages import MESSAGE_TYPES, Message
+
+ALLOWED_DTYPES = frozenset({"|u1", "|i1", "<u2", "<i2", "<i4", "<u4", "<i8", "<f4", "<f8", "|b1"})
+MAX_MESSAGE_BYTES = 48 * 1024 * 1024
+MAX_ARRAY_ITEMS = 10_000_000
+
+
+class DecodeError(ValueError):
+    """A message that cannot be decoded or does not validate; the text says why."""
+
+
+def _pack_array(a: np.ndarray) -> dict:
+    a = np.ascontiguousarray(a)
+    if a.dtype.byteorder == ">":
+        a = a.astype(a.dtype.newbyteorder("<"))
+    dt = a.dtype.str
+    if dt not in ALLOWED_DTYPES:
+        raise ValueError(f"dtype {a.dtype} is not allowed on the wire (allowed: {sorted(ALLOWED_DTYPES)})")
+    return {"dtype": dt, "shape": list(a.shape), "data": a.tobytes()}
+
+
+def _unpack_array(field: str, d: dict) -> np.ndarray:
+    if set(d) != {"dtype", "shape", "data"}:
+        raise DecodeError(f"field {field!r}: an array needs exactly dtype, shape, data (got {sorted(d)})")
+    dt, shape, data = d["dtype"], d["shape"], d["data"]
+    if dt not in ALLOWED_DTYPES:
+        raise DecodeError(f"field {field!r}: dtype {dt!r} is not allowed")
+    if not isinstance(shape, list) or not all(isinstance(s, int) and s >= 0 for s in shape) or len(shape) > 4:
+        raise DecodeError(f"field {field!r}: bad shape {shape!r}")
+    if not isinstance(data, bytes):
+        raise DecodeError(f"field {field!r}: data must be bytes")
+    n = math.prod(shape)
+    if n > MAX_ARRAY_ITEMS:
+        raise DecodeError(f"field {field!r}: {n} items exceed the limit of {MAX_ARRAY_ITEMS}")
+    dtype = np.dtype(dt)
+    if len(data) != n * dtype.itemsize:
+        raise DecodeError(f"field {field!r}: shape {shape} {dt} needs {n * dtype.itemsize} bytes, got {len(data)}")
+    return np.frombuffer(data, dtype=dtype).reshape(shape)
+
+
+def encode(msg: Message) -> bytes:
+    """Message -> msgpack bytes."""
+    out: dict = {"kind": msg.kind}
+    for name in type(msg).model_fields:
+        value = getattr(msg, name)
+        out[name] = _pack_array(value) if isinstance(value, np.ndarray) else value
+    return msgpack.packb(out, use_bin_type=True)
+
+
+def decode(payload: bytes | bytearray | memoryview, expect: type[Message] | None = None) -> Message:
+    """msgpack bytes -> a validated message (of type `expect` when given); DecodeError says why not."""
+    if len(payload) > MAX_MESSAGE_BYTES:
+        raise DecodeError(f"message of {len(payload)} bytes exceeds the {MAX_MESSAGE_BYTES}-byte limit")
+    try:
+        raw = msgpack.unpackb(bytes(payload), raw=False, strict_map_key=True)
+    except Exception as exc:  # msgpack raises several unrelated exception types for garbage
+        raise DecodeError(f"not msgpack ({type(exc).__name__}: {exc})") from None
+    if not isinstance(raw, dict):
+        raise DecodeError(f"expected a map, got {type(raw).__name__}")
+    kind = raw.pop("kind", None)
+    cls = MESSAGE_TYPES.get(kind) if isinstance(kind, str) else None
+    if cls is None:
+        raise DecodeError(f"unknown message kind {kind!r}")
+    if expect is not None and cls is not expect:
+        raise DecodeError(f"expected a {expect.kind} message, got {kind!r}")
+    if raw.get("v") != (v := cls.model_fields["v"].default):
+        raise DecodeError(f"schema version {raw.get('v')!r} is not supported (this build speaks v{v})")
+    fields = {}
+    for name, value in raw.items():
+        fields[name] = _unpack_array(name, value) if isinstance(value, dict) else value
+    try:
+        return cls(**fields)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first.get("loc", ())) or kind
+        raise DecodeError(f"{kind} does not validate: {where}: {first.get('msg')}"
+                          f" ({exc.error_count()} error(s))") from None
+    except (TypeError, ValueError) as exc:
+        raise DecodeError(f"{kind} does not validate: {exc}") from None

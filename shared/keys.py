@@ -1,0 +1,50 @@
+"""Key expressions on the bus (chunks separated by `/`, the most variable last)."""
+
+from __future__ import annotations
+
+from shared.messages import check_name
+
+STAGES = ("frame", "detections", "objects")
+SERVICES = ("ingest", "detect", "localize", "fuse_track")
+
+
+def camera_key(site: str, camera: str, stage: str) -> str:
+    """`roadside/<site>/cam/<camera>/<frame|detections|objects>`."""
+    if stage not in STAGES:
+        raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
+    return f"roadside/{check_name('site', site)}/cam/{check_name('camera', camera)}/{stage}"
+
+
+def all_cameras_key(site: str, stage: str) -> str:
+    """`roadside/<site>/cam/*/<stage>`: one stage of every camera."""
+    if stage not in STAGES:
+        raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
+    return f"roadside/{check_name('site', site)}/cam/*/{stage}"
+
+
+def tracks_key(site: str) -> str:
+    return f"roadside/{check_name('site', site)}/tracks"
+
+
+def latest_tracks_key(site: str) -> str:
+    """Queryable answering with the newest Tracks message, for a subscriber that joins late."""
+    return f"roadside/{check_name('site', site)}/tracks/latest"
+
+
+def alive_key(site: str, service: str, instance: str) -> str:
+    """Liveliness token `roadside/<site>/alive/<service>/<camera or instance>`."""
+    if service not in SERVICES:
+        raise ValueError(f"service must be one of {SERVICES}, got {service!r}")
+    return f"roadside/{check_name('site', site)}/alive/{service}/{check_name('instance', instance)}"
+
+
+def all_alive_key(site: str) -> str:
+    return f"roadside/{check_name('site', site)}/alive/**"
+
+
+def camera_of(key: str) -> str:
+    """The camera chunk of a `roadside/<site>/cam/<camera>/<stage>` key."""
+    parts = str(key).split("/")
+    if len(parts) != 5 or parts[0] != "roadside" or parts[2] != "cam":
+        raise ValueError(f"not a camera key: {key!r}")
+    return parts[3]

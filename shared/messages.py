@@ -1,0 +1,266 @@
+"""The wire contract: the only definition of every message on the bus.
+
+Four messages flow ingest -> detect -> localize -> fuse_track -> vehicles:
+
+| message    | key expression                            | per item |
+| ---------- | ----------------------------------------- | -------- |
+| Frame      | `roadside/<site>/cam/<camera>/frame`      | one image: encoding, width, height, bytes |
+| Detections | `roadside/<site>/cam/<camera>/detections` | bottom centre (px), score, type, size, heading, box |
+| Objects    | `roadside/<site>/cam/<camera>/objects`    | x, y (m), lat, lon, yaw (rad, ENU), size, type, score |
+| Tracks     | `roadside/<site>/tracks`                  | id, x, y, lat, lon, velocity, yaw, size, type, ... |
+
+Every message carries `v` (schema version), `site`, `seq`, `t_capture_ns` (when the frame was
+captured, from the source, not when it was processed) and `stamps`: `[stage, t_ns]` pairs, one
+appended by each stage (wall clock, `time.time_ns()`), from which per-stage latency is computed.
+
+Per-item data are struct-of-arrays numpy arrays (validated on construction: shapes, dtypes, finite
+values), so a service never loops over Python objects and the codec (shared/codec.py) sends them as
+`{dtype, shape, data}` without pickle.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from typing import Annotated, Any, ClassVar, Literal
+
+import numpy as np
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, field_validator, model_validator
+
+SCHEMA_VERSION = 1
+VEHICLE_TYPES = ("car", "suv_van", "truck", "bus", "motorcycle")
+ENCODINGS = ("gray8", "bgr8", "jpeg")
+CAMERA_KINDS = ("pinhole", "fisheye")
+MAX_FRAME_BYTES = 32 * 1024 * 1024  # larger frames are refused (an oversized frame is bad input)
+NAME_RE = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")  # site and camera names: one key-expression chunk
+
+
+def _as_array(value: Any) -> np.ndarray:
+    if isinstance(value, np.ndarray):
+        return value
+    return np.asarray(value)
+
+
+Array = Annotated[np.ndarray, BeforeValidator(_as_array), PlainSerializer(lambda a: a.tolist(), return_type=list)]
+
+
+def check_name(kind: str, name: str) -> str:
+    if not isinstance(name, str) or not NAME_RE.match(name):
+        raise ValueError(f"{kind} name must be 1-64 letters, digits, '_' or '-', got {name!r}")
+    return name
+
+
+class Message(BaseModel):
+    """Fields every message carries."""
+
+    model_config = ConfigDict(arbitrary_types_allowed=True, extra="forbid", frozen=False)
+    kind: ClassVar[str] = "message"
+
+    v: int = SCHEMA_VERSION
+    site: str
+    seq: int = Field(ge=0)
+    t_capture_ns: int = Field(ge=0)
+    stamps: list[tuple[str, int]] = Field(default_factory=list)
+
+    @field_validator("v")
+    @classmethod
+    def _version(cls, v: int) -> int:
+        if v != SCHEMA_VERSION:
+            raise ValueError(f"schema version {v} is not supported (this build speaks v{SCHEMA_VERSION})")
+        return v
+
+    @field_validator("site")
+    @classmethod
+    def _site(cls, v: str) -> str:
+        return check_name("site", v)
+
+    def stamped(self, stage: str, t_ns: int | None = None) -> list[tuple[str, int]]:
+        """This message's stamps plus `(stage, now)`, for the message the stage publishes next."""
+        return [*self.stamps, (stage, time.time_ns() if t_ns is None else int(t_ns))]
+
+    def stamp(self, stage: str) -> int:
+        """The time `stage` stamped this message (ns), KeyError if it did not."""
+        for name, t in reversed(self.stamps):
+            if name == stage:
+                return t
+        raise KeyError(f"{type(self).__name__} has no {stage!r} stamp (has {[s for s, _ in self.stamps]})")
+
+
+class CameraMessage(Message):
+    camera: str
+
+    @field_validator("camera")
+    @classmethod
+    def _camera(cls, v: str) -> str:
+        return check_name("camera", v)
+
+
+def _check_columns(name: str, arrays: dict[str, tuple[np.ndarray, tuple, str]]) -> int:
+    """Validate struct-of-arrays columns: {field: (array, trailing shape, dtype kind)}; returns N."""
+    n = None
+    for field, (a, trailing, kinds) in arrays.items():
+        if a.dtype.kind not in kinds:
+            raise ValueError(f"{name}.{field} has dtype {a.dtype}, expected kind {kinds!r}")
+        if a.ndim != 1 + len(trailing) or tuple(a.shape[1:]) != trailing:
+            raise ValueError(f"{name}.{field} must have shape (N, {', '.join(map(str, trailing))}) got {a.shape}"
+                             if trailing else f"{name}.{field} must have shape (N,), got {a.shape}")
+        if n is None:
+            n = len(a)
+        elif len(a) != n:
+            raise ValueError(f"{name}.{field} has {len(a)} rows, expected {n} like the other fields")
+        if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
+            raise ValueError(f"{name}.{field} contains NaN or infinite values")
+    return n or 0
+
+
+class Frame(CameraMessage):
+    """One camera image. `data`: the encoded bytes (jpeg) or raw pixels (gray8: H*W, bgr8: H*W*3).
+    `scale`: this image's pixels per original-sensor pixel (ingest may decode a JPEG at reduced size);
+    detect reports detections in original-sensor pixels."""
+
+    kind: ClassVar[str] = "frame"
+    camera_kind: Literal["pinhole", "fisheye"]
+    encoding: Literal["gray8", "bgr8", "jpeg"]
+    width: int = Field(gt=0, le=16384)
+    height: int = Field(gt=0, le=16384)
+    scale: float = Field(default=1.0, gt=0, le=1.0)
+    data: bytes
+
+    @model_validator(mode="after")
+    def _size(self) -> Frame:
+        if len(self.data) > MAX_FRAME_BYTES:
+            raise ValueError(f"frame of {len(self.data)} bytes exceeds the {MAX_FRAME_BYTES}-byte limit")
+        expected = {"gray8": self.width * self.height, "bgr8": self.width * self.height * 3}.get(self.encoding)
+        if expected is not None and len(self.data) != expected:
+            raise ValueError(f"{self.encoding} frame {self.width}x{self.height} needs {expected} bytes, "
+                             f"got {len(self.data)}")
+        return self
+
+
+class Detections(CameraMessage):
+    """Detections of one frame, in original-sensor pixels of the camera.
+
+    score (N,) float32 in [0, 1]; uv (N, 2) float32 bottom centre px; box (N, 4) float32 x1 y1 x2 y2 px;
+    heading_uv (N, 2) float32 image-space unit vector rear -> front; size_lwh (N, 3) float32 metres;
+    vtype (N,) int8 index into VEHICLE_TYPES. `infer_ms`: the detector's own time for this frame.
+    """
+
+    kind: ClassVar[str] = "detections"
+    width: int = Field(gt=0)
+    height: int = Field(gt=0)
+    infer_ms: float = Field(ge=0)
+    score: Array
+    uv: Array
+    box: Array
+    heading_uv: Array
+    size_lwh: Array
+    vtype: Array
+
+    @model_validator(mode="after")
+    def _columns(self) -> Detections:
+        _check_columns("Detections", {
+            "score": (self.score, (), "f"), "uv": (self.uv, (2,), "f"), "box": (self.box, (4,), "f"),
+            "heading_uv": (self.heading_uv, (2,), "f"), "size_lwh": (self.size_lwh, (3,), "f"),
+            "vtype": (self.vtype, (), "iu")})
+        return self
+
+    def __len__(self) -> int:
+        return len(self.score)
+
+
+class Objects(CameraMessage):
+    """Detections lifted to the ground by the camera's lookup masks.
+
+    xy (N, 2) float64 metres, site ENU frame; latlon (N, 2) float64 degrees; yaw (N,) float32 radians,
+    counter-clockwise from east; size_lwh (N, 3) float32 metres; vtype (N,) int8; score (N,) float32;
+    uv (N, 2) float32 the bottom centre in the camera's pixels (for drawing).
+    `infer_ms` is carried over from Detections (latency accounting).
+    """
+
+    kind: ClassVar[str] = "objects"
+    infer_ms: float = Field(ge=0)
+    xy: Array
+    latlon: Array
+    yaw: Array
+    size_lwh: Array
+    vtype: Array
+    score: Array
+    uv: Array
+
+    @model_validator(mode="after")
+    def _columns(self) -> Objects:
+        _check_columns("Objects", {
+            "xy": (self.xy, (2,), "f"), "latlon": (self.latlon, (2,), "f"), "yaw": (self.yaw, (), "f"),
+            "size_lwh": (self.size_lwh, (3,), "f"), "vtype": (self.vtype, (), "iu"),
+            "score": (self.score, (), "f"), "uv": (self.uv, (2,), "f")})
+        return self
+
+    def __len__(self) -> int:
+        return len(self.score)
+
+
+class Tracks(Message):
+    """The tracked vehicles at event time `t_capture_ns` (the tick's capture time).
+
+    id (N,) int64 unique per tracker instance; xy (N, 2) float64 m, site frame; latlon (N, 2) float64 deg;
+    velocity (N, 2) float32 m/s (east, north); yaw (N,) float32 rad ENU; size_lwh (N, 3) float32 m;
+    vtype (N,) int8; score (N,) float32; age (N,) int32 ticks since the track started; hits (N,) int32
+    ticks with a measurement; cameras: per track, the cameras whose objects updated it this tick.
+    `frames`: (camera, seq, t_capture_ns, t_arrival_ns at fuse_track) of every frame whose objects went
+    into this tick (latency accounting).
+    """
+
+    kind: ClassVar[str] = "tracks"
+    tracker: str = ""  # the tracker instance's id: track ids are unique per instance
+    id: Array
+    xy: Array
+    latlon: Array
+    velocity: Array
+    yaw: Array
+    size_lwh: Array
+    vtype: Array
+    score: Array
+    age: Array
+    hits: Array
+    cameras: list[list[str]]
+    frames: list[tuple[str, int, int, int]] = Field(default_factory=list)
+
+    @model_validator(mode="after")
+    def _columns(self) -> Tracks:
+        n = _check_columns("Tracks", {
+            "id": (self.id, (), "iu"), "xy": (self.xy, (2,), "f"), "latlon": (self.latlon, (2,), "f"),
+            "velocity": (self.velocity, (2,), "f"), "yaw": (self.yaw, (), "f"),
+            "size_lwh": (self.size_lwh, (3,), "f"), "vtype": (self.vtype, (), "iu"),
+            "score": (self.score, (), "f"), "age": (self.age, (), "iu"), "hits": (self.hits, (), "iu")})
+        if len(self.cameras) != n:
+            raise ValueError(f"Tracks.cameras has {len(self.cameras)} entries, expected {n}")
+        return self
+
+    def __len__(self) -> int:
+        return len(self.id)
+
+    def rows(self) -> list[dict]:
+        """One plain dict per track (JSON-friendly), as the recorder writes and clients print."""
+        out = []
+        names = {i: n for i, n in enumerate(VEHICLE_TYPES)}
+        for i in range(len(self)):
+            out.append({
+                "id": int(self.id[i]), "x": round(float(self.xy[i, 0]), 3), "y": round(float(self.xy[i, 1]), 3),
+                "lat": float(self.latlon[i, 0]), "lon": float(self.latlon[i, 1]),
+                "vx": round(float(self.velocity[i, 0]), 3), "vy": round(float(self.velocity[i, 1]), 3),
+                "yaw": round(float(self.yaw[i]), 4),
+                "length": round(float(self.size_lwh[i, 0]), 3), "width": round(float(self.size_lwh[i, 1]), 3),
+                "height": round(float(self.size_lwh[i, 2]), 3),
+                "type": names.get(int(self.vtype[i]), "unknown"),
+                "score": round(float(self.score[i]), 3), "age": int(self.age[i]), "hits": int(self.hits[i]),
+                "cameras": list(self.cameras[i]),
+            })
+        return out
+
+
+MESSAGE_TYPES: dict[str, type[Message]] = {m.kind: m for m in (Frame, Detections, Objects, Tracks)}
+
+
+def empty_columns(spec: dict[str, tuple[tuple, str]]) -> dict[str, np.ndarray]:
+    """Zero-row arrays for struct-of-arrays fields: {field: (trailing shape, dtype)}."""
+    return {k: np.zeros((0, *shape), dtype) for k, (shape, dtype) in spec.items()}

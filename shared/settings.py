@@ -1,0 +1,202 @@
+"""One typed settings object for every process: a site YAML file plus environment overrides.
+
+The site folder (`deploy/sites/<site>/site.yaml`, see deploy/sites/README.md) names the site, its
+cameras (kind, image size, lookup masks, source, optional fusion region), the bus and each service's
+options. Any field can be overridden from the environment with the prefix `ROADSIDE_` and `__`
+between levels, e.g. `ROADSIDE_BUS__MODE=client ROADSIDE_BUS__CONNECT='["tcp/zenoh:7447"]'` (the
+compose file does this) or `ROADSIDE_DETECT__THREADS=4`. Relative paths in the file are relative to
+the site folder.
+
+Bus default: Zenoh peer-to-peer on loopback, multicast scouting off, explicit endpoints. Each service
+listens on its own port (`port_base` + its index in SERVICES; clients such as `roadside tracks` use
+`port_base` + 4 and up) and connects to the others, so any one of them can restart.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from shared.keys import SERVICES
+from shared.messages import CAMERA_KINDS, check_name
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class BusSettings(Strict):
+    mode: Literal["peer", "client"] = "peer"
+    host: str = "127.0.0.1"  # peer mode: the address every service listens on
+    port_base: int = Field(7451, ge=1024, le=65000)
+    connect: list[str] = Field(default_factory=list)  # client mode: the router(s), e.g. tcp/zenoh:7447
+    listen: list[str] = Field(default_factory=list)  # extra listen endpoints
+    multicast_scouting: bool = False
+
+    def service_endpoint(self, service: str) -> str:
+        return f"tcp/{self.host}:{self.port_base + SERVICES.index(service)}"
+
+
+class CameraSettings(Strict):
+    name: str
+    kind: Literal["pinhole", "fisheye"]
+    width: int = Field(gt=0)
+    height: int = Field(gt=0)
+    masks: Path | None = None  # lookup masks file (roadside calibrate)
+    source: str | None = None  # this camera's own source (folder, video, URL) when not the site source
+    region_m: list[tuple[float, float]] | None = None  # fusion region polygon, site metres; default: nearest camera
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, v: str) -> str:
+        return check_name("camera", v)
+
+    @field_validator("region_m")
+    @classmethod
+    def _region(cls, v):
+        if v is not None and len(v) < 3:
+            raise ValueError(f"region_m needs at least 3 points, got {len(v)}")
+        return v
+
+
+class IngestSettings(Strict):
+    source: str | None = None  # simulator recording, image-sequence folder, video file or stream URL
+    pace: str = "1"  # "1" real time, "N" N x real time, "max": as fast as detect takes frames
+    loop: bool = False
+    encoding: Literal["jpeg", "gray8"] = "gray8"
+    decode_scale: Literal[1, 2, 4] = 2  # decode JPEGs at 1/scale (DCT-domain, cheap); the detector downsizes anyway
+    fps: float | None = Field(None, gt=0)  # capture times from a frame rate where the source has none
+    max_frames: int | None = Field(None, gt=0)  # stop after this many frames per camera
+    max_in_flight: int = Field(1, ge=1)  # pace "max": frames published but not yet detected
+
+    @field_validator("pace")
+    @classmethod
+    def _pace(cls, v: str) -> str:
+        v = str(v).strip().lower()
+        if v != "max":
+            v = v.removesuffix("x")
+            try:
+                ok = float(v) > 0
+            except ValueError:
+                ok = False
+            if not ok:
+                raise ValueError(f"pace must be a positive speed factor (1, 2.5, 10x) or 'max', got {v!r}")
+        return v
+
+
+class DetectSettings(Strict):
+    model: Path = Path("models/detector_fp32.onnx")  # CPU model
+    model_gpu: Path | None = Path("models/detector_fp16.onnx")  # used when a GPU provider is available
+    providers: list[str] | None = None  # default: TensorRT -> CUDA -> CPU, what onnxruntime has
+    threads: int = Field(2, ge=1)
+    score_thr: float = Field(0.3, gt=0, lt=1)
+    ring: int = Field(2, ge=1, le=8)  # frames kept per camera; older ones are dropped
+
+
+class LocalizeSettings(Strict):
+    heading_step_px: float = Field(6.0, gt=0)  # pixels along the image heading for the yaw Jacobian
+
+
+class FuseTrackSettings(Strict):
+    tick_ms: float = Field(100.0, gt=0)
+    watermark_ms: float = Field(150.0, ge=0)  # event time a tick waits for late cameras
+    max_wait_ms: float = Field(300.0, gt=0)  # wall time a tick waits after its first batch
+    camera_timeout_ms: float = Field(1000.0, gt=0)  # wall time without frames before a camera is not waited for
+    merge_gate_m: float = Field(3.0, gt=0)  # objects of two cameras this close are one vehicle
+    gate_m: float = Field(3.0, gt=0)  # largest track-to-measurement distance
+    max_age_ticks: int = Field(3, ge=1)
+    min_hits: int = Field(3, ge=1)
+    record: Path | None = None  # append every Tracks message to this JSON-lines file
+
+
+class Settings(BaseSettings):
+    """Everything a process needs; build with `load_settings(path)`."""
+
+    model_config = SettingsConfigDict(env_prefix="ROADSIDE_", env_nested_delimiter="__", extra="forbid")
+
+    site: str
+    site_dir: Path = Path(".")
+    origin: dict[str, float] | None = None  # {lat_deg, lon_deg, alt_m} of the site frame
+    cameras: list[CameraSettings]
+    bus: BusSettings = BusSettings()
+    ingest: IngestSettings = IngestSettings()
+    detect: DetectSettings = DetectSettings()
+    localize: LocalizeSettings = LocalizeSettings()
+    fuse_track: FuseTrackSettings = FuseTrackSettings()
+    log_level: str = "INFO"
+
+    @classmethod
+    def settings_customise_sources(cls, settings_cls, init_settings, env_settings, dotenv_settings,
+                                   file_secret_settings):
+        return (env_settings, init_settings)  # the environment overrides the file
+
+    @field_validator("site")
+    @classmethod
+    def _site(cls, v: str) -> str:
+        return check_name("site", v)
+
+    @model_validator(mode="after")
+    def _check(self) -> Settings:
+        names = [c.name for c in self.cameras]
+        if not names:
+            raise ValueError("cameras: at least one camera is needed")
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"cameras: duplicate camera names {dup}")
+        for c in self.cameras:
+            if c.kind not in CAMERA_KINDS:
+                raise ValueError(f"camera {c.name}: kind {c.kind!r}")
+        return self
+
+    def path(self, p: Path | str | None) -> Path | None:
+        """A path from the file, resolved against the site folder."""
+        if p is None:
+            return None
+        p = Path(p).expanduser()
+        return p if p.is_absolute() else (self.site_dir / p)
+
+    def camera(self, name: str) -> CameraSettings:
+        for c in self.cameras:
+            if c.name == name:
+                return c
+        raise KeyError(f"no camera {name!r} at site {self.site} (cameras: {[c.name for c in self.cameras]})")
+
+
+def load_settings(path: str | Path, **overrides) -> Settings:
+    """Read a site YAML file (or a site folder holding site.yaml), apply `overrides` (top-level keys,
+    e.g. from command-line flags), then environment variables. ValueError names the file and field."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "site.yaml"
+    if not path.is_file():
+        raise ValueError(f"site file not found: {path}")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{path}: not valid YAML ({exc})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a mapping at the top level")
+    data.setdefault("site_dir", str(path.parent.resolve()))
+    for key, value in overrides.items():
+        if value is None:
+            continue
+        if isinstance(value, dict):
+            data[key] = {**data.get(key, {}), **value}
+        else:
+            data[key] = value
+    try:
+        return Settings(**data)
+    except ValidationError as exc:
+        e = exc.errors()[0]
+        where = ".".join(str(p) for p in e.get("loc", ()))
+        raise ValueError(f"{path}: {where}: {e.get('msg')}") from None
+
+
+def env_overrides() -> dict[str, str]:
+    """The ROADSIDE_* variables in effect (for logging what overrode the file)."""
+    return {k: v for k, v in os.environ.items() if k.startswith("ROADSIDE_")}

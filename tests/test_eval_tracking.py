@@ -1,0 +1,300 @@
+"""Tracking evaluation (eval/tracking.py) on a tiny hand-made recording: two fisheye cameras 40 m apart, three
+vehicles on straight lines and two parked ones (one mostly hidden), 10 Hz with per-camera capture offsets."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from eval.tracking import (
+    FrameMatch,
+    GroundTruth,
+    TrackingEvalConfig,
+    evaluate_many,
+    evaluate_tracks,
+    handoff_measure,
+    load_tracks,
+)
+
+T0 = 1_700_000_000_000_000_000
+HZ = 10
+N_FRAMES = 40
+CAMS = {"A": ((-20.0, 0.0, 10.0), 0), "B": ((20.0, 0.0, 10.0), 37_000_000)}  # ground position, capture offset ns
+LISTED_M = 30.0  # a camera lists a vehicle within this ground distance (in_image)
+TICK_OFFSET_NS = 20_000_000  # tracker ticks fall between the cameras' capture times
+
+
+def pos(vid: int, s: float) -> np.ndarray:
+    """Vehicle vid's ground position at s seconds after T0."""
+    return {
+        1: np.array([-20.0 + 10.0 * s, 0.0]),  # east along y=0: A's region until x=0 (s=2), then B's
+        2: np.array([-15.0, -10.0 + 4.0 * s]),
+        3: np.array([12.0 + 1.5 * s, -8.0 + 2.0 * s]),
+        4: np.array([0.0, 12.0]),  # parked, mostly hidden (visible_fraction 0.1)
+        5: np.array([-10.0, -12.0]),  # parked, visible
+    }[vid]
+
+
+NORMAL = {1: np.array([0.0, 1.0]), 2: np.array([-1.0, 0.0]), 3: np.array([-0.8, 0.6]), 5: np.array([0.0, 1.0])}
+DIRECTION = {1: np.array([1.0, 0.0]), 2: np.array([0.0, 1.0]), 3: np.array([0.6, 0.8]), 5: np.array([0.0, 0.0])}
+GT_IDS = (1, 2, 3, 5)
+
+
+def _write_recording(out: Path) -> Path:
+    (out / "gt").mkdir(parents=True)
+    cameras = []
+    for name, (p, off) in CAMS.items():
+        cameras.append({"name": name, "kind": "fisheye", "modality": "visible", "width": 1280, "height": 960,
+                        "pose": {"position_m": list(p), "r_cam_from_world": np.eye(3).tolist()},
+                        "frames": N_FRAMES, "frame_dir": f"frames/{name}", "gt": f"gt/{name}.jsonl",
+                        "landmarks": f"landmarks/{name}.json"})
+        lines = []
+        for k in range(N_FRAMES):
+            t = T0 + k * 100_000_000 + off
+            s = (t - T0) / 1e9
+            vehicles = []
+            for vid in (1, 2, 3, 4, 5):
+                xy = pos(vid, s)
+                if np.linalg.norm(xy - np.array(p[:2])) > LISTED_M:
+                    continue
+                vehicles.append({"id": vid, "type": "car", "lwh": [4.5, 1.8, 1.5], "yaw": 0.0, "speed": 0.0,
+                                 "xyz": [float(xy[0]), float(xy[1]), 0.0], "in_image": True,
+                                 "visible_fraction": 0.1 if vid == 4 else 0.8 if vid == 5 else 1.0,
+                                 "parked": vid in (4, 5)})
+            lines.append(json.dumps({"t_ns": t, "file": f"frames/{name}/{t}.jpg", "vehicles": vehicles}))
+        (out / "gt" / f"{name}.jsonl").write_text("\n".join(lines) + "\n")
+    meta = {"format": "roadside-recording", "version": 1,
+            "site": {"name": "test", "origin": {"lat_deg": 42.0, "lon_deg": -83.0, "alt_m": 0.0}},
+            "hz": HZ, "seconds": N_FRAMES / HZ, "t0_ns": T0, "cameras": cameras}
+    (out / "recording.json").write_text(json.dumps(meta))
+    return out
+
+
+@pytest.fixture(scope="module")
+def gt(tmp_path_factory) -> GroundTruth:
+    return GroundTruth(_write_recording(tmp_path_factory.mktemp("rec") / "clip"))
+
+
+def tick(k: int) -> int:
+    return T0 + k * 100_000_000 + TICK_OFFSET_NS
+
+
+def track(tid: int, xy: np.ndarray) -> dict:
+    return {"id": tid, "x": round(float(xy[0]), 3), "y": round(float(xy[1]), 3), "lat": 0.0, "lon": 0.0,
+            "vx": 0.0, "vy": 0.0, "yaw": 0.0, "length": 4.5, "width": 1.8, "height": 1.5, "type": "car",
+            "score": 0.9, "age": 1, "hits": 1, "cameras": ["A"]}
+
+
+def make_rows(offset=None, ids=None, vehicles=GT_IDS, tracker=None, extra=None) -> list[dict]:
+    """One line per tick; offset(vid, k) -> xy offset, ids(vid, k) -> track id, tracker(k) -> tracker id."""
+    rows = []
+    for k in range(N_FRAMES):
+        s = (tick(k) - T0) / 1e9
+        tracks = []
+        for vid in vehicles:
+            xy = pos(vid, s) + (offset(vid, k) if offset else 0.0)
+            tracks.append(track(ids(vid, k) if ids else 10 + vid, xy))
+        for tid, xy in (extra or []):
+            tracks.append(track(tid, np.asarray(xy, float)))
+        rows.append({"site": "test", "seq": k, "t_ns": tick(k), "tracker": tracker(k) if tracker else "t1",
+                     "tracks": tracks})
+    return rows
+
+
+def write_jsonl(path: Path, rows: list[dict]) -> Path:
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    return path
+
+
+def test_merged_trajectory_interpolates_between_cameras_and_does_not_extrapolate_far(gt):
+    traj = gt.trajectories[1]
+    assert len(traj.t_ns) > N_FRAMES  # samples from both cameras, merged in time order
+    assert np.all(np.diff(traj.t_ns) > 0)
+    ext, gap = 200_000_000, 500_000_000
+    for k in (0, 7, 23, 38):
+        t = tick(k) + 5_000_000
+        np.testing.assert_allclose(traj.position_at(t, ext, gap)[:2], pos(1, (t - T0) / 1e9), atol=1e-9)
+    end = int(traj.t_ns[-1])
+    np.testing.assert_allclose(traj.position_at(end + 100_000_000, ext, gap)[:2], pos(1, (end - T0) / 1e9 + 0.1),
+                               atol=1e-9)  # a short extrapolation along the last segment
+    assert traj.position_at(end + 300_000_000, ext, gap) is None
+    assert traj.position_at(int(traj.t_ns[0]) - 300_000_000, ext, gap) is None
+    assert gt.frame_interval_ns == 100_000_000
+
+
+def test_gt_objects_policy(gt):
+    cfg = TrackingEvalConfig()
+    t = tick(10)
+    assert set(gt.gt_objects(t, ["A", "B"], cfg)) == {1, 2, 3, 5}  # parked 5 visible; parked 4 hidden (0.1)
+    assert set(gt.gt_objects(t, ["A"], cfg)) == {1, 2, 5}  # vehicle 1 at x=-9: in A's 25 m
+    assert set(gt.gt_objects(t, ["B"], cfg)) == {3}  # vehicle 1 listed by B but outside B's 25 m
+    assert 4 in gt.gt_objects(t, ["A", "B"], TrackingEvalConfig(min_visible_fraction=0.05))
+    assert gt.gt_objects(T0 + 10 * 10**9, ["A", "B"], cfg) == {}  # long after the clip
+
+
+def test_perfect_tracks(gt):
+    r = evaluate_tracks(gt, make_rows())
+    assert r["mota"] == 1.0 and r["idf1"] == 1.0 and r["id_switches"] == 0
+    assert r["precision"] == 1.0 and r["recall"] == 1.0
+    assert r["num_frames"] == N_FRAMES and r["num_objects"] == 4 * N_FRAMES
+    assert r["traj_err_in_roi_m"] == pytest.approx(0.0, abs=2e-3)
+    assert r["traj_err_in_roi_n"] == 4 * N_FRAMES and r["traj_err_out_roi_n"] == 0
+    assert math.isnan(r["traj_err_out_roi_m"])
+    assert r["tracks"] == 4 and r["gt_vehicles"] == 4 and r["trackers"] == 1
+    assert r["silent_ticks_filled"] == 0 and r["ignored_track_positions"] == 0
+
+
+def test_recorder_file_and_rows_give_the_same_result(gt, tmp_path):
+    rows = make_rows(offset=lambda v, k: 0.3 * NORMAL[v])
+    a = evaluate_tracks(gt, rows)
+    b = evaluate_tracks(gt.recording.path, write_jsonl(tmp_path / "tracks.jsonl", rows), cameras="A,B")
+    for key in ("mota", "idf1", "traj_err_in_roi_m", "num_matches"):
+        assert a[key] == pytest.approx(b[key])
+
+
+def test_constant_offset_gives_trajectory_error_and_keeps_mota(gt):
+    r = evaluate_tracks(gt, make_rows(offset=lambda v, k: 0.5 * NORMAL[v]))
+    assert r["mota"] == 1.0 and r["idf1"] == 1.0
+    assert r["traj_err_in_roi_m"] == pytest.approx(0.5, abs=2e-3)
+    assert r["traj_err_in_roi_std_m"] == pytest.approx(0.0, abs=2e-3)
+    assert r["pos_err_m"] == pytest.approx(0.5, abs=2e-3)
+    # along the path: the paper's trajectory error (distance to the path) barely sees a time lag
+    along = evaluate_tracks(gt, make_rows(offset=lambda v, k: 0.5 * DIRECTION[v]))
+    assert along["mota"] == 1.0
+    assert along["pos_err_m"] == pytest.approx(0.375, abs=2e-3)  # three moving vehicles of four
+    assert along["traj_err_in_roi_m"] < 0.05
+
+
+def test_out_of_roi_part_of_a_larger_evaluation_area(gt):
+    cfg = TrackingEvalConfig(roi_radius_m=10.0, eval_radius_m=40.0)
+    r = evaluate_tracks(gt, make_rows(offset=lambda v, k: 0.5 * NORMAL[v]), config=cfg)
+    assert r["mota"] == 1.0
+    assert r["traj_err_in_roi_n"] > 0 and r["traj_err_out_roi_n"] > 0
+    assert r["traj_err_in_roi_n"] + r["traj_err_out_roi_n"] == 4 * N_FRAMES
+    assert r["traj_err_in_roi_m"] == pytest.approx(0.5, abs=2e-3)
+    assert r["traj_err_out_roi_m"] == pytest.approx(0.5, abs=2e-3)
+
+
+def test_id_switch_is_counted(gt):
+    r = evaluate_tracks(gt, make_rows(ids=lambda v, k: 100 + v if (v == 1 and k >= 20) else 10 + v))
+    assert r["id_switches"] == 1
+    assert r["idf1"] < 1.0
+    assert r["mota"] == pytest.approx(1 - 1 / (4 * N_FRAMES))
+    assert r["tracks"] == 5
+
+
+def test_identity_is_tracker_and_id(gt):
+    r = evaluate_tracks(gt, make_rows(tracker=lambda k: "t1" if k < 20 else "t2"))  # restart, same ids
+    assert r["id_switches"] == 4 and r["trackers"] == 2 and r["tracks"] == 8
+
+
+def test_missing_track_lowers_recall_and_mota(gt):
+    r = evaluate_tracks(gt, make_rows(vehicles=(1, 2, 5)))
+    assert r["recall"] == pytest.approx(0.75) and r["mota"] == pytest.approx(0.75)
+    assert r["num_misses"] == N_FRAMES and r["precision"] == 1.0
+
+
+def test_positions_beyond_the_gate_are_misses_and_false_positives(gt):
+    r = evaluate_tracks(gt, make_rows(offset=lambda v, k: 2.0 * NORMAL[v] if v == 3 else 0.0))
+    assert r["num_misses"] == N_FRAMES and r["num_false_positives"] == N_FRAMES
+    assert r["mota"] == pytest.approx(0.5)
+    assert r["traj_err_in_roi_m"] == pytest.approx(0.0, abs=2e-3)  # only matched positions count
+
+
+def test_tracks_on_unscored_vehicles_or_outside_the_area_are_ignored(gt):
+    extra = [(90, pos(4, 0.0)), (91, (200.0, 200.0))]  # on the hidden parked car; far away
+    r = evaluate_tracks(gt, make_rows(extra=extra))
+    assert r["mota"] == 1.0 and r["num_false_positives"] == 0
+    assert r["ignored_track_positions"] == 2 * N_FRAMES and r["tracks"] == 4 and r["tracks_total"] == 6
+    strict = evaluate_tracks(gt, make_rows(extra=extra), config=TrackingEvalConfig(ignore_unscored_tracks=False))
+    assert strict["num_false_positives"] == 2 * N_FRAMES
+
+
+def test_empty_tracks_give_zero_mota(gt, tmp_path):
+    empty = tmp_path / "empty.jsonl"
+    empty.write_text("")
+    for src in (empty, []):
+        r = evaluate_tracks(gt, src)
+        assert r["mota"] <= 0.0 and r["recall"] == 0.0
+        assert r["num_frames"] == N_FRAMES and r["silent_ticks_filled"] == N_FRAMES
+        assert r["tracks"] == 0 and math.isnan(r["traj_err_in_roi_m"])
+
+
+def test_silent_ticks_and_lines_outside_the_recording(gt):
+    rows = make_rows()
+    rows = [*rows[:30], {"site": "test", "seq": 99, "t_ns": T0 + 100 * 10**9, "tracker": "t1", "tracks": []}]
+    r = evaluate_tracks(gt, rows)
+    assert r["lines_outside_recording"] == 1 and r["silent_ticks_filled"] == 10
+    assert r["recall"] == pytest.approx(0.75)
+
+
+@pytest.mark.parametrize(
+    ("bad", "message"),
+    [
+        ('{"t_ns": 1, "tracker": "t1", "tracks": [', "not valid JSON"),
+        ('{"t_ns": 1, "tracker": "t1", "tracks": [{"id": 1, "y": 2.0}]}', "'x'"),
+        ('{"tracker": "t1", "tracks": []}', "'t_ns'"),
+        ('{"t_ns": 1, "tracker": "t1", "tracks": [{"id": 1, "x": NaN, "y": 2.0}]}', "non-finite"),
+        ('{"t_ns": 1.5, "tracker": "t1", "tracks": []}', "t_ns"),
+    ],
+)
+def test_malformed_line_names_the_line(tmp_path, bad, message):
+    good = json.dumps(make_rows()[0])
+    path = tmp_path / "bad.jsonl"
+    path.write_text(good + "\n\n" + bad + "\n")
+    with pytest.raises(ValueError, match=rf"line 3: .*{message}"):
+        load_tracks(path)
+
+
+def test_malformed_row_in_memory_names_the_row(gt):
+    rows = make_rows()
+    rows[4]["tracks"][0]["y"] = float("nan")
+    with pytest.raises(ValueError, match="line 5"):
+        evaluate_tracks(gt, rows)
+
+
+def test_handoff_kept_versus_switched_identity(gt):
+    kept = evaluate_tracks(gt, make_rows())
+    assert kept["handoff_crossings"] == 1 and kept["handoff_kept_fraction"] == 1.0  # vehicle 1 at x=0
+    # switch at the crossing (tick 19: x=-0.8, region A; tick 20: x=+0.2, region B)
+    switched = evaluate_tracks(gt, make_rows(ids=lambda v, k: 100 + v if (v == 1 and k >= 20) else 10 + v))
+    assert switched["handoff_crossings"] == 1 and switched["handoff_kept_fraction"] == 0.0
+    # a switch well before the crossing is an id switch but not a lost handoff
+    early = evaluate_tracks(gt, make_rows(ids=lambda v, k: 100 + v if (v == 1 and k >= 5) else 10 + v))
+    assert early["id_switches"] == 1 and early["handoff_kept_fraction"] == 1.0
+    # no match on one side: an untracked crossing
+    lost = evaluate_tracks(gt, make_rows(offset=lambda v, k: 5.0 * NORMAL[v] if (v == 1 and k >= 10) else 0.0))
+    assert lost["handoff_crossings"] == 0 and lost["handoff_crossings_untracked"] == 1
+    assert math.isnan(lost["handoff_kept_fraction"])
+
+
+def test_handoff_measure_directly():
+    cams = {"A": (-20.0, 0.0), "B": (20.0, 0.0)}
+    frames = [FrameMatch(k * 100_000_000, {7: np.array([-1.0 + k, 0.0])}, {}, {7: ("t", 1 if k < 2 else 2)})
+              for k in range(4)]
+    r = handoff_measure(frames, cams)
+    assert r["handoff_crossings"] == 1 and r["handoff_crossings_kept"] == 0 and r["handoff_kept_fraction"] == 0.0
+
+
+def test_evaluate_many_fused_against_single_cameras(gt):
+    def single(cam: str, off: float) -> list[dict]:
+        c = np.array(CAMS[cam][0][:2])
+        rows = make_rows(offset=lambda v, k: off * NORMAL[v])
+        for r in rows:  # the camera's own tracker only has the vehicles in its area
+            r["tracks"] = [t for t in r["tracks"] if np.hypot(t["x"] - c[0], t["y"] - c[1]) <= 25.0]
+        return rows
+
+    out = evaluate_many(gt, {"fused": make_rows(), "A": single("A", 0.3), "B": single("B", 0.2)})
+    fused, a, b = out["sources"]["fused"], out["sources"]["A"], out["sources"]["B"]
+    assert fused["cameras"] == ["A", "B"] and a["cameras"] == ["A"] and b["cameras"] == ["B"]
+    assert a["gt_vehicles"] == 3 and b["gt_vehicles"] == 2  # GT restricted to what each camera sees
+    assert a["mota"] == 1.0 and b["mota"] == 1.0
+    assert out["traj_err_best_single_camera_m"] == pytest.approx(0.2, abs=2e-3)
+    assert out["best_single_camera"] == "B"
+    assert fused["traj_err_in_roi_m"] < out["traj_err_best_single_camera_m"]
+    with pytest.raises(ValueError, match="unknown camera"):
+        evaluate_many(gt, {"x": []}, cameras=["Z"])

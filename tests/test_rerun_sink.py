@@ -1,0 +1,221 @@
+"""Rerun sink: tracks file -> .rrd (bad lines counted, not fatal), basemaps, bounded live state."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rerun as rr
+
+from services.rerun_sink import Basemap, TrackSink, live, parse_tracks_message, track_color, tracks_file_to_rrd
+from shared.geo import GeoFrame
+
+T0_NS = 1_700_000_000_000_000_000
+DT_NS = 100_000_000  # 10 Hz
+
+
+def _message(k: int, tracker: str = "ft0", ids: tuple[int, ...] = (3, 7)) -> dict:
+    """Tick k: track 3 drives east at 10 m/s from (0, 0), track 7 north at 8 m/s from (5, -20)."""
+    motion = {3: (0.0, 0.0, 10.0, 0.0), 7: (5.0, -20.0, 0.0, 8.0)}
+    rows = []
+    for tid in ids:
+        x0, y0, vx, vy = motion[tid]
+        rows.append(
+            {
+                "id": tid,
+                "x": x0 + vx * k * 0.1,
+                "y": y0 + vy * k * 0.1,
+                "lat": 42.23,
+                "lon": -83.74,
+                "vx": vx,
+                "vy": vy,
+                "yaw": math.atan2(vy, vx),
+                "length": 4.5,
+                "width": 1.8,
+                "height": 1.5,
+                "type": "car" if tid == 3 else "truck",
+                "score": 0.9,
+                "age": k,
+                "hits": k,
+                "cameras": ["NE"],
+            }
+        )
+    return {"site": "s1", "seq": k, "t_ns": T0_NS + k * DT_NS, "tracker": tracker, "tracks": rows}
+
+
+@pytest.fixture
+def tracks_file(tmp_path: Path) -> Path:
+    """20 good lines (2 tracks), a garbage line as line 4 and a line with a NaN x as line 12."""
+    lines = [json.dumps(_message(k)) for k in range(20)]
+    nan = _message(5)
+    nan["tracks"][1]["x"] = float("nan")
+    lines.insert(3, "{not json")
+    lines.insert(11, json.dumps(nan))  # json.dumps writes NaN, which json.loads reads back
+    path = tmp_path / "tracks.jsonl"
+    path.write_text("\n".join(lines) + "\n\n")  # a trailing blank line is not a line
+    return path
+
+
+def test_tracks_file_to_rrd_counts_bad_lines_and_writes_the_entities(tracks_file: Path, tmp_path: Path) -> None:
+    grey = np.tile(np.linspace(0, 255, 64, dtype=np.uint8), (48, 1))  # (48, 64) grey, row 0 = north
+    basemap = Basemap.from_array(grey, (-40.0, 40.0, -30.0, 30.0))
+    frame = ("NE", T0_NS, np.zeros((24, 32, 3), np.uint8), [((10.0, 20.0), (5.0, 5.0, 15.0, 20.0))])
+    out = tmp_path / "viz" / "tracks.rrd"
+
+    summary = tracks_file_to_rrd(tracks_file, out, basemap=basemap, frames=[frame])
+
+    assert out.is_file() and out.stat().st_size > 0
+    assert summary["lines"] == 22
+    assert summary["messages"] == 20
+    assert summary["bad_lines"] == 2
+    assert summary["first_bad_line"] == 4
+    assert "JSON" in summary["first_bad_reason"]
+    assert summary["rows"] == 40
+    assert summary["tracks"] == 2
+    assert summary["frames"] == 1
+    assert summary["t_first_ns"] == T0_NS and summary["t_last_ns"] == T0_NS + 19 * DT_NS
+    assert summary["span_s"] == pytest.approx(1.9)
+
+    chunk = pytest.importorskip("rerun.chunk")  # rerun >= 0.41 reads .rrd files back
+    reader = chunk.RrdReader(out)
+    assert reader.blueprints(), "the layout (blueprint) is saved with the recording"
+    paths = {c.entity_path for c in reader.stream()}
+    expected = {
+        "/world",
+        "/world/basemap",
+        "/world/tracks/ft0/trails",
+        "/world/tracks/ft0/positions",
+        "/world/tracks/ft0/footprints",
+        "/plots/speed/ft0/3",
+        "/plots/speed/ft0/7",
+        "/plots/tracks/ft0",
+        "/cameras/NE/image",
+        "/cameras/NE/boxes",
+        "/cameras/NE/bottom",
+    }
+    assert expected <= paths, expected - paths
+
+
+def test_a_nan_line_is_skipped_with_its_reason(tmp_path: Path) -> None:
+    bad = _message(0)
+    bad["tracks"][0]["yaw"] = float("nan")
+    path = tmp_path / "tracks.jsonl"
+    path.write_text(json.dumps(_message(1)) + "\n" + json.dumps(bad) + "\n")
+    summary = tracks_file_to_rrd(path, tmp_path / "out.rrd")
+    assert (summary["messages"], summary["bad_lines"], summary["first_bad_line"]) == (1, 1, 2)
+    assert "track 0" in summary["first_bad_reason"] and "yaw" in summary["first_bad_reason"]
+
+
+def test_missing_tracks_file_raises_an_error_naming_it(tmp_path: Path) -> None:
+    missing = tmp_path / "no_such_tracks.jsonl"
+    with pytest.raises(FileNotFoundError, match=re.escape(str(missing))):
+        tracks_file_to_rrd(missing, tmp_path / "out.rrd")
+    assert not (tmp_path / "out.rrd").exists()
+
+
+def test_parse_rejects_missing_keys_and_accepts_a_tracks_message() -> None:
+    with pytest.raises(ValueError, match="'t_ns'"):
+        parse_tracks_message({"site": "s1", "tracks": []})
+    row_without_width = {k: v for k, v in _message(0)["tracks"][0].items() if k != "width"}
+    with pytest.raises(ValueError, match="track 0: missing key 'width'"):
+        parse_tracks_message({"site": "s1", "t_ns": 1, "tracks": [row_without_width]})
+
+    from shared.messages import Tracks
+
+    msg = Tracks(
+        site="s1",
+        seq=4,
+        t_capture_ns=T0_NS,
+        tracker="a",
+        id=np.array([9]),
+        xy=np.array([[1.0, 2.0]]),
+        latlon=np.array([[42.23, -83.74]]),
+        velocity=np.array([[3.0, 4.0]], np.float32),
+        yaw=np.zeros(1, np.float32),
+        size_lwh=np.array([[4.5, 1.8, 1.5]], np.float32),
+        vtype=np.array([2], np.int8),
+        score=np.ones(1, np.float32),
+        age=np.ones(1, np.int32),
+        hits=np.ones(1, np.int32),
+        cameras=[["NE"]],
+    )
+    parsed = parse_tracks_message(msg)
+    assert (parsed.t_ns, parsed.tracker, parsed.rows[0].id, parsed.rows[0].type) == (T0_NS, "a", 9, "truck")
+    assert (parsed.rows[0].x, parsed.rows[0].vy) == (1.0, 4.0)
+
+
+def test_live_state_is_bounded_and_ended_tracks_are_forgotten(tmp_path: Path) -> None:
+    rec = rr.RecordingStream("roadside_test")
+    rec.save(tmp_path / "live.rrd")
+    sink = TrackSink(rec, "s1", max_trail_points=5, trail_min_step_m=0.0, forget_after_s=1.0)
+    for k in range(10):
+        sink.log_tracks(_message(k))
+    assert len(sink.trail_of("ft0", 3)) == 5  # bounded: the last 5 positions
+    assert sink.trail_of("ft0", 3)[-1] == pytest.approx([9.0, 0.0])
+    for k in range(10, 25):  # track 3 ended; after forget_after_s it is no longer held
+        sink.log_tracks(_message(k, ids=(7,)))
+    assert sink.live_tracks == 1 and sink.trail_of("ft0", 3) is None
+    with pytest.raises(ValueError, match="site 'other'"):
+        sink.log_tracks({**_message(30), "site": "other"})
+    rec.flush()
+    rec.disconnect()
+
+
+def test_live_counts_bad_messages_and_uses_the_first_site(tmp_path: Path) -> None:
+    rec = rr.RecordingStream("roadside_test")
+    rec.save(tmp_path / "live.rrd")
+    messages = [_message(0), {"site": "s1"}, "junk", _message(1), {**_message(2), "site": "other"}]
+    summary = live(iter(messages), rec)
+    rec.flush()
+    rec.disconnect()
+    assert (summary["lines"], summary["messages"], summary["bad_lines"], summary["first_bad_line"]) == (5, 2, 3, 2)
+    assert summary["tracks"] == 2
+
+
+def test_track_colour_is_stable_and_differs_between_tracks() -> None:
+    assert track_color("ft0", 3) == track_color("ft0", 3)
+    assert track_color("ft0", 3) != track_color("ft0", 4)
+    assert track_color("ft0", 3) != track_color("ft1", 3)
+
+
+def test_basemap_from_array_validates_and_places_corners() -> None:
+    bm = Basemap.from_array(np.zeros((10, 20, 3), np.float32), (0.0, 200.0, -50.0, 50.0))
+    assert bm.image.dtype == np.uint8
+    assert bm.corners_m.tolist() == [[0, 50], [200, 50], [200, -50], [0, -50]]  # TL, TR, BR, BL
+    assert bm.extent_m == (0.0, 200.0, -50.0, 50.0)
+    with pytest.raises(ValueError, match="extent_m"):
+        Basemap.from_array(np.zeros((10, 20), np.uint8), (10.0, 0.0, 0.0, 5.0))
+    with pytest.raises(ValueError, match=r"\(H, W\)"):
+        Basemap.from_array(np.zeros((10, 20, 4), np.uint8), (0.0, 1.0, 0.0, 1.0))
+    big = Basemap.from_array(np.zeros((100, 300), np.uint8), (0.0, 3.0, 0.0, 1.0), max_side_px=60)
+    assert big.image.shape == (20, 60)
+
+
+def test_basemap_world_file_with_lat_lon_corners(tmp_path: Path) -> None:
+    import cv2
+
+    origin = GeoFrame(42.2294, -83.739, 265.0)
+    corners = origin.to_geodetic(np.array([[-100.0, 80.0], [120.0, -60.0]]))  # TL, BR in site metres
+    cv2.imwrite(str(tmp_path / "ortho.png"), np.full((30, 40, 3), (255, 0, 0), np.uint8))  # blue in BGR
+    world = tmp_path / "ortho.yaml"
+    world.write_text(
+        json.dumps(
+            {
+                "image": "ortho.png",
+                "top_left": corners[0, :2].tolist(),
+                "bottom_right": {"lat": corners[1, 0], "lon": corners[1, 1]},
+            }
+        )
+    )
+    bm = Basemap.from_world_file(world, origin)
+    assert bm.image[0, 0].tolist() == [0, 0, 255]  # stored RGB
+    assert bm.corners_m[0] == pytest.approx([-100.0, 80.0], abs=0.01)
+    assert bm.corners_m[2] == pytest.approx([120.0, -60.0], abs=0.01)
+    with pytest.raises(ValueError, match="no site origin"):
+        Basemap.from_world_file(world)
+    with pytest.raises(FileNotFoundError, match=r"nowhere\.yaml"):
+        Basemap.from_world_file(tmp_path / "nowhere.yaml")
