@@ -13,12 +13,15 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from calibration.fit import Calibration
 from shared.geo import GeoFrame
 from shared.raster import bilinear, bilinear_cells
+
+if TYPE_CHECKING:  # the fit (scipy) is not needed to load and look up masks: localize stays small
+    from calibration.fit import Calibration
 
 FORMAT = "roadside-lookup-masks"
 VERSION = 1

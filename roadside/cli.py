@@ -61,43 +61,25 @@ def _run_sim(args) -> int:
 
 
 def _add_demo(sub) -> None:
-    p = sub.add_parser("demo", help="the demo: simulate the State/Ellsworth roundabout and show it")
+    p = sub.add_parser("demo", help="the demo: the simulated State/Ellsworth roundabout through the live pipeline")
     p.add_argument("--out", type=Path, default=Path("out/demo"))
-    p.add_argument("--seconds", type=_positive_float, default=10.0)
+    p.add_argument("--seconds", type=_positive_float, default=60.0)
+    p.add_argument("--hz", type=_positive_float, default=10.0)
     p.add_argument("--seed", type=int, default=2024)
+    p.add_argument("--landmarks", type=int, default=20, help="landmarks per camera for calibration")
+    p.add_argument("--model", type=Path, help="detector ONNX (default: the shipped models/detector_fp32.onnx)")
+    p.add_argument("--port-base", type=int, default=7451)
 
 
 def _run_demo(args) -> int:
-    from sim.clip import ClipConfig, simulate_clip
-    from sim.contact_sheet import contact_sheet
-    from sim.recording import Recording
+    from roadside.demo import DEFAULT_MODEL, DemoConfig, run_demo, summary_table
 
-    rec_dir = args.out / "recording"
-    args.out.mkdir(parents=True, exist_ok=True)
-    cfg = ClipConfig(
-        site="state_ellsworth",
-        out=rec_dir,
-        seconds=args.seconds,
-        hz=10.0,
-        seed=args.seed,
-        cameras="all",
-        overwrite=True,
-    )
-    summary = simulate_clip(cfg, log=lambda s: print(f"[demo] {s}", file=sys.stderr))
-    sheet = contact_sheet(rec_dir, args.out / "contact_sheet.png")
-    rec = Recording(rec_dir)
-    print(f"\nState/Ellsworth roundabout, {args.seconds:g} s at 10 Hz, weather: {summary['environment']}")
-    print(f"{'camera':<8}{'kind':<9}{'frames':>7}{'vehicles/frame':>16}{'visible>50%':>13}")
-    for cam in rec.camera_names:
-        gt = rec.ground_truth(cam)
-        n = [len([v for v in f["vehicles"] if v["visible_px"] > 0]) for f in gt]
-        vis = [len([v for v in f["vehicles"] if v["visible_fraction"] >= 0.5]) for f in gt]
-        kind = rec.cameras[cam].kind + ("/T" if rec.cameras[cam].modality == "thermal" else "")
-        print(f"{cam:<8}{kind:<9}{len(gt):>7}{sum(n) / max(len(n), 1):>16.1f}{sum(vis) / max(len(vis), 1):>13.1f}")
-    print(
-        f"\nrendered {summary['frames']} frames in {summary['wall_s']:.1f} s ({summary['frames_per_s']:.1f} frames/s)"
-    )
-    print(f"recording: {rec_dir}\ncontact sheet: {sheet}")
+    cfg = DemoConfig(out=args.out, seconds=args.seconds, hz=args.hz, seed=args.seed, landmarks=args.landmarks,
+                     model=args.model or DEFAULT_MODEL, port_base=args.port_base)
+    summary = run_demo(cfg, log=lambda s: print(f"[demo] {s}", file=sys.stderr))
+    print(f"\nState/Ellsworth roundabout (simulated), {cfg.seconds:g} s at {cfg.hz:g} Hz, four fisheye cameras")
+    print(summary_table(summary))
+    print(f"\n{args.out / 'summary.json'}\n{args.out / 'tracks.jsonl'}\n{args.out / 'demo.rrd'}")
     return 0
 
 
@@ -319,6 +301,34 @@ def _run_tracks(args) -> int:
     return 0 if n else 1
 
 
+def _add_viz(sub) -> None:
+    p = sub.add_parser("viz", help="turn a tracks file into a Rerun .rrd (trajectories over the site map)")
+    p.add_argument("tracks", type=Path, help="tracks JSON-lines file (fuse_track.record)")
+    p.add_argument("--out", type=Path, required=True, help=".rrd file to write")
+    p.add_argument("--site", type=Path, help="site folder or site.yaml (its origin places lat/lon rows)")
+    p.add_argument("--basemap", type=Path, help="world file (YAML/JSON: image + corners) of an orthophoto")
+    p.add_argument("--recording", type=Path, help="simulator recording: draw its site's ground as the map")
+
+
+def _run_viz(args) -> int:
+    from services.rerun_sink import tracks_file_to_rrd
+
+    origin = None
+    if args.site:
+        from shared.settings import load_settings
+
+        origin = load_settings(site_path(args.site)).origin
+    basemap = args.basemap
+    if args.recording:
+        from roadside.demo import site_basemap
+        from sim.recording import Recording
+
+        basemap = site_basemap(args.recording)
+        origin = origin or Recording(args.recording).meta["site"]["origin"]
+    print(json.dumps(tracks_file_to_rrd(args.tracks, args.out, site_origin=origin, basemap=basemap), indent=1))
+    return 0
+
+
 def _add_health(sub) -> None:
     p = sub.add_parser("health", help="exit 0 when a service's liveliness token is on the bus")
     p.add_argument("--site", required=True, type=Path)
@@ -371,10 +381,11 @@ def main(argv: list[str] | None = None) -> int:
     _add_up(sub)
     _add_tracks(sub)
     _add_health(sub)
+    _add_viz(sub)
     args = parser.parse_args(argv)
     runners = {"sim": _run_sim, "demo": _run_demo, "calibrate": _run_calibrate, "bench": _run_bench,
                "train": _run_train, "export": _run_export, "eval": _run_eval, "up": _run_up,
-               "tracks": _run_tracks, "health": _run_health}
+               "tracks": _run_tracks, "health": _run_health, "viz": _run_viz}
     try:
         return runners[args.job](args)
     except (ValueError, FileNotFoundError, RuntimeError) as exc:

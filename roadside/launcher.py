@@ -68,7 +68,11 @@ class Launcher:
             self.cfg.log_dir.mkdir(parents=True, exist_ok=True)
             err = open(self.cfg.log_dir / f"{service}.log", "a")
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-        proc = subprocess.Popen(self.command(service), stdout=err, stderr=err, env=env, start_new_session=True)
+        try:
+            proc = subprocess.Popen(self.command(service), stdout=err, stderr=err, env=env, start_new_session=True)
+        finally:
+            if err is not None:
+                err.close()  # the child has its own copy; the parent would leak one per (re)start
         self.procs[service] = proc
         return proc
 

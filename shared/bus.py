@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import signal
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Iterable
 
 import zenoh
@@ -23,6 +24,7 @@ from shared.messages import Message
 from shared.settings import BusSettings, Settings
 
 log = logging.getLogger("roadside.bus")
+MAX_REASONS = 256  # distinct reasons counted and logged; more (names chosen by a sender) go under one key
 
 
 def zenoh_config(bus: BusSettings, service: str | None = None, client_index: int = 0) -> zenoh.Config:
@@ -58,14 +60,17 @@ def open_session(settings: Settings, service: str | None = None, client_index: i
 
 
 class BadInput:
-    """Counts rejected messages by reason and logs each reason once (then every 100th time)."""
+    """Counts rejected messages by reason and logs each reason once (then every 100th time). Reasons that
+    differ only in their numbers (sequence numbers, sizes) count as one."""
 
     def __init__(self, service: str) -> None:
         self.service = service
         self.counts: Counter[str] = Counter()
 
     def __call__(self, reason: str, where: str = "") -> None:
-        key = reason.split(":")[0][:80]
+        key = re.sub(r"\d+", "#", reason)[:160]
+        if key not in self.counts and len(self.counts) >= MAX_REASONS:
+            key = "other reasons"
         self.counts[key] += 1
         n = self.counts[key]
         if n == 1 or n % 100 == 0:
@@ -78,31 +83,47 @@ class BadInput:
 
 
 class Receiver:
-    """A subscriber whose samples are decoded outside the callback. `ring` > 0 keeps only the newest
-    `ring` samples (frames); otherwise a FIFO of `fifo` samples."""
+    """A subscriber whose samples are decoded outside Zenoh's callback. The callback only appends the
+    payload to a buffer and wakes the service loop (`wait`), so an idle service sleeps instead of
+    polling. `ring` > 0 keeps only the newest `ring` samples (frames: a slow consumer drops old ones);
+    otherwise a FIFO of `fifo` samples (overflow drops the oldest and is counted in `overflow`).
+    Several receivers may share one `wake` event."""
 
     def __init__(self, session: zenoh.Session, key: str, expect: type[Message] | None, bad: BadInput,
-                 ring: int = 0, fifo: int = 4096) -> None:
-        handler = zenoh.handlers.RingChannel(ring) if ring > 0 else zenoh.handlers.FifoChannel(fifo)
-        self.sub = session.declare_subscriber(key, handler)
+                 ring: int = 0, fifo: int = 4096, wake: threading.Event | None = None) -> None:
+        self.buffer: deque[tuple[str, bytes]] = deque(maxlen=ring if ring > 0 else fifo)
+        self.wake = wake or threading.Event()
+        self.overflow = 0
+        self.ring = ring > 0
+
+        def on_sample(sample) -> None:
+            if len(self.buffer) == self.buffer.maxlen and not self.ring:
+                self.overflow += 1
+            self.buffer.append((str(sample.key_expr), sample.payload.to_bytes()))
+            self.wake.set()
+
+        self.sub = session.declare_subscriber(key, on_sample)
         self.key = key
         self.expect = expect
         self.bad = bad
 
-    def _decode(self, sample) -> Message | None:
-        try:
-            return decode(sample.payload.to_bytes(), self.expect)
-        except DecodeError as exc:
-            self.bad(str(exc), str(sample.key_expr))
-            return None
+    def wait(self, timeout_s: float) -> None:
+        """Sleep until a sample arrives (or the timeout)."""
+        self.wake.wait(timeout_s)
+        self.wake.clear()
 
     def poll(self) -> list[Message]:
         """Every message waiting now, decoded (bad ones counted and skipped)."""
         out = []
-        while (sample := self.sub.try_recv()) is not None:
-            msg = self._decode(sample)
-            if msg is not None:
-                out.append(msg)
+        while self.buffer:
+            try:
+                key, payload = self.buffer.popleft()
+            except IndexError:
+                break
+            try:
+                out.append(decode(payload, self.expect))
+            except DecodeError as exc:
+                self.bad(str(exc), key)
         return out
 
     def undeclare(self) -> None:

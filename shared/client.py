@@ -55,17 +55,19 @@ class TrackClient:
         return None
 
     def stream(self, timeout_s: float | None = None, poll_s: float = 0.005) -> Iterator[Tracks]:
-        """The current tracks at once, then every new message; stops after `timeout_s` without one."""
-        last_seq = -1
+        """The current tracks at once, then every new message; stops after `timeout_s` without one.
+        Live messages of the same tracker not newer than the current one (already queued when it was asked
+        for) are skipped; a restarted fuse_track (another tracker id, seq from 0) is followed at once."""
+        last: tuple[str, int] | None = None
         current = self.latest()
         if current is not None:
-            last_seq = current.seq
+            last = (current.tracker, current.seq)
             yield current
         quiet_since = time.monotonic()
         while True:
             got = False
             for msg in self.receiver.poll():
-                if msg.seq == last_seq:
+                if last is not None and msg.tracker == last[0] and msg.seq <= last[1]:
                     continue
                 got = True
                 yield msg  # type: ignore[misc]

@@ -32,6 +32,8 @@ VEHICLE_TYPES = ("car", "suv_van", "truck", "bus", "motorcycle")
 ENCODINGS = ("gray8", "bgr8", "jpeg")
 CAMERA_KINDS = ("pinhole", "fisheye")
 MAX_FRAME_BYTES = 32 * 1024 * 1024  # larger frames are refused (an oversized frame is bad input)
+MAX_ROWS = 4096  # detections, objects or tracks per message: more is bad input (fusion is quadratic)
+INT64_END = 2**63  # seq and times are int64 downstream (numpy); larger values are bad input
 NAME_RE = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")  # site and camera names: one key-expression chunk
 
 
@@ -45,7 +47,7 @@ Array = Annotated[np.ndarray, BeforeValidator(_as_array), PlainSerializer(lambda
 
 
 def check_name(kind: str, name: str) -> str:
-    if not isinstance(name, str) or not NAME_RE.match(name):
+    if not isinstance(name, str) or not NAME_RE.fullmatch(name):
         raise ValueError(f"{kind} name must be 1-64 letters, digits, '_' or '-', got {name!r}")
     return name
 
@@ -58,8 +60,8 @@ class Message(BaseModel):
 
     v: int = SCHEMA_VERSION
     site: str
-    seq: int = Field(ge=0)
-    t_capture_ns: int = Field(ge=0)
+    seq: int = Field(ge=0, lt=INT64_END)
+    t_capture_ns: int = Field(ge=0, lt=INT64_END)
     stamps: list[tuple[str, int]] = Field(default_factory=list)
 
     @field_validator("v")
@@ -110,6 +112,8 @@ def _check_columns(name: str, arrays: dict[str, tuple[np.ndarray, tuple, str]]) 
             raise ValueError(f"{name}.{field} has {len(a)} rows, expected {n} like the other fields")
         if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
             raise ValueError(f"{name}.{field} contains NaN or infinite values")
+    if (n or 0) > MAX_ROWS:
+        raise ValueError(f"{name} has {n} rows, more than the {MAX_ROWS} a message may carry")
     return n or 0
 
 
@@ -123,7 +127,7 @@ class Frame(CameraMessage):
     encoding: Literal["gray8", "bgr8", "jpeg"]
     width: int = Field(gt=0, le=16384)
     height: int = Field(gt=0, le=16384)
-    scale: float = Field(default=1.0, gt=0, le=1.0)
+    scale: float = Field(default=1.0, gt=0, le=1.0, allow_inf_nan=False)
     data: bytes
 
     @model_validator(mode="after")
@@ -148,7 +152,7 @@ class Detections(CameraMessage):
     kind: ClassVar[str] = "detections"
     width: int = Field(gt=0)
     height: int = Field(gt=0)
-    infer_ms: float = Field(ge=0)
+    infer_ms: float = Field(ge=0, allow_inf_nan=False)
     score: Array
     uv: Array
     box: Array
@@ -178,7 +182,7 @@ class Objects(CameraMessage):
     """
 
     kind: ClassVar[str] = "objects"
-    infer_ms: float = Field(ge=0)
+    infer_ms: float = Field(ge=0, allow_inf_nan=False)
     xy: Array
     latlon: Array
     yaw: Array

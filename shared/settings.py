@@ -74,9 +74,9 @@ class IngestSettings(Strict):
     max_frames: int | None = Field(None, gt=0)  # stop after this many frames per camera
     max_in_flight: int = Field(1, ge=1)  # pace "max": frames published but not yet detected
 
-    @field_validator("pace")
+    @field_validator("pace", mode="before")  # before: YAML and --set give `pace: 2` as a number
     @classmethod
-    def _pace(cls, v: str) -> str:
+    def _pace(cls, v: str | float) -> str:
         v = str(v).strip().lower()
         if v != "max":
             v = v.removesuffix("x")
@@ -186,7 +186,10 @@ def load_settings(path: str | Path, **overrides) -> Settings:
         if value is None:
             continue
         if isinstance(value, dict):
-            data[key] = {**data.get(key, {}), **value}
+            base = data.get(key) or {}
+            if not isinstance(base, dict):
+                raise ValueError(f"{path}: {key} is not a section of fields, cannot override {key}.{next(iter(value))}")
+            data[key] = {**base, **value}
         else:
             data[key] = value
     try:

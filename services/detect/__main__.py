@@ -12,6 +12,7 @@ Detections are published in original-sensor pixels on `roadside/<site>/cam/<came
 from __future__ import annotations
 
 import logging
+import threading
 import time
 
 import cv2
@@ -26,7 +27,7 @@ from shared.service import run
 from shared.settings import Settings
 
 log = logging.getLogger("roadside.detect")
-IDLE_SLEEP_S = 0.0005
+IDLE_WAIT_S = 0.1
 
 
 def frame_image(frame: Frame) -> np.ndarray:
@@ -36,7 +37,8 @@ def frame_image(frame: Frame) -> np.ndarray:
     if frame.encoding == "bgr8":
         return cv2.cvtColor(np.frombuffer(frame.data, np.uint8).reshape(frame.height, frame.width, 3),
                             cv2.COLOR_BGR2GRAY)
-    img = cv2.imdecode(np.frombuffer(frame.data, np.uint8), cv2.IMREAD_GRAYSCALE)
+    # OpenCV raises (not returns None) for an empty buffer
+    img = cv2.imdecode(np.frombuffer(frame.data, np.uint8), cv2.IMREAD_GRAYSCALE) if frame.data else None
     if img is None:
         raise ValueError(f"camera {frame.camera} seq {frame.seq}: corrupt JPEG ({len(frame.data)} bytes)")
     if img.shape != (frame.height, frame.width):
@@ -77,10 +79,11 @@ def main(settings: Settings, stopper: Stopper) -> int:
     bad = BadInput("detect")
     session = open_session(settings, "detect")
     try:
-        tokens = declare_alive(session, settings.site, "detect", cams)
+        wake = threading.Event()
         receivers = {c: Receiver(session, camera_key(settings.site, c, "frame"), Frame, bad,
-                                 ring=settings.detect.ring) for c in cams}
+                                 ring=settings.detect.ring, wake=wake) for c in cams}
         pubs = {c: session.declare_publisher(camera_key(settings.site, c, "detections")) for c in cams}
+        tokens = declare_alive(session, settings.site, "detect", cams)  # after the subscribers: ready
         waiting: list[tuple[int, Frame]] = []
         done = 0
         while not stopper.is_set():
@@ -91,7 +94,8 @@ def main(settings: Settings, stopper: Stopper) -> int:
                         continue
                     waiting.append((time.time_ns(), msg))
             if not waiting:
-                time.sleep(IDLE_SLEEP_S)
+                wake.wait(IDLE_WAIT_S)
+                wake.clear()
                 continue
             waiting.sort(key=lambda w: w[1].t_capture_ns)
             # keep at most `ring` per camera (newest), as the channel does
@@ -109,7 +113,12 @@ def main(settings: Settings, stopper: Stopper) -> int:
                 bad(str(exc), frame.camera)
                 continue
             t0 = time.perf_counter()
-            det = detector.detect(img)
+            try:
+                det = detector.detect(img)
+            except cv2.error as exc:  # e.g. an image too thin to resize to the network's input
+                bad(f"camera {frame.camera} seq {frame.seq}: cannot detect on a {frame.width}x{frame.height} image "
+                    f"({str(exc).strip().splitlines()[-1]})", frame.camera)
+                continue
             infer_ms = (time.perf_counter() - t0) * 1e3
             pubs[frame.camera].put(encode(detections_message(frame, det, infer_ms, t_in)))
             done += 1

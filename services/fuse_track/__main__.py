@@ -31,7 +31,23 @@ from shared.service import run
 from shared.settings import Settings
 
 log = logging.getLogger("roadside.fuse_track")
-POLL_S = 0.001
+POLL_S = 0.02  # the longest sleep without a message: max_wait is checked this often
+MAX_RANGE_M = 1e6  # objects are on the ground near the site: farther ones are bad input
+SIZE_RANGE_M = (1e-6, 1e3)  # vehicle length, width, height outside this are bad input
+
+
+def implausible(o: Objects) -> str | None:
+    """Why finite but absurd values make an Objects message unusable (they overflow the tracker or the
+    Tracks message), None when it is fine."""
+    if not len(o):
+        return None
+    far = float(np.abs(o.xy).max())
+    if far > MAX_RANGE_M:
+        return f"objects of {o.camera}: coordinate {far:g} m is beyond {MAX_RANGE_M:g} m of the site"
+    lo, hi = float(o.size_lwh.min()), float(o.size_lwh.max())
+    if lo < SIZE_RANGE_M[0] or hi > SIZE_RANGE_M[1]:
+        return f"objects of {o.camera}: size {lo:g}..{hi:g} m outside [{SIZE_RANGE_M[0]:g}, {SIZE_RANGE_M[1]:g}] m"
+    return None
 
 
 def camera_positions(settings: Settings) -> tuple[dict[str, tuple[float, float]], GeoFrame]:
@@ -47,11 +63,11 @@ def camera_positions(settings: Settings) -> tuple[dict[str, tuple[float, float]]
         try:
             with np.load(path, allow_pickle=False) as z:
                 meta = json.loads(str(z["meta"]))
-        except (OSError, ValueError, KeyError) as exc:
-            raise ValueError(f"{path}: not a lookup masks file ({exc})") from None
-        masks_geo = GeoFrame.from_dict(meta["geo_origin"])
+            masks_geo = GeoFrame.from_dict(meta["geo_origin"])
+            pos = np.asarray(meta["camera"]["pose"]["position_m"], float)
+        except (OSError, ValueError, KeyError, TypeError) as exc:  # metadata without geo_origin or camera pose too
+            raise ValueError(f"{path}: not a lookup masks file ({type(exc).__name__}: {exc})") from None
         site_geo = site_geo or masks_geo
-        pos = np.asarray(meta["camera"]["pose"]["position_m"], float)
         if masks_geo != site_geo:
             ll = masks_geo.to_geodetic(pos[None, :2])[0]
             pos = site_geo.to_enu(ll[:1], ll[1:2], site_geo.alt0_m)[0]
@@ -108,7 +124,6 @@ def main(settings: Settings, stopper: Stopper) -> int:
     session = open_session(settings, "fuse_track")
     latest: list[bytes] = []
     try:
-        tokens = declare_alive(session, settings.site, "fuse_track", [tracker.id.replace("tracker-", "t")])
         receiver = Receiver(session, all_cameras_key(settings.site, "objects"), Objects, bad)
         pub = session.declare_publisher(tracks_key(settings.site))
 
@@ -117,6 +132,8 @@ def main(settings: Settings, stopper: Stopper) -> int:
                 query.reply(latest_tracks_key(settings.site), latest[-1])
 
         queryable = session.declare_queryable(latest_tracks_key(settings.site), answer)
+        # after the subscriber and queryable: a token means ready
+        tokens = declare_alive(session, settings.site, "fuse_track", [tracker.id.replace("tracker-", "t")])
         seq = 0
         log.info("tracker %s, %d cameras, tick %g ms", tracker.id, len(regions), cfg.tick_ms)
 
@@ -148,10 +165,13 @@ def main(settings: Settings, stopper: Stopper) -> int:
                 except ValueError as exc:
                     bad(str(exc), o.camera)
                     continue
+                if (reason := implausible(o)) is not None:
+                    bad(reason, o.camera)
+                    continue
                 if not ticks.add(o.camera, o.t_capture_ns, (o.seq, time.time_ns(), batch), now):
                     bad(f"late: objects of {o.camera} captured at {o.t_capture_ns} after their tick closed", o.camera)
             close(ticks.pop_ready(time.monotonic()))
-            time.sleep(POLL_S)
+            receiver.wait(POLL_S)
         close(ticks.flush())
         log.info("stopped: %d Tracks messages, %d ticks (%s), %d late, %d bad %s", seq, ticks.emitted,
                  ticks.closed_by, ticks.late, bad.total, dict(bad.counts))

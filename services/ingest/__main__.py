@@ -38,7 +38,8 @@ def to_frame_fields(sf: SourceFrame, cam: CameraSettings, encoding: str, decode_
             raise ValueError(f"{sf.origin}: not a JPEG")
         return {"encoding": "jpeg", "width": cam.width, "height": cam.height, "scale": 1.0, "data": sf.jpeg}
     if sf.jpeg is not None:
-        grey = cv2.imdecode(np.frombuffer(sf.jpeg, np.uint8), REDUCED[decode_scale])
+        # OpenCV raises (not returns None) for an empty buffer
+        grey = cv2.imdecode(np.frombuffer(sf.jpeg, np.uint8), REDUCED[decode_scale]) if sf.jpeg else None
         if grey is None:
             raise ValueError(f"{sf.origin}: cannot decode image")
     else:
@@ -104,7 +105,7 @@ class Acks:
                     self.timeouts += 1
             if len(self.pending) < self.limit or self.stopper.is_set():
                 return
-            time.sleep(0.0002)
+            self.receiver.wait(0.05)
 
     def sent(self, camera: str, seq: int) -> None:
         self.pending[(camera, seq)] = time.monotonic()
@@ -121,12 +122,12 @@ def main(settings: Settings, stopper: Stopper) -> int:
     bad = BadInput("ingest")
     session = open_session(settings, "ingest")
     try:
-        tokens = declare_alive(session, settings.site, "ingest", list(cams))
         pubs = {c: session.declare_publisher(camera_key(settings.site, c, "frame")) for c in cams}
         acks = None
         if cfg.pace == "max":
             acks = Acks(Receiver(session, all_cameras_key(settings.site, "detections"), Detections, bad),
                         cfg.max_in_flight, stopper)
+        tokens = declare_alive(session, settings.site, "ingest", list(cams))
         seen = wait_for_peers(session, all_alive_key(settings.site), len(cams) * 3 + 1, PIPELINE_WAIT_S)
         log.info("source %s, %d cameras, pace %s; %d liveliness tokens on the bus", cfg.source, len(cams),
                  cfg.pace, seen)

@@ -26,7 +26,7 @@ from shared.service import run
 from shared.settings import Settings
 
 log = logging.getLogger("roadside.localize")
-IDLE_SLEEP_S = 0.0005
+IDLE_WAIT_S = 0.1
 
 
 def load_all_masks(settings: Settings) -> dict[str, GroundLookup]:
@@ -64,14 +64,14 @@ def main(settings: Settings, stopper: Stopper) -> int:
     bad = BadInput("localize")
     session = open_session(settings, "localize")
     try:
-        tokens = declare_alive(session, settings.site, "localize", cams)
         receiver = Receiver(session, all_cameras_key(settings.site, "detections"), Detections, bad)
         pubs = {c: session.declare_publisher(camera_key(settings.site, c, "objects")) for c in cams}
+        tokens = declare_alive(session, settings.site, "localize", cams)  # after the subscriber: ready
         done = 0
         while not stopper.is_set():
             msgs = receiver.poll()
             if not msgs:
-                time.sleep(IDLE_SLEEP_S)
+                receiver.wait(IDLE_WAIT_S)
                 continue
             for det in msgs:
                 if det.camera not in masks:

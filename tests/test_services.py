@@ -1,0 +1,469 @@
+"""Subprocess smoke tests of the four live services on real Zenoh sessions over loopback.
+
+Each service runs as `python -m services.<name> --site SITE --set ...` in its own process, on a bus of its
+own (a free `bus.port_base` per test), next to a Zenoh peer of the test's own that watches, publishes and
+holds liveliness tokens. The site (one fisheye camera of the small recording) has lookup masks from the
+recording's exact ground lookup and a tiny untrained detector: these tests check transport, bad input,
+start-up errors and restarts, not accuracy.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import shutil
+from pathlib import Path
+
+import cv2
+import msgpack
+import numpy as np
+import pytest
+from pipeline_fixtures import (
+    CAMERA,
+    Peer,
+    ServiceProcess,
+    bus_sets,
+    export_tiny_detector,
+    free_port_base,
+    site_config,
+    wait_until,
+    write_exact_masks,
+    write_site,
+)
+
+from shared.codec import encode
+from shared.keys import alive_key, all_alive_key, all_cameras_key, camera_key, tracks_key
+from shared.messages import MAX_FRAME_BYTES, Detections, Frame, Objects, Tracks
+
+pytestmark = pytest.mark.slow
+
+T0 = 1_703_001_700_000_000_000
+TICK_NS = 100_000_000
+WAIT_S = 60.0  # generous: the machine may be busy; every wait ends as soon as its condition holds
+
+
+# --- fixtures -------------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def site(small_recording: Path, tmp_path_factory) -> Path:
+    """site.yaml of camera NE of the small recording: exact lookup masks and a tiny untrained detector."""
+    folder = tmp_path_factory.mktemp("site")
+    write_exact_masks(small_recording, CAMERA, folder / "masks" / f"{CAMERA}.npz")
+    export_tiny_detector(folder / "model.onnx")
+    return write_site(folder, site_config(small_recording))
+
+
+@pytest.fixture(scope="module")
+def site_name(site: Path) -> str:
+    from shared.settings import load_settings
+
+    return load_settings(site).site
+
+
+@pytest.fixture
+def port_base() -> int:
+    return free_port_base()
+
+
+@pytest.fixture
+def launch(tmp_path: Path):
+    """start(service, site, *sets) -> ServiceProcess; every process still running at the end is killed."""
+    started: list[ServiceProcess] = []
+
+    def start(service: str, site: Path, *sets: str) -> ServiceProcess:
+        n = sum(p.service == service for p in started)
+        proc = ServiceProcess(service, site, list(sets), tmp_path / f"{service}-{n}.log")
+        started.append(proc)
+        return proc
+
+    yield start
+    for proc in started:
+        proc.kill()
+
+
+@pytest.fixture
+def peer(port_base: int):
+    p = Peer(port_base)
+    yield p
+    p.close()
+
+
+# --- message builders -----------------------------------------------------------------------------------------------
+
+
+def good_frame(site: str, recording: Path, seq: int) -> Frame:
+    """The recording's first NE frame as ingest sends it (grey, decoded at half size)."""
+    path = sorted((recording / "frames" / CAMERA).glob("*.jpg"))[0]
+    grey = cv2.imread(str(path), cv2.IMREAD_REDUCED_GRAYSCALE_2)
+    return Frame(site=site, camera=CAMERA, seq=seq, t_capture_ns=T0 + seq * TICK_NS, camera_kind="fisheye",
+                 encoding="gray8", width=grey.shape[1], height=grey.shape[0], scale=0.5, data=grey.tobytes(),
+                 stamps=[("ingest", T0)])
+
+
+def good_detections(site: str, seq: int, camera: str = CAMERA) -> Detections:
+    f4 = np.float32
+    return Detections(site=site, camera=camera, seq=seq, t_capture_ns=T0 + seq * TICK_NS, width=1280, height=960,
+                      infer_ms=5.0, stamps=[("ingest", T0), ("detect", T0 + 1)],
+                      score=np.array([0.9, 0.8], f4), uv=np.array([[640.0, 800.0], [400.0, 600.0]], f4),
+                      box=np.array([[600, 760, 680, 800], [360, 560, 440, 600]], f4),
+                      heading_uv=np.array([[1.0, 0.0], [0.0, 1.0]], f4),
+                      size_lwh=np.array([[4.5, 1.8, 1.5], [4.2, 1.8, 1.5]], f4), vtype=np.array([0, 1], np.int8))
+
+
+def good_objects(site: str, seq: int, x: float = 5.0, camera: str = CAMERA) -> Objects:
+    """One car at (x + 1 m per seq, 5) m, captured at T0 + seq ticks."""
+    f4 = np.float32
+    return Objects(site=site, camera=camera, seq=seq, t_capture_ns=T0 + seq * TICK_NS, infer_ms=5.0,
+                   stamps=[("ingest", T0), ("detect", T0 + 1), ("localize", T0 + 2)],
+                   xy=np.array([[x + 1.0 * seq, 5.0]]), latlon=np.array([[42.2294, -83.739]]),
+                   yaw=np.zeros(1, f4), size_lwh=np.array([[4.5, 1.8, 1.5]], f4), vtype=np.zeros(1, np.int8),
+                   score=np.array([0.9], f4), uv=np.array([[640.0, 800.0]], f4))
+
+
+def tampered(msg, **fields) -> bytes:
+    """The message's msgpack map with fields replaced, packed without validation (bad input on purpose)."""
+    return msgpack.packb({**msgpack.unpackb(encode(msg), raw=False), **fields}, use_bin_type=True)
+
+
+def arr(a: np.ndarray) -> dict:
+    return {"dtype": a.dtype.str, "shape": list(a.shape), "data": a.tobytes()}
+
+
+def send_bad_inputs(proc: ServiceProcess, peer: Peer, cases: list[tuple[str, bytes, str | None]]) -> None:
+    """Publish each bad payload and wait until the service's log names its reason (one at a time: a frame
+    subscriber keeps only the newest frames, so a burst could be dropped before it is decoded). A reason
+    already logged is not logged again (None): the final count of bad messages shows it was seen."""
+    for key, payload, reason in cases:
+        peer.put(key, payload)
+        if reason is None:
+            continue
+        named = wait_until(lambda r=reason: re.search(r"dropped .* message .*" + r, proc.log()) or not proc.running(),
+                           WAIT_S)
+        assert proc.running(), f"{proc.service} died on {reason!r}:\n{proc.log()}"
+        assert named, f"{proc.service} log does not name {reason!r}:\n{proc.log()}"
+
+
+def warm_up(peer: Peer, key: str, payload: bytes, done, what: str) -> None:
+    """Publish a good message every second until the service's answer arrives (the subscription is live)."""
+    for _ in range(int(WAIT_S)):
+        peer.put(key, payload)
+        if peer.wait_for(done, 1.0):
+            return
+    raise AssertionError(f"no answer to {what} within {WAIT_S} s")
+
+
+def jsonl(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def stages(msg) -> list[str]:
+    return [s for s, _ in msg.stamps]
+
+
+def bad_count(proc: ServiceProcess, pattern: str) -> int:
+    """The bad-message count of the service's last log line ("stopped: ..., N bad ...")."""
+    found = re.findall(pattern, proc.log().strip().splitlines()[-1])
+    assert found, proc.log()
+    return int(found[-1])
+
+
+def assert_clean_exit(proc: ServiceProcess, rc: int) -> None:
+    assert rc == 0, f"{proc.service} exited {rc}:\n{proc.log()}"
+    assert "Traceback" not in proc.log(), proc.log()
+
+
+# --- a. the whole chain with a frame cap ----------------------------------------------------------------------------
+
+
+def test_chain_plays_two_frames_through_all_four_services(site, site_name, small_recording, port_base, peer, launch,
+                                                          tmp_path):
+    record = tmp_path / "tracks.jsonl"
+    peer.subscribe("detections", all_cameras_key(site_name, "detections"), Detections)
+    peer.subscribe("objects", all_cameras_key(site_name, "objects"), Objects)
+    peer.subscribe("tracks", tracks_key(site_name), Tracks)
+    sets = [*bus_sets(port_base), f"fuse_track.record={record}", "fuse_track.tick_ms=500", "fuse_track.min_hits=1"]
+    fuse = launch("fuse_track", site, *sets)
+    localize = launch("localize", site, *sets)
+    detect = launch("detect", site, *sets)
+    assert peer.wait_alive(all_alive_key(site_name), 3, WAIT_S) >= 3, [p.log() for p in (fuse, localize, detect)]
+    ingest = launch("ingest", site, *sets, "ingest.pace=max", "ingest.max_frames=2")
+    assert_clean_exit(ingest, ingest.wait(WAIT_S))
+    assert "done: 2 frames published, 0 bad" in ingest.log()
+
+    def seqs(name: str) -> set[int]:
+        return {m.seq for m in peer.got[name]}
+
+    def tracked(seq: int) -> bool:
+        return any((CAMERA, seq) in {(c, s) for c, s, _, _ in t.frames} for t in peer.got["tracks"])
+
+    assert peer.wait_for(lambda: seqs("objects") == {0, 1} and tracked(1), WAIT_S), peer.got
+    for proc in (detect, localize, fuse):  # fuse_track last: it flushes and records what is still open
+        assert_clean_exit(proc, proc.terminate())
+    peer.poll()
+
+    frame_times = [int(p.stem) for p in sorted((small_recording / "frames" / CAMERA).glob("*.jpg"))][:2]
+    dets = sorted(peer.got["detections"], key=lambda m: m.seq)
+    assert [d.seq for d in dets] == [0, 1] and [d.t_capture_ns for d in dets] == frame_times
+    assert sum(len(d) for d in dets) > 0, "the detector found nothing below its threshold"
+    for d in dets:
+        assert (d.camera, d.width, d.height) == (CAMERA, 1280, 960)
+        assert stages(d) == ["ingest", "detect_in", "detect"]
+    objs = sorted(peer.got["objects"], key=lambda m: m.seq)
+    assert [o.t_capture_ns for o in objs] == frame_times
+    for o in objs:
+        assert stages(o) == ["ingest", "detect_in", "detect", "localize"]
+        t = [t for _, t in o.stamps]
+        assert t == sorted(t), o.stamps
+    assert peer.got["tracks"]
+    for tr in peer.got["tracks"]:
+        assert stages(tr) == ["tick_closed", "fuse_track"] and tr.stamp("tick_closed") <= tr.stamp("fuse_track")
+    assert len({tr.tracker for tr in peer.got["tracks"]}) == 1
+
+    lines = jsonl(record)
+    assert lines and [r["seq"] for r in lines] == list(range(len(lines)))
+    assert {tr.seq for tr in peer.got["tracks"]} <= {r["seq"] for r in lines}
+    for r in lines:
+        assert r["site"] == site_name and r["tracker"] == peer.got["tracks"][0].tracker
+        assert all(math.isfinite(row["lat"]) and row["cameras"] in ([], [CAMERA]) for row in r["tracks"])
+    assert "stopped: 2 frames detected, 0 bad" in detect.log()
+    assert "stopped: 2 messages localized, 0 bad" in localize.log()
+
+
+# --- b. bad input on the bus at every service -----------------------------------------------------------------------
+
+
+def test_detect_drops_bad_frames_and_keeps_running(site, site_name, small_recording, port_base, peer, launch):
+    peer.subscribe("detections", camera_key(site_name, CAMERA, "detections"), Detections)
+    detect = launch("detect", site, *bus_sets(port_base))
+    assert peer.wait_alive(alive_key(site_name, "detect", CAMERA), 1, WAIT_S), detect.log()
+    key = camera_key(site_name, CAMERA, "frame")
+    frame = good_frame(site_name, small_recording, 0)
+    warm_up(peer, key, encode(frame), lambda: peer.got["detections"], "a good frame")
+
+    jpeg = frame.model_copy(update={"encoding": "jpeg", "data": b"\xff\xd8\xff\xe0 not really a jpeg"})
+    cases = [
+        (key, b"\xc1\xc1 this is not msgpack", "not msgpack"),
+        (key, tampered(frame, v=99), "schema version 99 is not supported"),
+        (key, tampered(frame, data=arr(np.zeros(4, np.complex128))), "field 'data': dtype '<c16' is not allowed"),
+        (key, tampered(frame, data=frame.data[:-1]), "gray8 frame 640x480 needs 307200 bytes, got 307199"),
+        (key, tampered(frame, scale=float("nan")), "scale: Input should be a finite number"),
+        (key, tampered(jpeg, data=b"\xff\xd8" + bytes(MAX_FRAME_BYTES)), f"exceeds the {MAX_FRAME_BYTES}-byte limit"),
+        (key, tampered(jpeg, data=b""), r"camera NE seq 0: corrupt JPEG \(0 bytes\)"),
+        (key, tampered(jpeg), None),  # the same reason again (only the numbers differ): counted, not logged again
+        (key, tampered(frame, width=4000, height=1, data=bytes(4000)), "cannot detect on a 4000x1 image"),
+        (key, tampered(frame, camera="SW"), "frame for camera SW on the key of camera NE"),
+        (key, encode(good_objects(site_name, 0)), "expected a frame message, got 'objects'"),
+    ]
+    send_bad_inputs(detect, peer, cases)
+
+    peer.put(key, encode(good_frame(site_name, small_recording, 1)))
+    assert peer.wait_for(lambda: any(d.seq == 1 for d in peer.got["detections"]), WAIT_S), detect.log()
+    assert_clean_exit(detect, detect.terminate())
+    assert bad_count(detect, r"(\d+) bad messages") == len(cases)
+
+
+def test_localize_drops_bad_detections_and_keeps_running(site, site_name, port_base, peer, launch):
+    peer.subscribe("objects", all_cameras_key(site_name, "objects"), Objects)
+    localize = launch("localize", site, *bus_sets(port_base))
+    assert peer.wait_alive(alive_key(site_name, "localize", CAMERA), 1, WAIT_S), localize.log()
+    key = camera_key(site_name, CAMERA, "detections")
+    det = good_detections(site_name, 0)
+    warm_up(peer, key, encode(det), lambda: peer.got["objects"], "good detections")
+
+    uv = det.uv.copy()
+    uv[1, 0] = np.nan
+    cases = [
+        (key, b"\x00\x01garbage", "not msgpack"),
+        (key, tampered(det, v=2), "schema version 2 is not supported"),
+        (key, tampered(det, uv=arr(det.uv.astype(">f8"))), "field 'uv': dtype '>f8' is not allowed"),
+        (key, tampered(det, uv=arr(det.uv.astype(np.complex128))), "dtype '<c16' is not allowed"),
+        (key, tampered(det, uv={"dtype": "<f4", "shape": [3, 2], "data": det.uv.tobytes()}),
+         r"shape \[3, 2\] <f4 needs 24 bytes, got 16"),
+        (key, tampered(det, uv=arr(np.zeros((2, 3), np.float32))), r"Detections.uv must have shape \(N, 2\)"),
+        (key, tampered(det, uv=arr(uv)), "Detections.uv contains NaN or infinite values"),
+        (key, tampered(det, score=arr(np.ones(3, np.float32))), "Detections.uv has 2 rows, expected 3"),
+        (key, tampered(det, width=640, height=480), "detections for a 640x480 image, masks are 1280x960"),
+        (camera_key(site_name, "SW", "detections"), encode(good_detections(site_name, 0, camera="SW")),
+         "detections from camera 'SW', not at this site"),
+        (key, tampered(det, site="other/site"), "site name must be"),
+    ]
+    send_bad_inputs(localize, peer, cases)
+
+    peer.put(key, encode(good_detections(site_name, 1)))
+    assert peer.wait_for(lambda: any(o.seq == 1 for o in peer.got["objects"]), WAIT_S), localize.log()
+    out = next(o for o in peer.got["objects"] if o.seq == 1)
+    assert stages(out)[-1] == "localize" and len(out) == 2 and np.isfinite(out.latlon).all()
+    assert_clean_exit(localize, localize.terminate())
+    assert bad_count(localize, r"(\d+) bad") == len(cases)
+
+
+def test_fuse_track_drops_bad_objects_and_keeps_running(site, site_name, port_base, peer, launch):
+    peer.subscribe("tracks", tracks_key(site_name), Tracks)
+    fuse = launch("fuse_track", site, *bus_sets(port_base), "fuse_track.min_hits=1")
+    assert peer.wait_alive(f"roadside/{site_name}/alive/fuse_track/*", 1, WAIT_S), fuse.log()
+    key = camera_key(site_name, CAMERA, "objects")
+    seq = iter(range(10_000))
+    first = next(seq)
+    warm_up(peer, key, encode(good_objects(site_name, first)), lambda: peer.got["tracks"], "good objects")
+
+    obj = good_objects(site_name, next(seq))
+    xy = obj.xy.copy()
+    xy[0, 1] = np.nan
+    cases = [
+        (key, b"\xff\xff\xff", "not msgpack"),
+        (key, tampered(obj, v=0), "schema version 0 is not supported"),
+        (key, tampered(obj, xy=arr(obj.xy.astype(">f8"))), "field 'xy': dtype '>f8' is not allowed"),
+        (key, tampered(obj, xy=arr(np.zeros((1, 3)))), r"Objects.xy must have shape \(N, 2\) got \(1, 3\)"),
+        (key, tampered(obj, xy=arr(xy)), "Objects.xy contains NaN or infinite values"),
+        (key, tampered(obj, latlon=arr(np.array([[np.inf, 0.0]]))), "Objects.latlon contains NaN or infinite values"),
+        (key, tampered(obj, score=arr(np.zeros(2, np.float32))), "Objects.score has 2 rows, expected 1"),
+        (key, tampered(obj, t_capture_ns=2**64 - 1), "t_capture_ns: Input should be less than"),
+        (key, tampered(obj, score=arr(np.array([5.0], np.float32))), r"ObjectBatch.score must be within \[0, 1\]"),
+        (key, tampered(obj, xy=arr(np.array([[1e300, 0.0]]))), "beyond 1e\\+06 m of the site"),
+        (key, tampered(obj, size_lwh=arr(np.array([[4.0, 1e-300, 1.5]]))), r"size .* m outside"),
+        (camera_key(site_name, "SW", "objects"), encode(good_objects(site_name, 0, camera="SW")),
+         "objects from camera 'SW', not at this site"),
+        (key, encode(good_objects(site_name, first)), "late: objects of NE"),  # its tick has closed
+    ]
+    send_bad_inputs(fuse, peer, cases)
+
+    last = next(seq)
+    peer.put(key, encode(good_objects(site_name, last)))
+
+    def tracked() -> list[Tracks]:
+        return [t for t in peer.got["tracks"] if (CAMERA, last) in {(c, s) for c, s, _, _ in t.frames}]
+
+    assert peer.wait_for(tracked, WAIT_S), fuse.log()
+    assert len(tracked()[0]) == 1 and tracked()[0].xy[0, 0] == pytest.approx(5.0 + last, abs=1.0)
+    assert_clean_exit(fuse, fuse.terminate())
+    assert bad_count(fuse, r"(\d+) bad") >= len(cases)  # and any repeats of the warm-up message (late)
+
+
+def test_ingest_skips_a_corrupt_jpeg_in_an_image_folder(site, site_name, small_recording, port_base, peer, launch,
+                                                        tmp_path):
+    folder = tmp_path / "images"
+    folder.mkdir()
+    good = sorted((small_recording / "frames" / CAMERA).glob("*.jpg"))
+    for p in good:
+        shutil.copy(p, folder / p.name)
+    times = [int(p.stem) for p in good]
+    corrupt = folder / f"{(times[0] + times[1]) // 2}.jpg"
+    corrupt.write_bytes(b"\xff\xd8\xff\xe0 truncated or not a jpeg at all")
+    (folder / f"{times[-1] + 1}.jpg").write_bytes(b"")  # an empty file
+    peer.subscribe("frames", camera_key(site_name, CAMERA, "frame"), Frame)
+    # ingest waits for the rest of the pipeline's liveliness tokens: the test stands in for it
+    peer.declare_tokens([alive_key(site_name, "detect", CAMERA), alive_key(site_name, "localize", CAMERA),
+                         alive_key(site_name, "fuse_track", "t0")])
+    ingest = launch("ingest", site, *bus_sets(port_base), f"ingest.source={folder}", "ingest.pace=100")
+    assert_clean_exit(ingest, ingest.wait(WAIT_S))
+    assert peer.wait_for(lambda: len(peer.got["frames"]) >= 2, 10.0), ingest.log()
+    frames = peer.got["frames"]
+    assert [f.seq for f in frames] == [0, 1] and [f.t_capture_ns for f in frames] == times
+    assert all((f.encoding, f.width, f.height, f.scale) == ("gray8", 640, 480, 0.5) for f in frames)
+    assert re.search(rf"dropped {CAMERA} message .*{corrupt.name}: cannot decode image", ingest.log()), ingest.log()
+    assert "done: 2 frames published, 2 bad" in ingest.log()
+
+
+# --- c. a missing file stops a service at start with exit status 2 and one error line -------------------------------
+
+
+def test_missing_model_masks_or_source_stop_the_service_with_one_error_line(site, small_recording, port_base, launch,
+                                                                           tmp_path):
+    missing_model = tmp_path / "no" / "model.onnx"
+    missing_source = tmp_path / "no" / "recording"
+    no_masks = write_site(tmp_path / "site_without_masks", site_config(small_recording, masks="masks/gone.npz"))
+    missing_masks = (tmp_path / "site_without_masks").resolve() / "masks" / "gone.npz"
+    sets = bus_sets(port_base)
+    runs = [
+        (launch("detect", site, *sets, f"detect.model={missing_model}"), missing_model),
+        (launch("localize", no_masks, *sets), missing_masks),
+        (launch("fuse_track", no_masks, *sets), missing_masks),
+        (launch("ingest", site, *sets, f"ingest.source={missing_source}"), missing_source),
+    ]
+    for proc, path in runs:
+        rc = proc.wait(WAIT_S)
+        err = proc.log().strip().splitlines()
+        assert rc == 2, f"{proc.service} exited {rc}:\n{proc.log()}"
+        assert len(err) == 1, f"{proc.service} wrote {len(err)} lines:\n{proc.log()}"
+        assert err[0].startswith(f"{proc.service}: error: ") and str(path) in err[0], err[0]
+
+
+# --- d. a vehicle that joins late gets the current tracks at once ---------------------------------------------------
+
+
+def feed(peer: Peer, key: str, site_name: str, seqs: range, pause_s: float = 0.05) -> None:
+    for s in seqs:
+        peer.put(key, encode(good_objects(site_name, s)))
+        peer.wait_for(lambda: False, pause_s)
+
+
+def test_a_late_client_gets_the_current_tracks_at_once(site, site_name, port_base, peer, launch):
+    from shared.client import TrackClient
+
+    peer.subscribe("tracks", tracks_key(site_name), Tracks)
+    fuse = launch("fuse_track", site, *bus_sets(port_base), "fuse_track.min_hits=1")
+    assert peer.wait_alive(f"roadside/{site_name}/alive/fuse_track/*", 1, WAIT_S), fuse.log()
+    key = camera_key(site_name, CAMERA, "objects")
+    warm_up(peer, key, encode(good_objects(site_name, 0)), lambda: peer.got["tracks"], "good objects")
+    feed(peer, key, site_name, range(1, 6))
+    assert peer.wait_for(lambda: any(len(t) and (CAMERA, 5) in [f[:2] for f in t.frames] for t in peer.got["tracks"]),
+                         WAIT_S), fuse.log()
+    newest = max(peer.got["tracks"], key=lambda t: t.seq)
+
+    client = TrackClient(site_name, connect=[f"tcp/127.0.0.1:{port_base + 3}"])
+    try:
+        latest = client.latest(timeout_s=10.0)
+        assert isinstance(latest, Tracks), "fuse_track did not answer the latest-tracks query"
+        assert latest.seq >= newest.seq and latest.tracker == newest.tracker and len(latest) == 1
+        assert latest.rows()[0]["cameras"] == [CAMERA]
+        first = next(client.stream(timeout_s=1.0))
+        assert first.seq >= latest.seq and client.bad.total == 0
+    finally:
+        client.close()
+    assert_clean_exit(fuse, fuse.terminate())
+
+
+# --- e. kill and restart: the recording keeps every line and goes on ------------------------------------------------
+
+
+def test_fuse_track_killed_and_restarted_keeps_and_appends_its_recording(site, site_name, port_base, peer, launch,
+                                                                          tmp_path):
+    record = tmp_path / "tracks.jsonl"
+    sets = [*bus_sets(port_base), f"fuse_track.record={record}", "fuse_track.min_hits=1"]
+    peer.subscribe("tracks", tracks_key(site_name), Tracks)
+    key = camera_key(site_name, CAMERA, "objects")
+    first = launch("fuse_track", site, *sets)
+    assert peer.wait_alive(f"roadside/{site_name}/alive/fuse_track/*", 1, WAIT_S), first.log()
+    warm_up(peer, key, encode(good_objects(site_name, 0)), lambda: peer.got["tracks"], "good objects")
+    feed(peer, key, site_name, range(1, 8))
+    assert peer.wait_for(lambda: any((CAMERA, 7) in [f[:2] for f in t.frames] for t in peer.got["tracks"]), WAIT_S)
+    # every tick has closed once nothing new has come for a while (max_wait): the file holds them all
+    assert wait_until(lambda: record.is_file() and len(jsonl(record)) == len({t.seq for t in peer.got["tracks"]}),
+                      WAIT_S, 0.2), (len(peer.got["tracks"]), record.read_text())
+    before = record.read_text()
+    old_tracker = peer.got["tracks"][0].tracker
+
+    assert first.kill() == -9
+    assert record.read_text() == before, "lines written before the kill were lost"
+    rows = jsonl(record)
+    assert [r["seq"] for r in rows] == list(range(len(rows))) and {r["tracker"] for r in rows} == {old_tracker}
+
+    second = launch("fuse_track", site, *sets)
+    peer.got["tracks"].clear()
+
+    def appended() -> bool:
+        peer.poll()
+        return record.read_text().startswith(before) and any(r["tracker"] != old_tracker for r in jsonl(record))
+
+    s = 8
+    while not appended():  # objects sent before the new process subscribes are lost: keep sending
+        assert second.running() and s < 8 + int(WAIT_S / 0.2), second.log()
+        peer.put(key, encode(good_objects(site_name, s)))
+        s += 1
+        peer.wait_for(lambda: False, 0.2)
+    new_rows = jsonl(record)[len(rows):]
+    assert new_rows[0]["seq"] == 0 and {r["tracker"] for r in new_rows} != {old_tracker}
+    assert all(r["site"] == site_name for r in new_rows)
+    assert_clean_exit(second, second.terminate())
