@@ -13,6 +13,9 @@ import json
 import math
 import re
 import shutil
+import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -26,6 +29,7 @@ from pipeline_fixtures import (
     bus_sets,
     export_tiny_detector,
     free_port_base,
+    service_env,
     site_config,
     wait_until,
     write_exact_masks,
@@ -467,3 +471,52 @@ def test_fuse_track_killed_and_restarted_keeps_and_appends_its_recording(site, s
     assert new_rows[0]["seq"] == 0 and {r["tracker"] for r in new_rows} != {old_tracker}
     assert all(r["site"] == site_name for r in new_rows)
     assert_clean_exit(second, second.terminate())
+
+
+# --- roadside up (the launcher) ---------------------------------------------------------------------------------------
+
+
+def _children(pid: int) -> list:
+    import psutil
+
+    try:
+        return psutil.Process(pid).children(recursive=True)
+    except psutil.NoSuchProcess:
+        return []
+
+
+@pytest.mark.slow
+def test_roadside_up_plays_a_source_to_the_end_and_stops_every_service(site, small_recording, port_base, tmp_path):
+    """`roadside up` starts the four services, ingest ends with its source, the others are drained and
+    stopped; the tracks file is written; no service process is left behind."""
+    tracks = tmp_path / "tracks.jsonl"
+    cmd = [sys.executable, "-m", "roadside", "up", "--site", str(site), "--pace", "max", "--record", str(tracks),
+           "--log-dir", str(tmp_path / "logs"), "--set", f"bus.port_base={port_base}", "--set", "ingest.max_frames=2"]
+    proc = subprocess.run(cmd, env=service_env(), capture_output=True, text=True, timeout=180)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    for s in ("fuse_track", "localize", "detect", "ingest"):
+        assert f"started {s}" in proc.stderr
+    assert "ingest finished its source" in proc.stderr
+    lines = [json.loads(x) for x in tracks.read_text().splitlines()]
+    assert lines and all("tracks" in x for x in lines)
+
+
+@pytest.mark.slow
+def test_roadside_up_stops_cleanly_on_sigterm(site, small_recording, port_base, tmp_path):
+    """With a looping source the pipeline runs until told to stop: SIGTERM stops all four services and
+    `roadside up` exits 0 with no process left."""
+    cmd = [sys.executable, "-m", "roadside", "up", "--site", str(site), "--pace", "1", "--loop",
+           "--log-dir", str(tmp_path / "logs"), "--set", f"bus.port_base={port_base}"]
+    proc = subprocess.Popen(cmd, env=service_env(), stderr=subprocess.PIPE, text=True)
+    try:
+        assert wait_until(lambda: len(_children(proc.pid)) >= 4, 60)
+        kids = _children(proc.pid)
+        assert wait_until(lambda: (tmp_path / "logs" / "ingest.log").is_file()
+                          and "source" in (tmp_path / "logs" / "ingest.log").read_text(), 90)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(60) == 0
+        assert all(not k.is_running() or k.status() == "zombie" for k in kids)
+        assert "[up] stopped" in proc.stderr.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
