@@ -5,7 +5,8 @@ Rerun lives only here, at the edge: the pipeline's cores never import it. Every 
 """
 
 from .basemap import Basemap
-from .sink import TrackRow, TrackSink, TracksMessage, live, parse_tracks_message, track_color, tracks_file_to_rrd
+from .sink import TrackSink, live, track_color, tracks_file_to_rrd
+from .tracks_file import TrackRow, TracksMessage, parse_tracks_message
 
 __all__ = [
     "Basemap",

@@ -1,0 +1,129 @@
+"""The tracks file (JSON lines, one Tracks message per line, as fuse_track's recorder writes it) parsed
+and validated for the Rerun sink: see sink.py for the format."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from shared.geo import GeoFrame
+
+_REQUIRED_ROW = ("id", "yaw", "length", "width")
+_OPTIONAL_NUMBERS = ("lat", "lon", "vx", "vy", "height", "score", "age", "hits")
+
+
+@dataclass(frozen=True)
+class TrackRow:
+    """One validated track of a Tracks message. x, y metres (site ENU frame); yaw rad (CCW from east);
+    length, width metres; vx, vy m/s (None when the row has none)."""
+
+    id: int
+    x: float
+    y: float
+    yaw: float
+    length: float
+    width: float
+    type: str
+    vx: float | None = None
+    vy: float | None = None
+
+
+@dataclass(frozen=True)
+class TracksMessage:
+    """One validated Tracks message: capture time `t_ns` (ns since epoch), its rows."""
+
+    site: str
+    seq: int
+    t_ns: int
+    tracker: str
+    rows: tuple[TrackRow, ...]
+
+
+def parse_tracks_message(obj: Any, origin: GeoFrame | None = None) -> TracksMessage:
+    """A Tracks-like dict (a tracks-file line, parsed) or a `shared.messages.Tracks` -> TracksMessage.
+
+    Raises ValueError naming the first problem (missing key, wrong type, NaN, ...)."""
+    if hasattr(obj, "rows") and hasattr(obj, "t_capture_ns"):  # a shared.messages.Tracks
+        obj = {"site": obj.site, "seq": obj.seq, "t_ns": obj.t_capture_ns, "tracker": obj.tracker, "tracks": obj.rows()}
+    if not isinstance(obj, Mapping):
+        raise ValueError(f"expected a JSON object, got {type(obj).__name__}")
+    for key in ("site", "tracks"):
+        if key not in obj:
+            raise ValueError(f"missing key {key!r}")
+    t_key = "t_ns" if "t_ns" in obj else "t_capture_ns"
+    if t_key not in obj:
+        raise ValueError("missing key 't_ns'")
+    site = obj["site"]
+    if not isinstance(site, str):
+        raise ValueError(f"'site' must be a string, got {site!r}")
+    t_ns = _int(obj[t_key], t_key)
+    if t_ns < 0:
+        raise ValueError(f"{t_key!r} must be >= 0, got {t_ns}")
+    seq = _int(obj.get("seq", 0), "seq")
+    tracker = obj.get("tracker", "")
+    if not isinstance(tracker, str):
+        raise ValueError(f"'tracker' must be a string, got {tracker!r}")
+    tracks = obj["tracks"]
+    if not isinstance(tracks, list):
+        raise ValueError(f"'tracks' must be a list, got {type(tracks).__name__}")
+    rows = []
+    for i, row in enumerate(tracks):
+        try:
+            rows.append(_parse_row(row, origin))
+        except ValueError as e:
+            raise ValueError(f"track {i}: {e}") from None
+    return TracksMessage(site=site, seq=seq, t_ns=t_ns, tracker=tracker, rows=tuple(rows))
+
+
+def _parse_row(row: Any, origin: GeoFrame | None) -> TrackRow:
+    if not isinstance(row, Mapping):
+        raise ValueError(f"expected an object, got {type(row).__name__}")
+    for key in _REQUIRED_ROW:
+        if key not in row:
+            raise ValueError(f"missing key {key!r}")
+    for key in _OPTIONAL_NUMBERS:
+        if row.get(key) is not None:
+            _float(row[key], key)
+    if "x" in row and "y" in row:
+        x, y = _float(row["x"], "x"), _float(row["y"], "y")
+    elif row.get("lat") is not None and row.get("lon") is not None and origin is not None:
+        x, y = (float(v) for v in origin.to_enu(np.array([row["lat"]]), np.array([row["lon"]]))[0, :2])
+    else:
+        raise ValueError("missing key 'x'" if "x" not in row else "missing key 'y'")
+    length, width = _float(row["length"], "length"), _float(row["width"], "width")
+    if length < 0 or width < 0:
+        raise ValueError(f"length and width must be >= 0, got {length}, {width}")
+    vtype = row.get("type", "unknown")
+    if not isinstance(vtype, str):
+        raise ValueError(f"'type' must be a string, got {vtype!r}")
+    has_v = row.get("vx") is not None and row.get("vy") is not None
+    return TrackRow(
+        id=_int(row["id"], "id"),
+        x=x,
+        y=y,
+        yaw=_float(row["yaw"], "yaw"),
+        length=length,
+        width=width,
+        type=vtype,
+        vx=float(row["vx"]) if has_v else None,
+        vy=float(row["vy"]) if has_v else None,
+    )
+
+
+def _float(v: Any, key: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise ValueError(f"{key!r} must be a number, got {v!r}")
+    f = float(v)
+    if not math.isfinite(f):
+        raise ValueError(f"{key!r} is {f}")
+    return f
+
+
+def _int(v: Any, key: str) -> int:
+    if isinstance(v, bool) or not isinstance(v, int | float) or not float(v).is_integer():
+        raise ValueError(f"{key!r} must be an integer, got {v!r}")
+    return int(v)
