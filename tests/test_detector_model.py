@@ -18,7 +18,7 @@ from shared.decode import BOX_SCALE_PX, Detections, cell_centres, decode, model_
 from training.loss import LossConfig, detector_loss, heat_loss
 from training.model import Detector, DetectorConfig, count_macs, load_detector, save_detector
 from training.sample import VEHICLE_TYPES, Sample
-from training.targets import build_targets, gaussian_sigma_px
+from training.targets import MIN_SIGMA_CELLS, build_targets, gaussian_sigma_px
 
 TINY = DetectorConfig(width_mult=0.25, decoder_channels=16, head_channels=8, stride=4)
 NAN3 = [np.nan, np.nan, np.nan]
@@ -77,10 +77,12 @@ def test_gaussian_sigma_and_values():
     t = build_targets(make_sample([[30.0, 40.0]], box), stride=1)
     assert t["heat"][40, 33] == pytest.approx(np.exp(-9 / sigma**2), rel=1e-6)
     assert t["heat"][42, 29] == pytest.approx(np.exp(-5 / sigma**2), rel=1e-6)
-    # stride 4: cell (col 8, row 10) has its centre at input pixel (33.5, 41.5)
+    # stride 4: cell (col 8, row 10) has its centre at input pixel (33.5, 41.5); sigma is at least 1.5 cells
     t4 = build_targets(make_sample([[30.0, 40.0]], box), stride=4)
     assert cell_centres(9, 4)[8] == 33.5
-    assert t4["heat"][10, 8] == pytest.approx(np.exp(-(3.5**2 + 1.5**2) / sigma**2), rel=1e-6)
+    sigma4 = max(sigma, MIN_SIGMA_CELLS * 4)
+    assert sigma4 == 6.0
+    assert t4["heat"][10, 8] == pytest.approx(np.exp(-(3.5**2 + 1.5**2) / sigma4**2), rel=1e-6)
     assert t4["weight"][10, 8] == t4["heat"][10, 8]
 
 
@@ -431,3 +433,28 @@ def test_bench_detector_smoke():
     assert report["model"] == "untrained-for-timing-only"
     assert report["macs"] == count_macs(Detector(), 64, 64)
     assert report["cpu_fp32"]["median_ms"] > 0
+
+
+def test_topk_share_counts_input_pixels_at_any_stride():
+    """At output stride s the TopK heat term keeps topk_fraction * s * s of the cells (the paper's share of
+    pixels), not topk_fraction of the cells."""
+    torch.manual_seed(0)
+    b, h, w = 2, 16, 16
+    targets = {"heat": torch.zeros(b, h, w), "ignore": torch.zeros(b, h, w, dtype=torch.bool)}
+    pred = torch.rand(b, h, w)
+    err = (pred**2).flatten()
+    for stride in (1, 2, 4):
+        k = max(1, round(0.01 * stride * stride * err.numel()))
+        expected = torch.topk(err, k).values.mean()
+        got = heat_loss(pred, targets["heat"], targets["ignore"], min(1.0, 0.01 * stride * stride))
+        assert got.item() == pytest.approx(expected.item(), rel=1e-6)
+    # and detector_loss passes the stride through
+    out = Detector(TINY)(torch.rand(1, 1, 64, 64))
+    s = make_sample([[30.0, 40.0]], [[20.0, 20.0, 40.0, 44.0]], hw=(64, 64))
+    tg = {k: torch.from_numpy(v[None]) for k, v in build_targets(s, 4).items()}
+    _, p1 = detector_loss(out, tg, LossConfig(), stride=1)
+    _, p4 = detector_loss(out, tg, LossConfig(), stride=4)
+    mask = ~tg["ignore"][0]
+    e = ((out["heat"][0, 0] - tg["heat"][0]) ** 2)[mask].detach()
+    assert p4["heat"] == pytest.approx(torch.topk(e, round(0.16 * e.numel())).values.mean().item(), rel=1e-5)
+    assert p1["heat"] == pytest.approx(torch.topk(e, max(1, round(0.01 * e.numel()))).values.mean().item(), rel=1e-5)

@@ -143,7 +143,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
                 lr = lr_now()
                 for g in opt.param_groups:
                     g["lr"] = lr
-                loss, parts = detector_loss(model(images), targets, cfg.loss)
+                loss, parts = detector_loss(model(images), targets, cfg.loss, cfg.model.stride)
                 if not torch.isfinite(loss):
                     raise FloatingPointError(f"loss became {loss.item()} at step {step}: lower the learning rate")
                 opt.zero_grad(set_to_none=True)
