@@ -29,7 +29,6 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSeriali
 
 SCHEMA_VERSION = 1
 VEHICLE_TYPES = ("car", "suv_van", "truck", "bus", "motorcycle")
-ENCODINGS = ("gray8", "bgr8", "jpeg")
 CAMERA_KINDS = ("pinhole", "fisheye")
 MAX_FRAME_BYTES = 32 * 1024 * 1024  # larger frames are refused (an oversized frame is bad input)
 MAX_ROWS = 4096  # detections, objects or tracks per message: more is bad input (fusion is quadratic)
@@ -264,7 +263,3 @@ class Tracks(Message):
 
 MESSAGE_TYPES: dict[str, type[Message]] = {m.kind: m for m in (Frame, Detections, Objects, Tracks)}
 
-
-def empty_columns(spec: dict[str, tuple[tuple, str]]) -> dict[str, np.ndarray]:
-    """Zero-row arrays for struct-of-arrays fields: {field: (trailing shape, dtype)}."""
-    return {k: np.zeros((0, *shape), dtype) for k, (shape, dtype) in spec.items()}
