@@ -198,7 +198,8 @@ def latency(objects: list[Objects], tracks: list[Tracks]) -> dict:
 
 def objects_rows(objects: list[Objects]) -> list[dict]:
     return [{"camera": o.camera, "seq": o.seq, "t_ns": o.t_capture_ns, "xy": o.xy.tolist(), "yaw": o.yaw.tolist(),
-             "size_lwh": o.size_lwh.tolist(), "vtype": o.vtype.tolist(), "score": o.score.tolist()}
+             "size_lwh": o.size_lwh.tolist(), "vtype": o.vtype.tolist(), "score": o.score.tolist(),
+             "infer_ms": o.infer_ms, "stamps": [list(x) for x in o.stamps]}  # stamps: per-hop latency analysis
             for o in objects]
 
 
