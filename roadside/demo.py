@@ -24,6 +24,7 @@ import numpy as np
 import yaml
 
 from shared.bus import BadInput, Receiver, zenoh_config
+from shared.geo import GeoFrame
 from shared.keys import all_cameras_key, tracks_key
 from shared.messages import Objects, Tracks
 from shared.settings import BusSettings
@@ -141,7 +142,8 @@ class Collector:
         self.session = zenoh.open(zenoh_config(BusSettings(port_base=port_base), None, client_index=1))
         self.bad = BadInput("demo-collector")
         self.objects_rx = Receiver(self.session, all_cameras_key(site, "objects"), Objects, self.bad, fifo=100_000)
-        self.tracks_rx = Receiver(self.session, tracks_key(site), Tracks, self.bad, fifo=100_000)
+        self.tracks_rx = Receiver(self.session, tracks_key(site), Tracks, self.bad, fifo=100_000,
+                                  wake=self.objects_rx.wake)
         self.objects: list[Objects] = []
         self.tracks: list[Tracks] = []
         self.t_objects: list[int] = []
@@ -150,11 +152,9 @@ class Collector:
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            got = self.objects_rx.poll()
-            self.objects += got
+            self.objects_rx.wait(0.1)
+            self.objects += self.objects_rx.poll()
             self.tracks += self.tracks_rx.poll()
-            if not got:
-                time.sleep(0.002)
 
     def start(self) -> None:
         self.thread.start()
@@ -223,9 +223,10 @@ def site_basemap(rec_dir: Path, max_side_px: int = 2048):
     return Basemap.from_array(img, (-e, e, -e, e))
 
 
-def track_single_camera(objects: list[Objects], camera: str, tracker_config) -> list[dict]:
+def track_single_camera(objects: list[Objects], camera: str, tracker_config, geo) -> list[dict]:
     """The paper's 'before fusion' baseline: one camera's objects tracked alone, one update per frame at
     its capture time. Rows in the tracks-file format."""
+    from services.fuse_track.__main__ import tracks_message
     from services.fuse_track.fusion import ObjectBatch
     from services.fuse_track.tracker import Tracker
 
@@ -235,15 +236,9 @@ def track_single_camera(objects: list[Objects], camera: str, tracker_config) -> 
         batch = ObjectBatch.from_frame(camera, o.t_capture_ns, o.xy, o.yaw.astype(np.float64),
                                        o.size_lwh.astype(np.float64), o.vtype.astype(np.int64),
                                        o.score.astype(np.float64))
-        st = tracker.update(batch, o.t_capture_ns)
+        msg = tracks_message(o.site, tracker.update(batch, o.t_capture_ns), o.t_capture_ns, o.seq, geo, [], [])
         rows.append({"site": o.site, "seq": o.seq, "t_ns": o.t_capture_ns, "tracker": tracker.id,
-                     "tracks": [{"id": int(st.id[i]), "x": float(st.xy[i, 0]), "y": float(st.xy[i, 1]),
-                                 "lat": 0.0, "lon": 0.0, "vx": float(st.velocity[i, 0]),
-                                 "vy": float(st.velocity[i, 1]), "yaw": float(st.yaw[i]),
-                                 "length": float(st.size_lwh[i, 0]), "width": float(st.size_lwh[i, 1]),
-                                 "height": float(st.size_lwh[i, 2]), "type": "car", "score": float(st.score[i]),
-                                 "age": int(st.age[i]), "hits": int(st.hits[i]), "cameras": [camera]}
-                                for i in range(len(st))]})
+                     "tracks": msg.rows()})
     return rows
 
 
@@ -285,7 +280,8 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
     log("scoring against the ground truth")
     tcfg = TrackerConfig(gate_m=settings.fuse_track.gate_m, max_age_ticks=settings.fuse_track.max_age_ticks,
                          min_hits=settings.fuse_track.min_hits)
-    sources = {"fused": tracks_path, **{c: track_single_camera(objects, c, tcfg) for c in cams}}
+    geo = GeoFrame.from_dict(settings.origin)
+    sources = {"fused": tracks_path, **{c: track_single_camera(objects, c, tcfg, geo) for c in cams}}
     scores = evaluate_many(rec_dir, sources, cameras=cams)
     fused = scores["sources"]["fused"]
 

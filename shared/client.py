@@ -54,7 +54,7 @@ class TrackClient:
             return msg  # type: ignore[return-value]
         return None
 
-    def stream(self, timeout_s: float | None = None, poll_s: float = 0.005) -> Iterator[Tracks]:
+    def stream(self, timeout_s: float | None = None, poll_s: float = 0.1) -> Iterator[Tracks]:
         """The current tracks at once, then every new message; stops after `timeout_s` without one.
         Live messages of the same tracker not newer than the current one (already queued when it was asked
         for) are skipped; a restarted fuse_track (another tracker id, seq from 0) is followed at once."""
@@ -75,7 +75,7 @@ class TrackClient:
                 quiet_since = time.monotonic()
             elif timeout_s is not None and time.monotonic() - quiet_since > timeout_s:
                 return
-            time.sleep(poll_s)
+            self.receiver.wait(poll_s)  # sleeps until a message arrives (or poll_s)
 
     def close(self) -> None:
         self.session.close()

@@ -611,6 +611,9 @@ def test_client_stream_gives_the_current_tracks_then_only_newer_ones() -> None:
         def poll(self) -> list[Tracks]:
             return self.batches.pop(0) if self.batches else []
 
+        def wait(self, timeout_s: float) -> None:  # the real Receiver sleeps until a message arrives
+            pass
+
     client = TrackClient.__new__(TrackClient)  # no Zenoh session: latest() and the receiver are stand-ins
     client.latest = lambda timeout_s=2.0: make_tracks(1, seq=5, tracker="tracker-a")
     queued = [make_tracks(1, seq=s, tracker=t) for t, s in [("tracker-a", 4), ("tracker-a", 5), ("tracker-a", 6),

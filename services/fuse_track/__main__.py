@@ -76,18 +76,22 @@ def camera_positions(settings: Settings) -> tuple[dict[str, tuple[float, float]]
     return positions, geo
 
 
-def tracks_message(settings: Settings, state: TrackState, tick: Tick, seq: int, geo: GeoFrame,
-                   t_closed_ns: int) -> Tracks:
+def tracks_message(site: str, state: TrackState, t_ns: int, seq: int, geo: GeoFrame,
+                   stamps: list[tuple[str, int]], frames: list[tuple[str, int, int, int]]) -> Tracks:
+    """The Tracks message of a tracker state at event time t_ns (latitude/longitude from the site frame)."""
     latlon = geo.to_geodetic(state.xy)[:, :2] if len(state) else np.zeros((0, 2))
-    frames = [(cam, s, t_cap, t_arr) for cam, items in tick.batches.items() for t_cap, (s, t_arr, _) in items]
     f4 = np.float32
     return Tracks(
-        site=settings.site, seq=seq, t_capture_ns=int(tick.t_ref_ns), tracker=state.tracker,
-        stamps=[("tick_closed", t_closed_ns), ("fuse_track", time.time_ns())],
+        site=site, seq=seq, t_capture_ns=int(t_ns), tracker=state.tracker, stamps=stamps,
         id=state.id.astype(np.int64), xy=state.xy.astype(np.float64), latlon=latlon.astype(np.float64),
         velocity=state.velocity.astype(f4), yaw=state.yaw.astype(f4), size_lwh=state.size_lwh.astype(f4),
         vtype=state.vtype.astype(np.int8), score=state.score.astype(f4), age=state.age.astype(np.int32),
         hits=state.hits.astype(np.int32), cameras=[list(c) for c in state.cameras], frames=frames)
+
+
+def tick_frames(tick: Tick) -> list[tuple[str, int, int, int]]:
+    """(camera, seq, t_capture_ns, t_arrival_ns) of every frame in a tick (items are (seq, t_arrival, batch))."""
+    return [(cam, s, t_cap, t_arr) for cam, items in tick.batches.items() for t_cap, (s, t_arr, _) in items]
 
 
 class Recorder:
@@ -145,7 +149,8 @@ def main(settings: Settings, stopper: Stopper) -> int:
                 objs = ObjectBatch.concat(items) if items else ObjectBatch.empty()
                 fused = fusion.fuse(objs, tick.t_ref_ns, tracker.velocity_hints(objs))
                 state = tracker.update(fused, tick.t_ref_ns)
-                msg = tracks_message(settings, state, tick, seq, geo, t_closed)
+                msg = tracks_message(settings.site, state, tick.t_ref_ns, seq, geo,
+                                     [("tick_closed", t_closed), ("fuse_track", time.time_ns())], tick_frames(tick))
                 payload = encode(msg)
                 pub.put(payload)
                 latest[:] = [payload]
