@@ -161,6 +161,9 @@ def _add_train(sub) -> None:
     p.add_argument("--no-topk", action="store_true", help="ablation: plain mean squared heat-map loss")
     p.add_argument("--stride", type=int, default=4, choices=[1, 2, 4])
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--init", help="model.pt to start from (fine-tuning); its network settings are kept")
+    p.add_argument("--beta-heading", type=_positive_float,
+                   help="weight of the heading term (default 0.01, the paper's)")
 
 
 def _run_train(args) -> int:
@@ -173,8 +176,9 @@ def _run_train(args) -> int:
 
     cfg = TrainConfig(recordings=tuple(args.recording), coco=tuple(args.coco), out=args.out, steps=args.steps,
                       minutes=args.minutes, batch_size=args.batch_size, crop=args.crop, lr=args.lr, every=args.every,
-                      center=args.center, seed=args.seed, model=DetectorConfig(stride=args.stride),
-                      loss=LossConfig(topk_fraction=None if args.no_topk else 0.01))
+                      center=args.center, seed=args.seed, model=DetectorConfig(stride=args.stride), init=args.init,
+                      loss=LossConfig(topk_fraction=None if args.no_topk else 0.01,
+                                      **({} if args.beta_heading is None else {"beta_heading": args.beta_heading})))
     print(json.dumps(train(cfg), indent=1))
     return 0
 
@@ -198,21 +202,42 @@ def _run_export(args) -> int:
 
 
 def _add_eval(sub) -> None:
-    p = sub.add_parser("eval", help="score a component against simulator ground truth")
-    p.add_argument("what", choices=["detector"])
+    p = sub.add_parser("eval", help="score the detector: on a simulator recording, or on hand-labelled real frames")
+    p.add_argument("what", choices=["detector", "real"],
+                   help="detector: against a recording's ground truth; real: against hand labels (eval/real.py)")
     p.add_argument("--model", type=Path, required=True, help="exported ONNX detector")
-    p.add_argument("--recording", type=Path, required=True)
-    p.add_argument("--every", type=int, default=1, help="use every n-th frame")
-    p.add_argument("--score-thr", type=float, default=0.05, help="lowest score kept (AP needs the low ones)")
+    p.add_argument("--recording", type=Path, help="simulator recording (detector)")
+    p.add_argument("--every", type=int, default=1, help="use every n-th frame (detector)")
+    p.add_argument("--score-thr", type=float, help="lowest score kept (default: 0.05 for detector, as AP needs "
+                   "the low ones; the detect service's 0.3 for real)")
+    p.add_argument("--site", type=Path, default=Path("deploy/sites/state_ellsworth"),
+                   help="site folder with labels/ and masks/ (real)")
+    p.add_argument("--footage", type=Path, default=Path("../shared/data/state_ellsworth/sample_data"),
+                   help="folder of the cameras' frame folders (real)")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--json", action="store_true", help="print one JSON document (default: also a summary)")
 
 
 def _run_eval(args) -> int:
-    from eval.detector import evaluate
     from shared.inference import OnnxDetector
 
-    det = OnnxDetector(args.model, threads=args.threads, score_thr=args.score_thr)
+    if args.what == "real":
+        from eval.real import evaluate_real
+
+        det = OnnxDetector(args.model, threads=args.threads, score_thr=args.score_thr or 0.3)
+        result = evaluate_real(args.site / "labels", args.footage, args.site / "masks", det.detect)
+        result["model"] = str(args.model)
+        if not args.json:
+            for cam, r in {"overall": result["overall"], **result["per_camera"]}.items():
+                print(f"{cam:8s} precision {r['precision']} recall {r['recall']} ({r['labels']} labels, "
+                      f"{r['detections']} detections within {result['roi_m']:g} m)", file=sys.stderr)
+        print(json.dumps(result, indent=1))
+        return 0
+    from eval.detector import evaluate
+
+    if args.recording is None:
+        raise ValueError("eval detector needs --recording")
+    det = OnnxDetector(args.model, threads=args.threads, score_thr=args.score_thr or 0.05)
     result = evaluate(args.recording, det.detect, every=args.every)
     result["model"] = str(args.model)
     if not args.json:
@@ -220,6 +245,37 @@ def _run_eval(args) -> int:
             print(f"{kind:8s} ap50 {r['ap50']} loc {r['loc_err_m']} m yaw {r['yaw_err_deg']} deg "
                   f"size {r['size_err_m']} m ({r['frames']} frames)", file=sys.stderr)
     print(json.dumps(result, indent=1))
+    return 0
+
+
+def _add_autolabel(sub) -> None:
+    p = sub.add_parser("autolabel", help="training labels for a real camera from moving vehicles (no manual labels)")
+    p.add_argument("--frames", type=Path, required=True, help="one camera's frames (capture time in the names)")
+    p.add_argument("--masks", type=Path, required=True, help="the camera's lookup masks (roadside calibrate)")
+    p.add_argument("--camera", required=True, help="camera name written into the labels")
+    p.add_argument("--out", type=Path, required=True, help="folder for labels.json, images/ and report.json")
+    p.add_argument("--until", help="leave out frames at or after this time of day HH:MM:SS (a held-out slice)")
+    p.add_argument("--roi-m", type=_positive_float, default=30.0, help="label within this distance of the camera")
+    p.add_argument("--truth", type=Path, help="simulator recording of these frames: score the labels against it")
+
+
+def _run_autolabel(args) -> int:
+    from datetime import time
+
+    from training.autolabel import AutolabelConfig, autolabel_camera, score_labels
+
+    until = None
+    if args.until:
+        try:
+            until = time.fromisoformat(args.until)
+        except ValueError:
+            raise ValueError(f"--until must be a time of day HH:MM:SS, got {args.until!r}") from None
+    report = autolabel_camera(args.frames, args.masks, args.out, args.camera, until,
+                              AutolabelConfig(roi_m=args.roi_m), log=lambda m: print(m, file=sys.stderr))
+    if args.truth:
+        report["score"] = score_labels(args.out / "labels.json", args.truth)
+        (args.out / "report.json").write_text(json.dumps(report, indent=1))
+    print(json.dumps(report, indent=1))
     return 0
 
 
@@ -376,6 +432,7 @@ def main(argv: list[str] | None = None) -> int:
     _add_calibrate(sub)
     _add_bench(sub)
     _add_train(sub)
+    _add_autolabel(sub)
     _add_export(sub)
     _add_eval(sub)
     _add_up(sub)
@@ -384,7 +441,8 @@ def main(argv: list[str] | None = None) -> int:
     _add_viz(sub)
     args = parser.parse_args(argv)
     runners = {"sim": _run_sim, "demo": _run_demo, "calibrate": _run_calibrate, "bench": _run_bench,
-               "train": _run_train, "export": _run_export, "eval": _run_eval, "up": _run_up,
+               "train": _run_train, "autolabel": _run_autolabel, "export": _run_export, "eval": _run_eval,
+               "up": _run_up,
                "tracks": _run_tracks, "health": _run_health, "viz": _run_viz}
     try:
         return runners[args.job](args)

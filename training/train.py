@@ -24,7 +24,7 @@ from sim.recording import Recording
 from training.augment import AugmentConfig, augment
 from training.data import Batcher, SampleRef, samples_from_coco, samples_from_recording
 from training.loss import LossConfig, detector_loss
-from training.model import Detector, DetectorConfig, count_macs, save_detector
+from training.model import Detector, DetectorConfig, count_macs, load_detector, save_detector
 from training.sample import Sample
 from training.targets import build_targets
 
@@ -45,6 +45,7 @@ class TrainConfig:
     every: int = 1  # use every n-th frame of each camera
     center: str = "bottom"  # "box": the 2D-box centre instead of the bottom centre (the paper's ablation)
     seed: int = 0
+    init: str | None = None  # model.pt to start from (fine-tuning); its network config replaces `model`
     threads: int = 2
     log_every: int = 25
     model: DetectorConfig = field(default_factory=DetectorConfig)
@@ -114,12 +115,19 @@ def train(cfg: TrainConfig, log=print) -> dict:
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
     rng = np.random.default_rng(cfg.seed)
+    if cfg.init is not None:
+        if not Path(cfg.init).is_file():
+            raise FileNotFoundError(f"init model not found: {cfg.init}")
+        model = load_detector(cfg.init)
+        cfg = replace(cfg, model=model.config)  # input size and stride follow the starting model
+        log(f"[train] starting from {cfg.init}")
+    else:
+        model = Detector(cfg.model)
     refs = training_refs(cfg)
     n_pos = sum(r.n_positive for r in refs)
     log(f"[train] {len(refs)} images, {n_pos} vehicles to detect")
     aug = partial(augment, out_hw=(cfg.crop, cfg.crop), config=cfg.augment)
     batcher = Batcher(refs, aug, cfg.batch_size, rng)
-    model = Detector(cfg.model)
     model.train()
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     total = cfg.steps

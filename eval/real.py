@@ -1,0 +1,178 @@
+"""Detector scored on real frames against hand labels of the vehicles' bottom centres.
+
+Labels: one JSON file per camera, `{"camera": "NE", "frames": {"<frame file name>": [[u, v], ...]}}`, the
+bottom centre (the middle of the vehicle's ground footprint) of every vehicle within LABEL_RADIUS_M of the
+camera's foot, in full-resolution pixels (pixel-centre convention, as the landmark files). Only frames
+from the held-out slice may be labelled (`held_out_from`, a time of day).
+
+Scoring, per camera and overall: detections and labels are lifted to the ground through the camera's
+lookup masks and matched one to one (Hungarian on ground distance) within MATCH_M. A label within ROI_M of
+the camera's foot is found or missed (recall); a detection within ROI_M is right when it matches a label
+(precision). Vehicles between ROI_M and LABEL_RADIUS_M are labelled so that a detection just inside ROI_M
+of a vehicle just outside is neither a false alarm nor a hit.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from datetime import UTC, datetime, time
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from calibration.masks import LookupMasks, load_masks
+from services.ingest.sources import capture_time_from_name
+from shared.decode import Detections
+
+ROI_M = 25.0
+LABEL_RADIUS_M = 30.0
+MATCH_M = 1.5
+
+
+def camera_foot(masks: LookupMasks) -> np.ndarray:
+    try:
+        return np.asarray(masks.meta["camera"]["pose"]["position_m"][:2], np.float64)
+    except (KeyError, TypeError):
+        raise ValueError("the masks carry no camera pose (meta.camera.pose.position_m)") from None
+
+
+def ground_distance(masks: LookupMasks) -> np.ndarray:
+    """(H, W) metres from each pixel's ground point to the camera's foot (inf where not calibrated)."""
+    d = np.hypot(*(masks.xy.astype(np.float64) - camera_foot(masks)).transpose(2, 0, 1))
+    return np.where(masks.valid, d, np.inf)
+
+
+def load_labels(path: str | Path, width: int, height: int, held_out_from: time | None = None) -> dict:
+    """{frame name: (N, 2) float64 pixels} from a label file; ValueError naming the file, frame and label."""
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ValueError(f"label file not found: {path}") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not valid JSON: {exc}") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("frames"), dict):
+        raise ValueError(f"{path}: expected {{\"camera\": ..., \"frames\": {{name: [[u, v], ...]}}}}")
+    out = {}
+    for name, points in doc["frames"].items():
+        t = capture_time_from_name(name)
+        if t is None:
+            raise ValueError(f"{path}: frame {name!r} has no capture time in its name")
+        if held_out_from is not None and datetime.fromtimestamp(t / 1e9, UTC).time() < held_out_from:
+            raise ValueError(f"{path}: frame {name!r} is before {held_out_from}: only held-out frames may be labelled")
+        arr = np.asarray(points, np.float64).reshape(-1, 2) if len(points) else np.zeros((0, 2))
+        for k, (u, v) in enumerate(arr):
+            if not (np.isfinite(u) and np.isfinite(v) and -0.5 <= u <= width - 0.5 and -0.5 <= v <= height - 0.5):
+                raise ValueError(f"{path}: frame {name!r} label {k} ({u}, {v}) is outside the {width}x{height} image")
+        out[name] = arr
+    return out
+
+
+def label_sheet(image: np.ndarray, masks: LookupMasks, zoom: int = 2, marks: np.ndarray | None = None) -> np.ndarray:
+    """The part of `image` within LABEL_RADIUS_M of the camera, zoomed, with a pixel grid labelled in
+    full-resolution pixels and the ROI_M (green) and LABEL_RADIUS_M (yellow) circles; `marks` (N, 2) are
+    drawn as red crosses (to check labels)."""
+    dist = ground_distance(masks)
+    inside = dist <= LABEL_RADIUS_M
+    ys, xs = np.nonzero(inside)
+    if not len(xs):
+        raise ValueError(f"no calibrated pixel lies within {LABEL_RADIUS_M} m of the camera")
+    x0, y0 = max(0, xs.min() - 10), max(0, ys.min() - 10)
+    x1, y1 = min(image.shape[1], xs.max() + 11), min(image.shape[0], ys.max() + 11)
+    crop = image[y0:y1, x0:x1]
+    if crop.ndim == 2:
+        crop = cv2.cvtColor(crop, cv2.COLOR_GRAY2BGR)
+    out = cv2.resize(crop, None, fx=zoom, fy=zoom, interpolation=cv2.INTER_NEAREST)
+    for radius, colour in ((ROI_M, (0, 200, 0)), (LABEL_RADIUS_M, (0, 220, 220))):
+        ring = (dist[y0:y1, x0:x1] <= radius).astype(np.uint8)
+        ring = cv2.resize(ring, None, fx=zoom, fy=zoom, interpolation=cv2.INTER_NEAREST)
+        contours, _ = cv2.findContours(ring, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        cv2.drawContours(out, contours, -1, colour, 1)
+    _grid_every(out, x0, y0, zoom, step=50)
+    for u, v in ([] if marks is None else marks):
+        p = (int(round((u - x0 + 0.5) * zoom)), int(round((v - y0 + 0.5) * zoom)))
+        cv2.drawMarker(out, p, (0, 0, 255), cv2.MARKER_CROSS, 4 * zoom, 1)
+    return out
+
+
+def _grid_every(out: np.ndarray, x0: int, y0: int, zoom: int, step: int) -> None:
+    """Grid lines through the centres of pixels whose coordinate is a multiple of `step`, blended at 40 %
+    so the vehicles stay visible, labelled along the top and left edges."""
+    lines = np.zeros(out.shape[:2], bool)
+    h, w = out.shape[0] // zoom, out.shape[1] // zoom
+    xs = [k for k in range(w) if (x0 + k) % step == 0]
+    ys = [k for k in range(h) if (y0 + k) % step == 0]
+    for k in xs:
+        lines[:, int((k + 0.5) * zoom)] = True
+    for k in ys:
+        lines[int((k + 0.5) * zoom), :] = True
+    out[lines] = (0.6 * out[lines] + 0.4 * np.array([255, 160, 0])).astype(np.uint8)
+    for k in xs:
+        cv2.putText(out, str(x0 + k), (int((k + 0.5) * zoom) + 2, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
+                    (255, 255, 0), 1, cv2.LINE_AA)
+    for k in ys:
+        cv2.putText(out, str(y0 + k), (2, int((k + 0.5) * zoom) - 3), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
+                    (255, 255, 0), 1, cv2.LINE_AA)
+
+
+def score_camera(frames: dict[str, np.ndarray], footage: Path, masks: LookupMasks,
+                 detect: Callable[[np.ndarray], Detections]) -> dict:
+    """Counts for one camera: tp, detections (within ROI_M), labels (within ROI_M), and matched errors."""
+    foot = camera_foot(masks)
+    tp = n_det = n_lab = 0
+    errors = []
+    for name, labels in sorted(frames.items()):
+        path = footage / name
+        grey = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        if grey is None:
+            raise ValueError(f"{path}: labelled frame is missing or unreadable")
+        det = detect(grey)
+        _, d_xy, d_ok = masks.lookup(det.uv)
+        _, l_xy, l_ok = masks.lookup(labels)
+        if not l_ok.all():
+            raise ValueError(f"{path}: label {int(np.argmin(l_ok))} is outside the calibrated area")
+        d_xy = d_xy[d_ok]
+        d_in = np.hypot(*(d_xy - foot).T) <= ROI_M
+        l_in = np.hypot(*(l_xy - foot).T) <= ROI_M
+        n_det += int(d_in.sum())
+        n_lab += int(l_in.sum())
+        if len(d_xy) and len(l_xy):
+            cost = np.linalg.norm(d_xy[:, None] - l_xy[None], axis=2)
+            rows, cols = linear_sum_assignment(np.where(cost <= MATCH_M, cost, 1e6))
+            for r, c in zip(rows, cols, strict=True):
+                if cost[r, c] > MATCH_M:
+                    continue
+                if l_in[c]:
+                    tp += 1
+                    errors.append(cost[r, c])
+                elif d_in[r]:
+                    n_det -= 1  # a hit on a vehicle just outside the ROI is not a false alarm
+    return {"frames": len(frames), "labels": n_lab, "detections": n_det, "true_positives": tp,
+            "precision": round(tp / n_det, 4) if n_det else None, "recall": round(tp / n_lab, 4) if n_lab else None,
+            "loc_err_median_m": round(float(np.median(errors)), 3) if errors else None}
+
+
+def evaluate_real(labels_dir: str | Path, footage: str | Path, masks_dir: str | Path,
+                  detect: Callable[[np.ndarray], Detections], held_out_from: time | None = time(11, 0, 40),
+                  folder_pattern: str = "gs_State_Ellsworth_{camera}") -> dict:
+    """Per camera and overall precision / recall within ROI_M for every `labels_dir`/*.json."""
+    labels_dir, footage, masks_dir = Path(labels_dir), Path(footage), Path(masks_dir)
+    files = sorted(labels_dir.glob("*.json"))
+    if not files:
+        raise ValueError(f"no label files in {labels_dir}")
+    if not footage.is_dir():
+        raise ValueError(f"footage folder not found: {footage}")
+    per = {}
+    for f in files:
+        camera = f.stem
+        masks = load_masks(masks_dir / f"{camera}.npz")
+        h, w = masks.shape
+        frames = load_labels(f, w, h, held_out_from)
+        per[camera] = score_camera(frames, footage / folder_pattern.format(camera=camera), masks, detect)
+    tot = {k: sum(p[k] for p in per.values()) for k in ("frames", "labels", "detections", "true_positives")}
+    overall = {**tot, "precision": round(tot["true_positives"] / tot["detections"], 4) if tot["detections"] else None,
+               "recall": round(tot["true_positives"] / tot["labels"], 4) if tot["labels"] else None}
+    return {"roi_m": ROI_M, "match_m": MATCH_M, "overall": overall, "per_camera": per}

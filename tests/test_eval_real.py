@@ -1,0 +1,129 @@
+"""roadside eval real: hand labels vs detections on the ground, on a synthetic camera with known answers, and
+on the real State/Ellsworth frames when ../shared/data and the site's masks are present."""
+
+from __future__ import annotations
+
+import json
+from datetime import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from calibration.masks import LookupMasks
+from eval.real import evaluate_real, label_sheet, load_labels
+from roadside.cli import main
+from shared.decode import Detections
+
+W, H = 320, 240
+M_PER_PX = 0.25  # the ROI (25 m) is 100 px around the camera's foot at the image centre
+CX, CY = 160.0, 120.0
+REPO = Path(__file__).resolve().parents[1]
+FOOTAGE = REPO.parent / "shared" / "data" / "state_ellsworth" / "sample_data"
+SITE = REPO / "deploy" / "sites" / "state_ellsworth"
+
+
+def _site(root: Path, camera: str = "C1") -> tuple[Path, Path]:
+    """Masks and two frames of one camera; returns (site folder, footage folder)."""
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    xy = np.stack([(u - CX) * M_PER_PX, (CY - v) * M_PER_PX], axis=2)
+    meta = {"format": "roadside-lookup-masks", "version": 1, "kind": "fisheye", "width": W, "height": H,
+            "geo_origin": {"lat_deg": 42.0, "lon_deg": -83.0, "alt_m": 0.0},
+            "camera": {"cx": CX, "cy": CY, "pose": {"position_m": [0.0, 0.0, 10.0]}}}
+    LookupMasks(42 + xy[..., 1] / 111e3, -83 + xy[..., 0] / 82e3, xy.astype(np.float32), np.ones((H, W), bool),
+                meta).save(root / "site" / "masks" / f"{camera}.npz")
+    frames = root / "footage" / f"gs_State_Ellsworth_{camera}"
+    frames.mkdir(parents=True)
+    for name in ("2023-12-19 11-00-41-000000.jpg", "2023-12-19 11-00-43-000000.jpg"):
+        cv2.imwrite(str(frames / name), np.full((H, W), 100, np.uint8))
+    return root / "site", root / "footage"
+
+
+def _labels(site: Path, frames: dict, camera: str = "C1") -> None:
+    (site / "labels").mkdir(parents=True, exist_ok=True)
+    (site / "labels" / f"{camera}.json").write_text(json.dumps({"camera": camera, "frames": frames}))
+
+
+def _detector(points_by_call: list[np.ndarray]):
+    calls = iter(points_by_call)
+
+    def detect(_grey: np.ndarray) -> Detections:
+        uv = np.asarray(next(calls), np.float64).reshape(-1, 2)
+        n = len(uv)
+        return Detections(np.full(n, 0.9), uv, np.c_[uv - 5, uv + 5], np.tile([1.0, 0.0], (n, 1)),
+                          np.tile([4.5, 1.8, 1.5], (n, 1)), np.zeros(n, np.int64), np.tile([1.0, 0, 0, 0, 0], (n, 1)))
+    return detect
+
+
+def test_counts_hits_misses_false_alarms_and_the_band_outside_the_roi(tmp_path):
+    site, footage = _site(tmp_path)
+    # frame 1: a vehicle 10 m east (u + 40 px) and one 25.5 m north (outside the ROI, inside the label radius)
+    # frame 2: a vehicle 5 m south
+    _labels(site, {"2023-12-19 11-00-41-000000.jpg": [[200, 120], [160, 18]],
+                   "2023-12-19 11-00-43-000000.jpg": [[160, 140]]})
+    detect = _detector([
+        # frame 1: a hit 1 m off, a detection 1 m from the outside vehicle (24.5 m: inside the ROI, no false alarm),
+        # and a false alarm 10 m west
+        [[204, 120], [160, 22], [120, 120]],
+        # frame 2: 2 m off (beyond MATCH_M = 1.5 m): a miss and a false alarm
+        [[160, 148]],
+    ])
+    r = evaluate_real(site / "labels", footage, site / "masks", detect)
+    c = r["per_camera"]["C1"]
+    assert (c["labels"], c["detections"], c["true_positives"]) == (2, 3, 1)
+    assert c["precision"] == pytest.approx(1 / 3, abs=1e-4) and c["recall"] == 0.5
+    assert c["loc_err_median_m"] == pytest.approx(1.0, abs=1e-3)
+    assert r["overall"]["true_positives"] == 1
+
+
+def test_perfect_detections_score_one(tmp_path):
+    site, footage = _site(tmp_path)
+    frames = {"2023-12-19 11-00-41-000000.jpg": [[150, 100], [180, 130]], "2023-12-19 11-00-43-000000.jpg": []}
+    _labels(site, frames)
+    r = evaluate_real(site / "labels", footage, site / "masks", _detector([frames[k] for k in sorted(frames)]))
+    assert r["overall"]["precision"] == 1.0 and r["overall"]["recall"] == 1.0
+
+
+def test_bad_labels_name_the_problem(tmp_path):
+    site, footage = _site(tmp_path)
+    path = tmp_path / "l.json"
+    path.write_text(json.dumps({"frames": {"2023-12-19 11-00-20-000000.jpg": [[10, 10]]}}))
+    with pytest.raises(ValueError, match=r"11-00-20-000000\.jpg' is before 11:00:40: only held-out frames"):
+        load_labels(path, W, H, time(11, 0, 40))
+    path.write_text(json.dumps({"frames": {"2023-12-19 11-00-41-000000.jpg": [[10, 10], [400, 10]]}}))
+    with pytest.raises(ValueError, match=r"label 1 \(400.0, 10.0\) is outside the 320x240 image"):
+        load_labels(path, W, H)
+    path.write_text("{")
+    with pytest.raises(ValueError, match=r"l\.json: not valid JSON"):
+        load_labels(path, W, H)
+    with pytest.raises(ValueError, match="label file not found"):
+        load_labels(tmp_path / "none.json", W, H)
+    _labels(site, {"2023-12-19 11-00-45-000000.jpg": [[100, 100]]})
+    with pytest.raises(ValueError, match=r"11-00-45-000000\.jpg: labelled frame is missing or unreadable"):
+        evaluate_real(site / "labels", footage, site / "masks", _detector([[]]))
+    with pytest.raises(ValueError, match="no label files"):
+        evaluate_real(tmp_path / "nowhere", footage, site / "masks", _detector([]))
+
+
+def test_label_sheet_draws_marks_inside_the_label_radius(tmp_path):
+    site, _ = _site(tmp_path)
+    from calibration.masks import load_masks
+
+    sheet = label_sheet(np.full((H, W), 100, np.uint8), load_masks(site / "masks" / "C1.npz"), zoom=2,
+                        marks=np.array([[160.0, 120.0]]))
+    assert sheet.shape[0] > 200 and sheet.shape[1] > 200
+    assert (sheet[..., 2] > 200).any()  # the red cross
+
+
+@pytest.mark.skipif(not FOOTAGE.is_dir(), reason="../shared/data/state_ellsworth is absent (real footage)")
+@pytest.mark.skipif(not (SITE / "masks" / "SE.npz").is_file(),
+                    reason="site masks not built: bash deploy/sites/state_ellsworth/calibrate.sh")
+def test_the_real_labels_load_and_the_shipped_model_is_scored(capsys):
+    for cam in ("NE", "NW", "SE", "SW"):
+        labels = load_labels(SITE / "labels" / f"{cam}.json", 1280, 960, time(11, 0, 40))
+        assert len(labels) >= 10
+    assert main(["eval", "real", "--model", str(REPO / "models" / "detector_fp32.onnx"), "--site", str(SITE),
+                 "--footage", str(FOOTAGE), "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["overall"]["frames"] == 40 and r["overall"]["labels"] >= 100
