@@ -167,13 +167,25 @@ class Collector:
         self.session.close()
 
 
+HOPS = ("ingest_to_detect_in", "detect_in_to_detect", "detect_to_localize", "localize_to_fuse_track",
+        "tick_wait", "tick_closed_to_published")
+
+
 def latency(objects: list[Objects], tracks: list[Tracks]) -> dict:
     """Per frame: end to end = tracks published - frame published by ingest; detector = its own time;
     tick wait = time the frame's objects waited at fuse_track for the other cameras of its tick;
     overhead = end to end - detector - tick wait (transport, serialisation, decoding, lookup, fusion
-    and tracking: what the microservice split costs)."""
+    and tracking: what the microservice split costs).
+
+    `hops` splits end to end by the stamps: ingest -> detect_in (transport of the frame and its wait in
+    detect's latest-only ring while the detector works on another camera's frame), detect_in -> detect (JPEG
+    or raw decode, resize, inference, decode), detect -> localize (transport and lift), localize -> fuse_track
+    arrival (transport), arrival -> tick closed (tick wait), tick closed -> tracks published (fusion,
+    tracking, encoding). `overhead_without_queue` leaves out the ring wait as well: the split's own cost
+    when the detector has a core to itself."""
     by_frame = {(o.camera, o.seq, o.t_capture_ns): o for o in objects}
-    e2e, det, wait, over = [], [], [], []
+    e2e, det, wait, over, over_nq = [], [], [], [], []
+    hops: dict[str, list[float]] = {k: [] for k in HOPS}
     for tr in tracks:
         t_pub = tr.stamp("fuse_track")
         t_closed = tr.stamp("tick_closed")
@@ -181,19 +193,27 @@ def latency(objects: list[Objects], tracks: list[Tracks]) -> dict:
             o = by_frame.get((cam, seq, t_cap))
             if o is None:
                 continue
+            t_in, t_det, t_loc = o.stamp("detect_in"), o.stamp("detect"), o.stamp("localize")
             e = (t_pub - o.stamp("ingest")) / 1e6
             w = max(0.0, (t_closed - t_arrive) / 1e6)
+            ring = (t_in - o.stamp("ingest")) / 1e6
             e2e.append(e)
             det.append(o.infer_ms)
             wait.append(w)
             over.append(e - o.infer_ms - w)
+            over_nq.append(e - o.infer_ms - w - ring)
+            for name, dt in zip(HOPS, (ring, (t_det - t_in) / 1e6, (t_loc - t_det) / 1e6, (t_arrive - t_loc) / 1e6,
+                                       w, (t_pub - t_closed) / 1e6), strict=True):
+                hops[name].append(dt)
 
     def pct(x, q):
         return round(float(np.percentile(x, q)), 2) if x else None
 
     return {"frames": len(e2e), "end_to_end_p50": pct(e2e, 50), "end_to_end_p99": pct(e2e, 99),
             "detector_p50": pct(det, 50), "tick_wait_p50": pct(wait, 50), "tick_wait_p99": pct(wait, 99),
-            "overhead_p50": pct(over, 50), "overhead_p99": pct(over, 99)}
+            "overhead_p50": pct(over, 50), "overhead_p99": pct(over, 99),
+            "overhead_without_queue_p50": pct(over_nq, 50), "overhead_without_queue_p99": pct(over_nq, 99),
+            "hops_p50": {k: pct(v, 50) for k, v in hops.items()}, "hops_p99": {k: pct(v, 99) for k, v in hops.items()}}
 
 
 def objects_rows(objects: list[Objects]) -> list[dict]:

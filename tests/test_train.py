@@ -1,0 +1,38 @@
+"""roadside train end to end on a tiny recording: files written, steps counted, fine-tuning from a checkpoint."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from training.model import DetectorConfig, load_detector  # noqa: E402
+from training.train import TrainConfig, train  # noqa: E402
+
+TINY = DetectorConfig(width_mult=0.25, decoder_channels=16, head_channels=8, stride=4, input_long_side=320)
+
+
+def test_train_writes_the_model_and_log_then_fine_tunes_from_it(small_recording, tmp_path):
+    threads = torch.get_num_threads()
+    try:
+        first = train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "a"), steps=6, batch_size=2,
+                                  crop=64, model=TINY, threads=1, log_every=2), log=lambda _m: None)
+        assert first["steps"] == 6 and first["images"] == 4
+        assert [json.loads(line)["step"] for line in (tmp_path / "a" / "train_log.jsonl").read_text().splitlines()] \
+            == [2, 4, 6]
+        assert load_detector(tmp_path / "a" / "model.pt").config == TINY
+
+        messages = []
+        second = train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "b"), steps=2, batch_size=2,
+                                   crop=64, threads=1, init=str(tmp_path / "a" / "model.pt")), log=messages.append)
+        # the starting model's network is kept, whatever the config says
+        assert load_detector(tmp_path / "b" / "model.pt").config == TINY
+        assert second["config"]["model"]["width_mult"] == TINY.width_mult
+        assert any("starting from" in m for m in messages)
+        with pytest.raises(FileNotFoundError, match=r"init model not found: .*nope\.pt"):
+            train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "c"), steps=1,
+                              init=str(tmp_path / "nope.pt")), log=lambda _m: None)
+    finally:
+        torch.set_num_threads(threads)
