@@ -325,6 +325,8 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
         "pipeline_fps": round(pipeline_fps, 2),
         "throughput_ratio": round(pipeline_fps / alone["fps"], 3),
         "peak_rss_mb": launcher.peak_rss_mb,
+        # CPU per frame of each service over the run (the detector's includes its inference threads)
+        "cpu_ms_per_frame": {k: round(1000 * v / max(len(objects), 1), 2) for k, v in launcher.cpu_s.items()},
         "bad_messages_seen_by_collector": collector.bad.total,
         "calibration": calib,
         "rerun": {k: viz.get(k) for k in ("rrd", "messages", "bad_lines", "tracks")},
@@ -343,9 +345,11 @@ def summary_table(s: dict) -> str:
         ("end to end p50 / p99", f"{lat['end_to_end_p50']} / {lat['end_to_end_p99']} ms"),
         ("detector p50", f"{lat['detector_p50']} ms"),
         ("overhead p50 / p99", f"{lat['overhead_p50']} / {lat['overhead_p99']} ms"),
+        ("  without the ring wait", f"{lat['overhead_without_queue_p50']} / {lat['overhead_without_queue_p99']} ms"),
         ("tick wait p50 / p99", f"{lat['tick_wait_p50']} / {lat['tick_wait_p99']} ms"),
         ("throughput vs detector alone", f"{s['throughput_ratio']:.3f} ({s['pipeline_fps']:.1f} frames/s)"),
         ("peak memory (MB)", ", ".join(f"{k} {v:.0f}" for k, v in s["peak_rss_mb"].items())),
+        ("CPU per frame (ms)", ", ".join(f"{k} {v:.1f}" for k, v in s.get("cpu_ms_per_frame", {}).items())),
     ]
     w = max(len(r[0]) for r in rows)
     return "\n".join(f"{a:<{w}}  {b}" for a, b in rows)

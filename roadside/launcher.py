@@ -44,17 +44,21 @@ class Launcher:
         self.restarts: dict[str, int] = dict.fromkeys(cfg.services, 0)
         self.stopping = False
         self.peak_rss_mb: dict[str, float] = {}
+        self.cpu_s: dict[str, float] = {}  # CPU seconds (user + system) of each service's current process
 
     def sample_memory(self) -> None:
-        """Record each service's peak resident memory (MB)."""
+        """Record each service's peak resident memory (MB) and the CPU time it has used so far."""
         import psutil
 
         for s, proc in self.procs.items():
             try:
-                rss = psutil.Process(proc.pid).memory_info().rss / 2**20
+                p = psutil.Process(proc.pid)
+                rss = p.memory_info().rss / 2**20
+                cpu = p.cpu_times()
             except (psutil.NoSuchProcess, psutil.AccessDenied):
                 continue
             self.peak_rss_mb[s] = max(self.peak_rss_mb.get(s, 0.0), round(rss, 1))
+            self.cpu_s[s] = round(cpu.user + cpu.system, 2)
 
     def command(self, service: str) -> list[str]:
         cmd = [sys.executable, "-m", f"services.{service}", "--site", str(self.cfg.site)]
