@@ -54,6 +54,7 @@ after it (in the new region's), and kept when both matches are the same (tracker
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 from collections.abc import Iterable, Mapping, Sequence
@@ -658,3 +659,56 @@ def evaluate_many(recording: Recording | GroundTruth | str | Path, sources: Mapp
         "mota_best_single_camera": best("mota", lowest=False)[1],
         "idf1_best_single_camera": best("idf1", lowest=False)[1],
     }
+
+
+def handoff_without_truth(tracks: str | Path | Iterable, camera_xy_m: Mapping[str, Sequence[float]],
+                          max_gap_s: float = 1.5, join_m: float = 4.0) -> dict:
+    """Identity kept across camera regions in a tracks file with no ground truth (real footage).
+
+    A region is the set of ground points nearest to one camera. A crossing is kept when one track identity
+    (tracker, id) moves from one region to another. It is broken when a track ends in one region and, within
+    `max_gap_s`, a new track starts in another region within `join_m` of where the ended track would be at
+    that time (its last position extrapolated with its last velocity from two positions): the same vehicle
+    under a new id. Ended and started tracks are paired one to one, nearest first.
+    Returns crossings kept and broken and `handoff_kept_fraction` (NaN without any crossing)."""
+    if not camera_xy_m:
+        raise ValueError("handoff needs the cameras' ground positions")
+    cam = np.array([camera_xy_m[c][:2] for c in camera_xy_m], float)
+    paths: dict[tuple[str, int], list[tuple[int, np.ndarray]]] = {}
+    for line in sorted(load_tracks(tracks), key=lambda ln: ln.t_ns):
+        for key, xy in zip(line.keys(), line.xy, strict=True):
+            paths.setdefault(key, []).append((line.t_ns, np.asarray(xy, float)))
+
+    def region(xy: np.ndarray) -> int:
+        return int(np.argmin(np.linalg.norm(cam - xy, axis=1)))
+
+    kept = 0
+    ends, starts = [], []
+    for key, pts in paths.items():
+        regions = [region(p) for _, p in pts]
+        kept += sum(a != b for a, b in itertools.pairwise(regions))
+        (t0, p0), (t1, p1) = pts[0], pts[-1]
+        v = np.zeros(2)
+        if len(pts) >= 2 and pts[-1][0] > pts[-2][0]:
+            v = (pts[-1][1] - pts[-2][1]) / ((pts[-1][0] - pts[-2][0]) / 1e9)
+        ends.append((key, t1, p1, v, regions[-1]))
+        starts.append((key, t0, p0, regions[0]))
+    pairs = []
+    gap = round(max_gap_s * 1e9)
+    for ek, t_end, p_end, v, r_end in ends:
+        for sk, t_start, p_start, r_start in starts:
+            if sk == ek or not 0 < t_start - t_end <= gap or r_start == r_end:
+                continue
+            d = float(np.linalg.norm(p_end + v * (t_start - t_end) / 1e9 - p_start))
+            if d <= join_m:
+                pairs.append((d, ek, sk))
+    used_e, used_s = set(), set()
+    broken = 0
+    for _, ek, sk in sorted(pairs):
+        if ek not in used_e and sk not in used_s:
+            used_e.add(ek)
+            used_s.add(sk)
+            broken += 1
+    total = kept + broken
+    return {"tracks": len(paths), "crossings_kept": kept, "crossings_broken": broken,
+            "handoff_kept_fraction": kept / total if total else float("nan")}

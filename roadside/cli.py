@@ -203,15 +203,17 @@ def _run_export(args) -> int:
 
 def _add_eval(sub) -> None:
     p = sub.add_parser("eval", help="score the detector: on a simulator recording, or on hand-labelled real frames")
-    p.add_argument("what", choices=["detector", "real"],
-                   help="detector: against a recording's ground truth; real: against hand labels (eval/real.py)")
-    p.add_argument("--model", type=Path, required=True, help="exported ONNX detector")
+    p.add_argument("what", choices=["detector", "real", "handoff"],
+                   help="detector: against a recording's ground truth; real: against hand labels (eval/real.py); "
+                        "handoff: camera-region crossings kept under one id in a tracks file (no ground truth)")
+    p.add_argument("--model", type=Path, help="exported ONNX detector (detector, real)")
+    p.add_argument("--tracks", type=Path, help="tracks file written by fuse_track (handoff)")
     p.add_argument("--recording", type=Path, help="simulator recording (detector)")
     p.add_argument("--every", type=int, default=1, help="use every n-th frame (detector)")
     p.add_argument("--score-thr", type=float, help="lowest score kept (default: 0.05 for detector, as AP needs "
                    "the low ones; the detect service's 0.3 for real)")
     p.add_argument("--site", type=Path, default=Path("deploy/sites/state_ellsworth"),
-                   help="site folder with labels/ and masks/ (real)")
+                   help="site folder with labels/ and masks/ (real), or its site.yaml's cameras (handoff)")
     p.add_argument("--footage", type=Path, default=Path("../shared/data/state_ellsworth/sample_data"),
                    help="folder of the cameras' frame folders (real)")
     p.add_argument("--threads", type=int, default=2)
@@ -221,6 +223,18 @@ def _add_eval(sub) -> None:
 def _run_eval(args) -> int:
     from shared.inference import OnnxDetector
 
+    if args.what == "handoff":
+        from eval.tracking import handoff_without_truth
+        from services.fuse_track.__main__ import camera_positions
+        from shared.settings import load_settings
+
+        if args.tracks is None:
+            raise ValueError("eval handoff needs --tracks")
+        positions, _ = camera_positions(load_settings(args.site))
+        print(json.dumps({"tracks_file": str(args.tracks), **handoff_without_truth(args.tracks, positions)}, indent=1))
+        return 0
+    if args.model is None:
+        raise ValueError(f"eval {args.what} needs --model")
     if args.what == "real":
         from eval.real import evaluate_real
 

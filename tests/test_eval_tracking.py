@@ -298,3 +298,37 @@ def test_evaluate_many_fused_against_single_cameras(gt):
     assert fused["traj_err_in_roi_m"] < out["traj_err_best_single_camera_m"]
     with pytest.raises(ValueError, match="unknown camera"):
         evaluate_many(gt, {"x": []}, cameras=["Z"])
+
+
+def _line(t_s: float, tracks: list[tuple[int, float, float]], tracker: str = "t1") -> dict:
+    return {"t_ns": int(1e9 * t_s), "tracker": tracker, "tracks": [{"id": i, "x": x, "y": y} for i, x, y in tracks]}
+
+
+def test_handoff_without_truth_counts_kept_and_broken_crossings():
+    from eval.tracking import handoff_without_truth
+
+    cams = {"W": (-20.0, 0.0), "E": (20.0, 0.0)}  # the boundary is x = 0
+    rows = []
+    # vehicle 1 drives east across x = 0 under one id: kept
+    # vehicle 2 drives west, its id 2 ends at x = 1 and id 3 starts 0.5 s later at x = -4, 2 m aside: broken
+    # vehicle 4 ends at x = 15 going east, in the east region, and nothing follows: not a crossing
+    for k in range(10):
+        t = k * 0.25
+        tr = [(1, -10.0 + 10 * t, 3.0)]
+        if t <= 1.0:
+            tr.append((2, 11.0 - 10 * t, -3.0))
+        if t >= 1.5:
+            tr.append((3, 11.0 - 10 * t, -1.0))  # 2 m off the extrapolated track
+        if t <= 1.0:
+            tr.append((4, 5.0 + 10 * t, 10.0))
+        rows.append(_line(t, tr))
+    r = handoff_without_truth(rows, cams)
+    assert (r["crossings_kept"], r["crossings_broken"]) == (1, 1)
+    assert r["handoff_kept_fraction"] == 0.5
+    # a new track far from where the ended one would be is not its continuation
+    r = handoff_without_truth(rows, cams, join_m=0.5)
+    assert r["crossings_broken"] == 0
+    # nor one that starts too late
+    assert handoff_without_truth(rows, cams, max_gap_s=0.3)["crossings_broken"] == 0
+    with pytest.raises(ValueError, match="cameras' ground positions"):
+        handoff_without_truth(rows, {})
