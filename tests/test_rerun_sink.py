@@ -219,3 +219,25 @@ def test_basemap_world_file_with_lat_lon_corners(tmp_path: Path) -> None:
         Basemap.from_world_file(world)
     with pytest.raises(FileNotFoundError, match=r"nowhere\.yaml"):
         Basemap.from_world_file(tmp_path / "nowhere.yaml")
+
+
+def test_basemap_four_corner_file_with_its_image_beside_it_or_a_folder(tmp_path: Path) -> None:
+    import cv2
+
+    origin = GeoFrame(42.2294, -83.739, 265.0)
+    site = np.array([[-100.0, 80.0], [120.0, 82.0], [-98.0, -60.0], [121.0, -61.0]])  # tl, tr, bl, br (a bit skewed)
+    ll = origin.to_geodetic(site)[:, :2]
+    folder = tmp_path / "basemap"
+    folder.mkdir()
+    (folder / "ortho.json").write_text(json.dumps({k: ll[i].tolist() for i, k in enumerate(("tl", "tr", "bl", "br"))}))
+    with pytest.raises(FileNotFoundError, match=r"beside .*ortho\.json"):
+        Basemap.from_world_file(folder / "ortho.json", origin)
+    cv2.imwrite(str(folder / "ortho.jpg"), np.zeros((30, 40, 3), np.uint8))
+    for path in (folder / "ortho.json", folder):
+        bm = Basemap.from_world_file(path, origin)
+        assert bm.corners_m == pytest.approx(site[[0, 1, 3, 2]], abs=0.01)  # stored tl, tr, br, bl
+    with pytest.raises(ValueError, match="no site origin"):
+        Basemap.from_world_file(folder)
+    (folder / "other.json").write_text("{}")
+    with pytest.raises(ValueError, match="exactly one"):
+        Basemap.from_world_file(folder, origin)

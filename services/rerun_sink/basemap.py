@@ -19,6 +19,10 @@ from one of:
       # extent_m: [x_min, x_max, y_min, y_max]
       origin: {lat_deg: 42.2806, lon_deg: -83.7408, alt_m: 0.0}   # optional; else the `origin` argument
 
+  or the four outer corners `{"tl": [lat, lon], "tr": ..., "bl": ..., "br": ...}` (as the State/Ellsworth
+  orthophoto's `roundabout.json`), the image then being the PNG/JPG of the same name beside the file
+  unless `image` names it. `path` may also be a folder holding exactly one such JSON file.
+
 The image is kept as uint8, (H, W) or (H, W, 3) RGB, reduced to at most `max_side_px` pixels on its
 long side (a GPU texture limit, and it keeps the .rrd small).
 """
@@ -34,6 +38,7 @@ import numpy as np
 from shared.geo import GeoFrame
 
 MAX_SIDE_PX = 4096
+CORNER_KEYS = ("tl", "tr", "bl", "br")
 
 
 @dataclass(frozen=True)
@@ -105,12 +110,35 @@ class Basemap:
         import yaml
 
         path = Path(path)
+        if path.is_dir():
+            found = sorted(path.glob("*.json")) + sorted(path.glob("*.yaml"))
+            if len(found) != 1:
+                raise ValueError(f"basemap folder {path} must hold exactly one .json/.yaml world file, "
+                                 f"found {len(found)}")
+            path = found[0]
         if not path.is_file():
             raise FileNotFoundError(f"basemap world file not found: {path}")
         spec = yaml.safe_load(path.read_text())
-        if not isinstance(spec, Mapping) or "image" not in spec:
-            raise ValueError(f"basemap world file {path} must be a mapping with an 'image' key")
-        image = load_image(path.parent / str(spec["image"]))
+        corners4 = isinstance(spec, Mapping) and all(k in spec for k in CORNER_KEYS)
+        if not isinstance(spec, Mapping) or ("image" not in spec and not corners4):
+            raise ValueError(f"basemap world file {path} must be a mapping with an 'image' key, or the corners "
+                             f"{', '.join(CORNER_KEYS)} of an image beside it")
+        if "image" in spec:
+            image = load_image(path.parent / str(spec["image"]))
+        else:
+            beside = [path.with_suffix(ext) for ext in (".jpg", ".jpeg", ".png")]
+            image_path = next((q for q in beside if q.is_file()), None)
+            if image_path is None:
+                raise FileNotFoundError(f"basemap image not found beside {path} (looked for {path.stem}.jpg/.png)")
+            image = load_image(image_path)
+        if corners4:
+            if "origin" in spec:
+                origin = GeoFrame.from_dict(spec["origin"])
+            if not isinstance(origin, GeoFrame):
+                raise ValueError(f"basemap world file {path} gives lat/lon corners but no site origin")
+            ll = np.array([_latlon(spec[k], k) for k in ("tl", "tr", "br", "bl")])
+            corners = origin.to_enu(ll[:, 0], ll[:, 1], origin.alt0_m)[:, :2]
+            return cls(_as_uint8(image, max_side_px), corners)
         if "extent_m" in spec:
             return cls.from_array(image, spec["extent_m"], max_side_px=max_side_px)
         if "top_left" not in spec or "bottom_right" not in spec:
