@@ -378,6 +378,41 @@ def _add_viz(sub) -> None:
     p.add_argument("--site", type=Path, help="site folder or site.yaml (its origin places lat/lon rows)")
     p.add_argument("--basemap", type=Path, help="world file (YAML/JSON: image + corners) of an orthophoto")
     p.add_argument("--recording", type=Path, help="simulator recording: draw its site's ground as the map")
+    p.add_argument("--frames", help="also log the camera frames of this source (recording, image folders; needs "
+                   "--site for the camera names) with the detections of --model")
+    p.add_argument("--model", type=Path, help="ONNX detector for the logged frames' detections")
+    p.add_argument("--frames-every", type=int, default=5, help="log every n-th frame of each camera")
+
+
+def _viz_frames(args):
+    """(camera, t_ns, grey image, detections) of every n-th frame of each camera of --frames."""
+    import cv2
+    import numpy as np
+
+    from services.ingest.sources import open_source
+    from shared.inference import OnnxDetector
+    from shared.settings import load_settings
+
+    if args.site is None or args.model is None:
+        raise ValueError("viz --frames needs --site (camera names) and --model (detections)")
+    if args.frames_every < 1:
+        raise ValueError(f"--frames-every must be >= 1, got {args.frames_every}")
+    settings = load_settings(site_path(args.site))
+    cams = [c.name for c in settings.cameras]
+    det = OnnxDetector(args.model, threads=2, score_thr=settings.detect.score_thr)
+    seen: dict[str, int] = {}
+    for sf in open_source(str(args.frames), cams, {}):
+        k = seen[sf.camera] = seen.get(sf.camera, -1) + 1
+        if k % args.frames_every:
+            continue
+        grey = sf.image
+        if grey is None:
+            grey = cv2.imdecode(np.frombuffer(sf.jpeg, np.uint8), cv2.IMREAD_GRAYSCALE)
+        if grey is None:
+            raise ValueError(f"{sf.origin}: not a readable image")
+        if grey.ndim == 3:
+            grey = cv2.cvtColor(grey, cv2.COLOR_BGR2GRAY)
+        yield sf.camera, sf.t_capture_ns, grey, det.detect(grey)
 
 
 def _run_viz(args) -> int:
@@ -395,7 +430,9 @@ def _run_viz(args) -> int:
 
         basemap = site_basemap(args.recording)
         origin = origin or Recording(args.recording).meta["site"]["origin"]
-    print(json.dumps(tracks_file_to_rrd(args.tracks, args.out, site_origin=origin, basemap=basemap), indent=1))
+    frames = _viz_frames(args) if args.frames else None
+    print(json.dumps(tracks_file_to_rrd(args.tracks, args.out, site_origin=origin, basemap=basemap, frames=frames),
+                     indent=1))
     return 0
 
 

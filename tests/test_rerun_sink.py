@@ -241,3 +241,22 @@ def test_basemap_four_corner_file_with_its_image_beside_it_or_a_folder(tmp_path:
     (folder / "other.json").write_text("{}")
     with pytest.raises(ValueError, match="exactly one"):
         Basemap.from_world_file(folder, origin)
+
+
+def test_viz_logs_camera_frames_with_detections_when_asked(tracks_file: Path, small_recording, tmp_path: Path,
+                                                           capsys) -> None:
+    pytest.importorskip("torch")
+    from pipeline_fixtures import export_tiny_detector, site_config, write_site
+
+    from roadside.cli import main
+
+    site = write_site(tmp_path / "site", site_config(small_recording))
+    model = export_tiny_detector(tmp_path / "tiny.onnx")
+    out = tmp_path / "frames.rrd"
+    assert main(["viz", str(tracks_file), "--out", str(out), "--site", str(site), "--frames", str(small_recording),
+                 "--model", str(model), "--frames-every", "1"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["frames"] == 2 and out.stat().st_size > 0  # the site's one camera, two frames
+    no_model = ["viz", str(tracks_file), "--out", str(out), "--site", str(site), "--frames", str(small_recording)]
+    assert main(no_model) == 2
+    assert "viz --frames needs --site (camera names) and --model" in capsys.readouterr().err
