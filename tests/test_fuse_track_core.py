@@ -198,6 +198,20 @@ def test_track_ids_are_unique_per_instance():
     assert Tracker(tracker_id="site-1").id == "site-1"
 
 
+def test_process_noise_is_filterpys_white_noise_per_pair():
+    from filterpy.common import Q_discrete_white_noise
+
+    variances = (4.0, 3.0, 0.25, 0.0025)
+    for dt in (0.05, 0.1, 0.37):
+        q = process_noise(dt, variances)
+        for k, var in enumerate(variances):
+            np.testing.assert_allclose(q[np.ix_([k, k + 4], [k, k + 4])], Q_discrete_white_noise(dim=2, dt=dt, var=var))
+        off = q.copy()
+        for k in range(4):
+            off[np.ix_([k, k + 4], [k, k + 4])] = 0
+        assert not off.any()
+
+
 def test_batched_kalman_filter_equals_filterpy():
     """kf_predict / kf_update on a batch give filterpy's KalmanFilter, with a time-offset H and true dt."""
     rng = np.random.default_rng(0)

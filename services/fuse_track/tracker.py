@@ -6,7 +6,8 @@ State (the paper's): x = [x, y, s, r, vx, vy, vs, vr]; x, y the bottom centre in
 frame), s = l * w the footprint area (m^2), r = l / w the aspect ratio, v* their rates per second.
 Constant-velocity model with the TRUE dt between ticks: F = [[I4, dt I4], [0, I4]], and
 piecewise-constant white acceleration noise per (value, rate) pair, Q = var * [[dt^4/4, dt^3/2],
-[dt^3/2, dt^2]] (filterpy's `Q_discrete_white_noise`).
+[dt^3/2, dt^2]] (filterpy's `Q_discrete_white_noise(dim=2)`, written out here: importing filterpy at run time
+pulls in scipy.stats and costs fuse_track about 23 MB of its 150 MB budget; the tests check both equal).
 
 Capture times: a measurement seen at t_i, off the tick time t by d = t_i - t, is compared with the
 track at its own time, x(t_i) = x(t) + d v(t), and updates it through that same relation, H_i =
@@ -28,7 +29,6 @@ import uuid
 from dataclasses import dataclass
 
 import numpy as np
-from filterpy.common import Q_discrete_white_noise
 from scipy.optimize import linear_sum_assignment
 
 from services.fuse_track.fusion import NS_PER_S, ObjectBatch, check_columns, wrap_angle
@@ -135,9 +135,9 @@ def transition(dt_s: float) -> np.ndarray:
 def process_noise(dt_s: float, variances: tuple[float, float, float, float]) -> np.ndarray:
     """Q (8, 8): piecewise white acceleration noise of variance var_k for each (value k, rate k) pair."""
     q = np.zeros((DIM_X, DIM_X))
+    block = np.array([[dt_s**4 / 4, dt_s**3 / 2], [dt_s**3 / 2, dt_s**2]])
     for k, var in enumerate(variances):
-        idx = np.ix_([k, k + 4], [k, k + 4])
-        q[idx] = Q_discrete_white_noise(dim=2, dt=dt_s, var=var)
+        q[np.ix_([k, k + 4], [k, k + 4])] = var * block
     return q
 
 
