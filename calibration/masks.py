@@ -68,14 +68,17 @@ class LookupMasks:
         return path
 
 
-def load_masks(path: str | Path) -> LookupMasks:
-    """Load a masks file; ValueError naming the file and what is wrong."""
+def load_masks(path: str | Path, with_latlon: bool = True) -> LookupMasks:
+    """Load a masks file; ValueError naming the file and what is wrong. `with_latlon=False` leaves the
+    float64 latitude/longitude arrays on disk (two thirds of the file) and stores zero-size placeholders:
+    for a reader that needs only metres and validity (localize computes lat/lon from metres)."""
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"lookup masks not found: {path}")
+    keys = ("lat", "lon", "xy", "valid", "meta") if with_latlon else ("xy", "valid", "meta")
     try:
         with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in ("lat", "lon", "xy", "valid", "meta")}
+            arrays = {k: z[k] for k in keys}
     except (OSError, ValueError, KeyError) as exc:
         raise ValueError(f"{path}: not a lookup masks file ({exc})") from None
     meta = json.loads(str(arrays["meta"]))
@@ -84,8 +87,10 @@ def load_masks(path: str | Path) -> LookupMasks:
             f"{path}: format {meta.get('format')!r} v{meta.get('version')!r}, expected {FORMAT!r} v{VERSION}"
         )
     h, w = arrays["valid"].shape
-    if arrays["lat"].shape != (h, w) or arrays["xy"].shape != (h, w, 2):
+    if (with_latlon and arrays["lat"].shape != (h, w)) or arrays["xy"].shape != (h, w, 2):
         raise ValueError(f"{path}: array shapes disagree")
+    if not with_latlon:
+        arrays["lat"] = arrays["lon"] = np.zeros((0, 0))
     return LookupMasks(arrays["lat"], arrays["lon"], arrays["xy"], arrays["valid"].astype(bool), meta)
 
 

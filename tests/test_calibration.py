@@ -283,6 +283,10 @@ def test_masks_agree_with_the_model_and_survive_a_round_trip(tmp_path):
     assert back.meta == masks.meta
     np.testing.assert_array_equal(back.valid, masks.valid)
     np.testing.assert_array_equal(back.lookup(uv)[1][ok], xy[ok])
+    light = load_masks(path, with_latlon=False)  # what localize keeps: metres and validity
+    assert light.lat.size == light.lon.size == 0 and light.meta == masks.meta
+    np.testing.assert_array_equal(light.xy, masks.xy)
+    np.testing.assert_array_equal(light.valid, masks.valid)
 
 
 def test_lookup_is_exact_at_pixel_centres_and_nan_outside():

@@ -35,7 +35,7 @@ def load_all_masks(settings: Settings) -> dict[str, GroundLookup]:
     for cam in settings.cameras:
         if cam.masks is None:
             raise ValueError(f"camera {cam.name}: no lookup masks in the site file (cameras[].masks)")
-        masks = load_masks(settings.path(cam.masks))
+        masks = load_masks(settings.path(cam.masks), with_latlon=False)
         if masks.shape != (cam.height, cam.width):
             raise ValueError(f"camera {cam.name}: masks {settings.path(cam.masks)} are {masks.shape[1]}x"
                              f"{masks.shape[0]}, the camera is {cam.width}x{cam.height}")
