@@ -89,6 +89,23 @@ def _angle_diff(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.abs((a - b + np.pi) % (2 * np.pi) - np.pi)
 
 
+def best_f1(scores: np.ndarray, hits: np.ndarray, n_pos: int) -> dict:
+    """The operating point: the score threshold with the highest F1 (precision and recall of detections at
+    or above it, IoU 0.5), to set the detect service's `score_thr` from a held-out recording."""
+    if n_pos == 0 or len(scores) == 0:
+        return {"best_f1": None, "best_f1_score_thr": None, "best_f1_precision": None, "best_f1_recall": None}
+    order = np.argsort(-scores, kind="stable")
+    tp = np.cumsum(hits[order])
+    precision = tp / np.arange(1, len(order) + 1)
+    recall = tp / n_pos
+    f1 = 2 * precision * recall / np.maximum(precision + recall, 1e-12)
+    # a threshold keeps every detection with the same score: look only at the last of each run of equal scores
+    last = np.r_[scores[order][1:] != scores[order][:-1], True]
+    k = int(np.flatnonzero(last)[np.argmax(f1[last])])
+    return {"best_f1": round(float(f1[k]), 4), "best_f1_score_thr": round(float(scores[order][k]), 4),
+            "best_f1_precision": round(float(precision[k]), 4), "best_f1_recall": round(float(recall[k]), 4)}
+
+
 def evaluate(recording: str | Path, detect: Callable[[np.ndarray], Detections], every: int = 1,
              cameras: list[str] | None = None, log=None) -> dict:
     """Score `detect(grey image) -> Detections` (original pixels) on every `every`-th frame."""
@@ -155,6 +172,7 @@ def evaluate(recording: str | Path, detect: Callable[[np.ndarray], Detections], 
             "size_err_m": stat(pool["size"], np.nanmean),
             "size_err_l2_m": stat(pool["size_l2"], np.nanmean),
             "type_acc": stat(pool["type"], np.nanmean),
+            **best_f1(scores, hits, n_pos),
         }
 
     out = {"recording": str(rec.path), "every": every, "overall": summary(list(per.values()))}

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from eval.detector import GroundLifter, box_iou, evaluate, match_frame, voc07_ap
+from eval.detector import GroundLifter, best_f1, box_iou, evaluate, match_frame, voc07_ap
 from shared.decode import Detections
 from shared.inference import OnnxDetector
 from training.data import samples_from_recording
@@ -18,6 +18,19 @@ def _dets(boxes, scores, uv=None) -> Detections:
     uv = np.asarray(uv, float).reshape(n, 2) if uv is not None else boxes[:, 2:]
     return Detections(np.asarray(scores, float), uv, boxes, np.tile([1.0, 0.0], (n, 1)), np.ones((n, 3)),
                       np.zeros(n, int), np.ones((n, 5)) / 5)
+
+
+def test_best_f1_picks_the_threshold_and_keeps_ties_together():
+    # scores 0.9 hit, 0.8 hit, 0.7 miss, 0.6 hit, 0.5 miss; 4 positives
+    r = best_f1(np.array([0.5, 0.9, 0.6, 0.8, 0.7]), np.array([False, True, True, True, False]), 4)
+    # thresholds: 0.9 -> p 1, r .25 (f1 .4); 0.8 -> 1, .5 (.667); 0.7 -> .667, .5 (.571); 0.6 -> .75, .75 (.75)
+    assert r["best_f1_score_thr"] == 0.6 and r["best_f1"] == 0.75
+    assert r["best_f1_precision"] == 0.75 and r["best_f1_recall"] == 0.75
+    # two detections with the same score are kept or dropped together
+    r = best_f1(np.array([0.9, 0.5, 0.5]), np.array([True, False, True]), 2)
+    assert r["best_f1_score_thr"] in (0.9, 0.5)
+    assert r["best_f1"] == pytest.approx(max(2 * 0.5 / 1.5, 2 * (2 / 3) * 1 / (2 / 3 + 1)), abs=1e-4)
+    assert best_f1(np.array([]), np.array([], bool), 3)["best_f1"] is None
 
 
 def test_voc07_ap_on_hand_made_rankings():
