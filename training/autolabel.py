@@ -13,10 +13,11 @@ Per camera (one folder of frames, capture time in the file names, and the camera
    camera's foot scaled by H / (H - z); a vehicle of height h therefore spans ground distances from its
    near edge r_near to its roof's far edge r_far, with the footprint's far edge at r_far * (H - h) / H.
    The footprint centre is the centre of the points' smallest enclosing rectangle (whole even where a post
-   hides the vehicle's middle), scaled towards the camera's foot by the middle of the two scales (sides and roof between them); its extent along the bearing (from r_near to the footprint's
-   far edge) and across it (deflated by that middle scale) must fit a vehicle (`length_m`,
-   `width_m`). A bigger component (vehicles merged, a vehicle and its shadow) is written as an ignore
-   region (COCO `iscrowd`), a smaller one is dropped.
+   hides the vehicle's middle), scaled towards the camera's foot by the middle of the two scales (sides and
+   roof lie between them); its extent along the bearing (from r_near to the footprint's far edge) and
+   across it (deflated by that middle scale) must fit a vehicle (`length_m`, `width_m`). A bigger component
+   (vehicles merged, a vehicle and its shadow) is written as an ignore region (COCO `iscrowd`), a smaller one
+   is dropped.
 4. Linking: footprints of consecutive frames are matched (Hungarian, gate `max_speed_mps` * dt); the
    heading comes from a straight-line fit of a track's positions over `heading_window` frames, kept where
    the vehicle moves at least `min_speed_mps`. A track shorter than `min_track_frames` is an ignore region.
