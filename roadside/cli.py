@@ -162,6 +162,8 @@ def _add_train(sub) -> None:
     p.add_argument("--stride", type=int, default=4, choices=[1, 2, 4])
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--init", help="model.pt to start from (fine-tuning); its network settings are kept")
+    p.add_argument("--axis-head", action="store_true",
+                   help="predict the heading's axis too (training/model.py); with --init, adds it to that model")
     p.add_argument("--beta-heading", type=_positive_float,
                    help="weight of the heading term (default 0.01, the paper's)")
 
@@ -176,7 +178,8 @@ def _run_train(args) -> int:
 
     cfg = TrainConfig(recordings=tuple(args.recording), coco=tuple(args.coco), out=args.out, steps=args.steps,
                       minutes=args.minutes, batch_size=args.batch_size, crop=args.crop, lr=args.lr, every=args.every,
-                      center=args.center, seed=args.seed, model=DetectorConfig(stride=args.stride), init=args.init,
+                      center=args.center, seed=args.seed, init=args.init, add_axis_head=args.axis_head,
+                      model=DetectorConfig(stride=args.stride, axis_head=args.axis_head),
                       loss=LossConfig(topk_fraction=None if args.no_topk else 0.01,
                                       **({} if args.beta_heading is None else {"beta_heading": args.beta_heading})))
     print(json.dumps(train(cfg), indent=1))

@@ -90,15 +90,20 @@ def peak_mask(heat: np.ndarray) -> np.ndarray:
 
 
 def decode(heat: np.ndarray, size: np.ndarray, heading: np.ndarray, vtype_prob: np.ndarray, offset: np.ndarray,
-           stride: int, score_thr: float = 0.3, top_k: int = 100) -> Detections:
+           stride: int, score_thr: float = 0.3, top_k: int = 100, axis: np.ndarray | None = None) -> Detections:
     """Detections of one image from the exported model's outputs without the batch axis:
-    heat (1, h, w), size (5, h, w), heading (2, h, w), vtype_prob (C, h, w), offset (4, h, w); coordinates in
-    input pixels. Peaks at or above score_thr, the top_k highest first (ties in row-major order)."""
+    heat (1, h, w), size (5, h, w), heading (2, h, w), vtype_prob (C, h, w), offset (4, h, w), and the optional
+    axis (2, h, w) of a model with an axis head; coordinates in input pixels. Peaks at or above score_thr, the
+    top_k highest first (ties in row-major order).
+
+    With `axis` ((cos 2a, sin 2a) of the heading angle a), the heading is the axis direction (cos a, sin a),
+    turned round where it points away from the heading head's vector (which then only gives the sign)."""
     if heat.ndim != 3 or heat.shape[0] != 1:
         raise ValueError(f"heat must have shape (1, h, w), got {heat.shape}")
     h, w = heat.shape[1:]
-    for name, arr, c in (("size", size, 5), ("heading", heading, 2), ("offset", offset, 4),
-                         ("vtype_prob", vtype_prob, vtype_prob.shape[0])):
+    maps = [("size", size, 5), ("heading", heading, 2), ("offset", offset, 4),
+            ("vtype_prob", vtype_prob, vtype_prob.shape[0])] + ([("axis", axis, 2)] if axis is not None else [])
+    for name, arr, c in maps:
         if arr.shape != (c, h, w):
             raise ValueError(f"{name} must have shape ({c}, {h}, {w}), got {arr.shape}")
     if stride < 1:
@@ -115,6 +120,12 @@ def decode(heat: np.ndarray, size: np.ndarray, heading: np.ndarray, vtype_prob: 
     box_wh = size[3:5, rows, cols].astype(np.float64).T * BOX_SCALE_PX
     box_c = uv + off[2:4].T * box_wh
     hd = heading[:, rows, cols].astype(np.float64).T
+    if axis is not None:
+        half = np.arctan2(axis[1, rows, cols], axis[0, rows, cols]).astype(np.float64) / 2
+        direction = np.stack([np.cos(half), np.sin(half)], axis=1)
+        flip = (direction * hd).sum(axis=1) < 0
+        direction[flip] *= -1
+        hd = direction
     hd /= np.maximum(np.linalg.norm(hd, axis=1, keepdims=True), HEADING_EPS)
     prob = vtype_prob[:, rows, cols].astype(np.float64).T
     return Detections(score=hm[rows, cols], uv=uv, box=np.concatenate([box_c - box_wh / 2, box_c + box_wh / 2], axis=1),

@@ -28,6 +28,9 @@ def available_providers(wanted: tuple[str, ...] = PREFERRED_PROVIDERS) -> list[s
     return [p for p in wanted if p in have]
 
 
+OUTPUT_NAMES = {"heat", "size", "heading", "vtype_prob", "offset", "axis"}
+
+
 class OnnxDetector:
     """An exported detector. `detect(grey)` -> Detections in the image's own pixels."""
 
@@ -52,6 +55,11 @@ class OnnxDetector:
         self.stride = int(self.config["stride"])
         self.long_side = int(self.config.get("input_long_side", 640))
         self.input_name = self.session.get_inputs()[0].name
+        self.output_names = tuple(o.name for o in self.session.get_outputs())
+        missing = {"heat", "size", "heading", "vtype_prob", "offset"} - set(self.output_names)
+        if missing or not set(self.output_names) <= OUTPUT_NAMES:
+            raise ValueError(f"{path}: outputs {list(self.output_names)} are not a detector's "
+                             f"(heat, size, heading, vtype_prob, offset and optionally axis)")
         self.path = path
         self.score_thr = score_thr
         self.top_k = top_k
@@ -80,7 +88,8 @@ class OnnxDetector:
     def detect(self, grey: np.ndarray) -> Detections:
         x, scale = self.preprocess(grey)
         outs = self.session.run(None, {self.input_name: x})
-        det = decode(*(o[0] for o in outs), stride=self.stride, score_thr=self.score_thr, top_k=self.top_k)
+        det = decode(**{name: o[0] for name, o in zip(self.output_names, outs, strict=True)}, stride=self.stride,
+                     score_thr=self.score_thr, top_k=self.top_k)
         # network pixel p (centre convention) <- image pixel q: p + 0.5 = (q + 0.5) * scale
         inv = 1.0 / scale
         return det.scaled(inv, inv, 0.5 * inv - 0.5, 0.5 * inv - 0.5)

@@ -6,6 +6,7 @@ import importlib.util
 import json
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -458,3 +459,54 @@ def test_topk_share_counts_input_pixels_at_any_stride():
     e = ((out["heat"][0, 0] - tg["heat"][0]) ** 2)[mask].detach()
     assert p4["heat"] == pytest.approx(torch.topk(e, round(0.16 * e.numel())).values.mean().item(), rel=1e-5)
     assert p1["heat"] == pytest.approx(torch.topk(e, max(1, round(0.01 * e.numel()))).values.mean().item(), rel=1e-5)
+
+
+# --- the axis head ----------------------------------------------------------------------------------------------
+
+
+def test_axis_targets_are_the_doubled_angle_and_decode_takes_the_sign_from_the_heading():
+    s = make_sample([[21.3, 41.9], [70.05, 20.6]], [[10, 22, 34, 44], [58.2, 5.1, 83.9, 24.7]],
+                    heading_uv=[[0.6, 0.8], [-0.28, 0.96]], size_lwh=[[4.5, 1.8, 1.5], [12.0, 2.5, 3.5]],
+                    vtype=[1, 3])
+    t = build_targets(s, 4)
+    for uv, (hu, hv) in zip(s.bottom_uv, s.heading_uv, strict=True):
+        col, row = int(uv[0] // 4), int(uv[1] // 4)
+        np.testing.assert_allclose(t["axis"][:, row, col], [hu * hu - hv * hv, 2 * hu * hv], atol=1e-6)
+    # a vehicle and its reverse have the same axis
+    rev = build_targets(make_sample(s.bottom_uv, s.box, heading_uv=-s.heading_uv, size_lwh=s.size_lwh,
+                                    vtype=s.vtype), 4)
+    np.testing.assert_allclose(rev["axis"], t["axis"], atol=1e-7)
+
+    heat, size, heading, prob, offset = hand_maps()
+    axis = np.zeros((2, *heat.shape[1:]), np.float32)
+    a = np.radians(30.0)
+    axis[:, 2, 3] = [np.cos(2 * a), np.sin(2 * a)]  # axis at 30 deg; the heading head says (0.3, 0.4): 53 deg
+    axis[:, 5, 7] = [np.cos(2 * a), np.sin(2 * a)]  # same axis; the heading head says (-1, 0): 180 deg
+    d = decode(heat, size, heading, prob, offset, stride=4, axis=axis)
+    np.testing.assert_allclose(d.heading_uv, [[np.cos(a), np.sin(a)], [-np.cos(a), -np.sin(a)]], atol=1e-6)
+    with pytest.raises(ValueError, match="axis"):
+        decode(heat, size, heading, prob, offset, stride=4, axis=axis[:1])
+
+
+def test_axis_head_trains_exports_and_loads(tmp_path, one_torch_thread):
+    from shared.inference import OnnxDetector
+    from training.export import export_onnx
+
+    torch.manual_seed(0)
+    model = Detector(replace(TINY, axis_head=True))
+    images, targets = batch_of([synthetic_sample()], 4)
+    out = model(images)
+    assert out["axis"].shape == out["heading"].shape and out["axis"].abs().max() <= 1
+    total, parts = detector_loss(out, targets)
+    assert parts["axis"] > 0 and torch.isfinite(total)
+    total.backward()
+    assert model.heads["axis"].out.weight.grad.abs().sum() > 0
+    save_detector(model, tmp_path / "m.pt")
+    assert load_detector(tmp_path / "m.pt").config.axis_head
+    export_onnx(model.eval(), tmp_path / "a.onnx", None, (64, 64))
+    det = OnnxDetector(tmp_path / "a.onnx", threads=1, score_thr=0.01)
+    assert det.output_names[-1] == "axis"
+    assert len(det.detect(synthetic_sample().image)) > 0
+    # a model without the head has no axis term in its loss
+    plain = Detector(TINY)
+    assert detector_loss(plain(images), targets)[1]["axis"] == 0.0

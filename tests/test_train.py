@@ -31,6 +31,15 @@ def test_train_writes_the_model_and_log_then_fine_tunes_from_it(small_recording,
         assert load_detector(tmp_path / "b" / "model.pt").config == TINY
         assert second["config"]["model"]["width_mult"] == TINY.width_mult
         assert any("starting from" in m for m in messages)
+        # an axis head added to the starting model: the rest of the weights are kept
+        train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "d"), steps=1, batch_size=2,
+                          crop=64, threads=1, init=str(tmp_path / "a" / "model.pt"), add_axis_head=True),
+              log=messages.append)
+        start, grown = load_detector(tmp_path / "a" / "model.pt"), load_detector(tmp_path / "d" / "model.pt")
+        assert grown.config.axis_head and not start.config.axis_head
+        assert set(grown.state_dict()) - set(start.state_dict()) == {k for k in grown.state_dict()
+                                                                     if k.startswith("heads.axis.")}
+        assert "added an axis head" in " ".join(messages)
         with pytest.raises(FileNotFoundError, match=r"init model not found: .*nope\.pt"):
             train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "c"), steps=1,
                               init=str(tmp_path / "nope.pt")), log=lambda _m: None)

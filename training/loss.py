@@ -10,6 +10,7 @@ heat     per-cell squared error over cells not ignored, averaged over the top `t
          every cell near a vehicle stuck at 0.36 after 1,000 steps).
 size     squared error of log(pred) vs log(target), summed over channels with a known target
 heading  squared error, summed over the two components
+axis     (models with an axis head) the same for the doubled-angle axis vector, weighted by beta_heading too
 vtype    cross-entropy of the logits
 offset   squared error, summed over the four components
 The regression terms are weighted per cell by the targets' `weight` (and masks) and divided by the sum of
@@ -83,11 +84,15 @@ def detector_loss(outputs: dict[str, torch.Tensor], targets: dict[str, torch.Ten
     size = _weighted((log_err * size_mask).sum(dim=1), weight * (size_mask.sum(dim=1) > 0))
     heading_err = ((outputs["heading"] - targets["heading"]) ** 2).sum(dim=1)
     heading = _weighted(heading_err, weight * targets["heading_mask"])
+    axis = heading * 0.0
+    if "axis" in outputs:
+        axis = _weighted(((outputs["axis"] - targets["axis"]) ** 2).sum(dim=1), weight * targets["heading_mask"])
     vtype_known = targets["vtype"] >= 0
     ce = F.cross_entropy(outputs["vtype"], targets["vtype"].clamp(min=0), reduction="none")
     vtype = _weighted(ce, weight * vtype_known)
     offset = _weighted(((outputs["offset"] - targets["offset"]) ** 2).sum(dim=1), weight)
-    total = (heat + cfg.beta_size * size + cfg.beta_heading * heading + cfg.beta_vtype * vtype
+    total = (heat + cfg.beta_size * size + cfg.beta_heading * (heading + axis) + cfg.beta_vtype * vtype
              + cfg.beta_offset * offset)
-    parts = {"heat": heat, "size": size, "heading": heading, "vtype": vtype, "offset": offset, "total": total}
+    parts = {"heat": heat, "size": size, "heading": heading, "axis": axis, "vtype": vtype, "offset": offset,
+             "total": total}
     return total, {name: float(value.detach()) for name, value in parts.items()}

@@ -6,6 +6,8 @@ Outputs at (H / stride, W / stride) for a (B, 1, H, W) grey input in [0, 1]:
     size     (B, 5, h, w) ReLU + SIZE_EPS: length, width, height (m); 2D box width, height
              (input pixels / shared.decode.BOX_SCALE_PX)
     heading  (B, 2, h, w) tanh: image-space vector from the footprint's rear towards its front
+    axis     (B, 2, h, w) tanh, only with `axis_head`: the heading's axis as the doubled-angle vector
+             (cos 2a, sin 2a) of the heading angle a: the same for a vehicle and its reverse
     vtype    (B, C, h, w) logits over VEHICLE_TYPES (the export wrapper applies softmax)
     offset   (B, 4, h, w) linear: (u - cell_u) / stride, (v - cell_v) / stride,
              (box_cx - u) / box_w, (box_cy - v) / box_h, with (u, v) the bottom centre in input pixels
@@ -45,6 +47,11 @@ class DetectorConfig:
     num_types         vehicle classes
     input_long_side   images are resized so their longer side is this many pixels before the network
                       (then padded to a multiple of 32); training crops are taken at this scale
+    axis_head         also predict the heading's axis (see the module docstring). Where the network cannot
+                      yet tell a vehicle's front from its back, the squared error of the heading vector is
+                      least for a zero vector, and the heading head learns nothing (measured: its loss stayed
+                      at 0.8-1.0 of 2 over 5,000 steps, a yaw error of 60-90 degrees); the axis has no such
+                      ambiguity. Decoding takes the direction from the axis and only its sign from the heading.
     """
 
     width_mult: float = 0.5
@@ -55,6 +62,7 @@ class DetectorConfig:
     input_std: float = 0.25
     num_types: int = len(VEHICLE_TYPES)
     input_long_side: int = 640
+    axis_head: bool = False
 
     def __post_init__(self) -> None:
         if self.stride not in STRIDES:
@@ -70,7 +78,8 @@ class DetectorConfig:
     @property
     def heads(self) -> dict[str, int]:
         """Output channels per head."""
-        return {"heat": 1, "size": 5, "heading": 2, "vtype": self.num_types, "offset": 4}
+        heads = {"heat": 1, "size": 5, "heading": 2, "vtype": self.num_types, "offset": 4}
+        return heads | ({"axis": 2} if self.axis_head else {})
 
 
 def _divisible(value: float, divisor: int = 8) -> int:
@@ -196,17 +205,21 @@ class Detector(nn.Module):
         out["heat"] = torch.sigmoid(out["heat"])
         out["size"] = F.relu(out["size"]) + SIZE_EPS
         out["heading"] = torch.tanh(out["heading"])
+        if "axis" in out:
+            out["axis"] = torch.tanh(out["axis"])
         return out
 
 
 class ExportWrapper(nn.Module):
-    """The deployed graph: (B, 1, H, W) in [0, 1] -> (heat, size, heading, vtype_prob, offset)."""
+    """The deployed graph: (B, 1, H, W) in [0, 1] -> (heat, size, heading, vtype_prob, offset[, axis]);
+    `outputs` names them (the ONNX output names, and shared.decode.decode's arguments)."""
 
     OUTPUTS = ("heat", "size", "heading", "vtype_prob", "offset")
 
     def __init__(self, detector: Detector) -> None:
         super().__init__()
         self.detector = detector
+        self.outputs = self.OUTPUTS + (("axis",) if detector.config.axis_head else ())
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, ...]:
         out = self.detector(x)
@@ -214,7 +227,8 @@ class ExportWrapper(nn.Module):
         # 128 x 128 on one CPU thread, these element-wise ops ~0.2 ms
         logits = out["vtype"]
         e = torch.exp(logits - logits.amax(dim=1, keepdim=True))
-        return out["heat"], out["size"], out["heading"], e / e.sum(dim=1, keepdim=True), out["offset"]
+        extra = (out["axis"],) if "axis" in out else ()
+        return (out["heat"], out["size"], out["heading"], e / e.sum(dim=1, keepdim=True), out["offset"], *extra)
 
 
 def save_detector(model: Detector, path: str | Path) -> None:

@@ -45,7 +45,8 @@ def build_targets(sample: Sample, stride: int, center: str = "bottom") -> dict[s
     size          (5, h, w) float32 length, width, height (m), box width, height (px / BOX_SCALE_PX)
     size_mask     (5, h, w) bool    size channels known at the cell (lwh unknown where the label is NaN)
     heading       (2, h, w) float32 image-space unit vector rear -> front
-    heading_mask  (h, w)    bool    heading known at the cell
+    heading_mask  (h, w)    bool    heading known at the cell (also the mask of `axis`)
+    axis          (2, h, w) float32 the heading's axis as the doubled-angle vector (hu^2 - hv^2, 2 hu hv)
     vtype         (h, w)    int64   vehicle type index, -1 where no owner or unknown
     offset        (4, h, w) float32 (u - cell_u) / stride, (v - cell_v) / stride, (box_cx - u) / box_w,
                                     (box_cy - v) / box_h, (u, v) the centre in input pixels
@@ -107,6 +108,8 @@ def build_targets(sample: Sample, stride: int, center: str = "bottom") -> dict[s
     heading_known = np.isfinite(sample.heading_uv).all(axis=1)
     heading_mask[owned] = heading_known[idx]
     heading[:, owned] = np.where(heading_known[:, None], np.nan_to_num(sample.heading_uv), 0.0)[idx].T
+    hu, hv = heading
+    axis = np.stack([hu * hu - hv * hv, 2 * hu * hv]).astype(np.float32)
     vtype = np.full((h, w), -1, np.int64)
     vtype[owned] = sample.vtype[idx]
     offset = np.zeros((4, h, w), np.float32)
@@ -114,5 +117,5 @@ def build_targets(sample: Sample, stride: int, center: str = "bottom") -> dict[s
     offset[1, owned] = (centre[idx, 1] - grid_v) / stride
     offset[2:, owned] = ((box_centre - centre) / box_wh)[idx].T
     return {"heat": heat.astype(np.float32), "ignore": ignore, "weight": heat.astype(np.float32), "size": size,
-            "size_mask": size_mask, "heading": heading, "heading_mask": heading_mask, "vtype": vtype,
+            "size_mask": size_mask, "heading": heading, "heading_mask": heading_mask, "axis": axis, "vtype": vtype,
             "offset": offset}

@@ -46,6 +46,7 @@ class TrainConfig:
     center: str = "bottom"  # "box": the 2D-box centre instead of the bottom centre (the paper's ablation)
     seed: int = 0
     init: str | None = None  # model.pt to start from (fine-tuning); its network config replaces `model`
+    add_axis_head: bool = False  # with `init`: give the starting model an axis head (new, the rest kept)
     threads: int = 2
     log_every: int = 25
     model: DetectorConfig = field(default_factory=DetectorConfig)
@@ -119,6 +120,14 @@ def train(cfg: TrainConfig, log=print) -> dict:
         if not Path(cfg.init).is_file():
             raise FileNotFoundError(f"init model not found: {cfg.init}")
         model = load_detector(cfg.init)
+        if cfg.add_axis_head and not model.config.axis_head:
+            start = model
+            model = Detector(replace(start.config, axis_head=True))
+            missing, unexpected = model.load_state_dict(start.state_dict(), strict=False)
+            if unexpected or any(not k.startswith("heads.axis.") for k in missing):
+                raise ValueError(f"{cfg.init}: weights do not fit the network with an axis head "
+                                 f"(missing {missing}, unexpected {unexpected})")
+            log("[train] added an axis head to the starting model")
         cfg = replace(cfg, model=model.config)  # input size and stride follow the starting model
         log(f"[train] starting from {cfg.init}")
     else:

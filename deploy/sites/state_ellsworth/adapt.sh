@@ -1,0 +1,20 @@
+#!/usr/bin/env bash
+# The site-adapted detector: autolabel the training slice of the four real cameras (frames before
+# 11:00:40), fine-tune the simulator-trained model on those labels mixed with simulator frames (so it keeps
+# what it learned there), export to ONNX. No manual training labels.
+# Starts from models/detector.pt (the shipped simulator-trained checkpoint).
+# Usage: adapt.sh SIM_RECORDING [FOOTAGE_DIR] [MINUTES]
+#   SIM_RECORDING  a simulator recording of this site (roadside sim --site state_ellsworth --seconds 90 --hz 2 ...)
+set -euo pipefail
+cd "$(dirname "$0")/../../.."
+SITE=deploy/sites/state_ellsworth
+SIM=${1:?usage: adapt.sh SIM_RECORDING [FOOTAGE_DIR] [MINUTES]}
+FOOTAGE=${2:-../shared/data/state_ellsworth/sample_data}
+MINUTES=${3:-25}
+[ -f $SITE/masks/SW.npz ] || bash $SITE/calibrate.sh
+bash $SITE/autolabel.sh "$FOOTAGE" out/autolabel > /dev/null
+COCO=()
+for c in NE NW SE SW; do COCO+=(--coco out/autolabel/$c/labels.json --coco out/autolabel/$c/labels.json); done  # real x2
+.venv/bin/roadside train --init models/detector.pt "${COCO[@]}" --recording "$SIM" \
+    --out out/train_state_ellsworth --minutes "$MINUTES" --batch-size 12 --lr 5e-4 --beta-heading 0.05 --seed 6
+.venv/bin/roadside export out/train_state_ellsworth/model.pt --out out/train_state_ellsworth/detector.onnx
