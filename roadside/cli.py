@@ -151,8 +151,10 @@ def _add_train(sub) -> None:
     p.add_argument("--recording", action="append", default=[], help="simulator recording folder (repeatable)")
     p.add_argument("--coco", action="append", default=[], help="COCO-style annotation JSON (repeatable)")
     p.add_argument("--out", required=True, help="output folder (model.pt, train_log.jsonl, train.json)")
-    p.add_argument("--steps", type=int, default=4000)
-    p.add_argument("--minutes", type=_positive_float, help="time budget; fewer steps if needed")
+    p.add_argument("--steps", type=int, help="number of steps (default 4000, or as many as --minutes allows)")
+    p.add_argument("--minutes", type=_positive_float,
+                   help="time budget: the learning-rate schedule follows the clock to its end (with --steps too, "
+                        "whichever comes first ends the run)")
     p.add_argument("--batch-size", type=int, default=16)
     p.add_argument("--crop", type=int, default=256)
     p.add_argument("--lr", type=_positive_float, default=2e-3)
@@ -168,6 +170,9 @@ def _add_train(sub) -> None:
                    help="weight of the heading term (default 0.01, the paper's)")
 
 
+UNLIMITED_STEPS = 10**9  # with --minutes alone the clock ends the run
+
+
 def _run_train(args) -> int:
     try:
         from training.train import TrainConfig, train
@@ -176,7 +181,8 @@ def _run_train(args) -> int:
     from training.loss import LossConfig
     from training.model import DetectorConfig
 
-    cfg = TrainConfig(recordings=tuple(args.recording), coco=tuple(args.coco), out=args.out, steps=args.steps,
+    cfg = TrainConfig(recordings=tuple(args.recording), coco=tuple(args.coco), out=args.out,
+                      steps=args.steps or (UNLIMITED_STEPS if args.minutes else 4000),
                       minutes=args.minutes, batch_size=args.batch_size, crop=args.crop, lr=args.lr, every=args.every,
                       center=args.center, seed=args.seed, init=args.init, add_axis_head=args.axis_head,
                       model=DetectorConfig(stride=args.stride, axis_head=args.axis_head),
