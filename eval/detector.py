@@ -7,7 +7,8 @@
   detected bottom centre lifted to the ground through the recording's exact pixel -> ground lookup and
   the true bottom centre; `yaw_err_deg`, the angle between the true heading and the detected image-space
   heading carried to the ground (the bottom centre and a point a few pixels along the heading, both
-  lifted; full circle, so a reversed heading is 180 deg); `size_err_m`, the mean absolute length, width
+  lifted; full circle, so a reversed heading is 180 deg; `yaw_axis_err_deg`: the same modulo 180 deg, the
+  error of the heading's axis alone); `size_err_m`, the mean absolute length, width
   and height difference (`size_err_l2_m`: the norm of the 3D difference); `type_acc`.
 """
 
@@ -169,6 +170,10 @@ def evaluate(recording: str | Path, detect: Callable[[np.ndarray], Detections], 
             "loc_err_median_m": stat(pool["loc"], np.nanmedian),
             "yaw_err_deg": stat(pool["yaw"], np.nanmean),
             "yaw_err_median_deg": stat(pool["yaw"], np.nanmedian),
+            # the heading's axis alone (front and back not told apart): the error modulo 180 degrees
+            "yaw_axis_err_deg": stat(np.minimum(pool["yaw"], 180.0 - np.asarray(pool["yaw"], float)), np.nanmean),
+            "yaw_axis_err_median_deg": stat(np.minimum(pool["yaw"], 180.0 - np.asarray(pool["yaw"], float)),
+                                            np.nanmedian),
             "size_err_m": stat(pool["size"], np.nanmean),
             "size_err_l2_m": stat(pool["size_l2"], np.nanmean),
             "type_acc": stat(pool["type"], np.nanmean),

@@ -81,6 +81,14 @@ def test_an_oracle_detector_scores_perfectly(small_recording):
     assert overall["positives"] > 5 and overall["ap50"] == pytest.approx(1.0)
     assert overall["loc_err_m"] < 0.02
     assert overall["yaw_err_median_deg"] < 3.0  # a finite pixel step along a projected heading
+    assert overall["yaw_axis_err_median_deg"] == pytest.approx(overall["yaw_err_median_deg"], abs=1e-6)
+
+    def reversed_oracle(grey: np.ndarray) -> Detections:
+        d = oracle(grey)
+        return Detections(d.score, d.uv, d.box, -d.heading_uv, d.size_lwh, d.vtype, d.vtype_prob)
+
+    rev = evaluate(small_recording, reversed_oracle)["overall"]
+    assert rev["yaw_err_median_deg"] > 170.0 and rev["yaw_axis_err_median_deg"] < 10.0  # the axis is still right
     assert overall["size_err_m"] == pytest.approx(0.0) and overall["type_acc"] == pytest.approx(1.0)
     assert set(result["per_kind"]) == {"fisheye", "thermal"}
 
