@@ -35,7 +35,7 @@ class OnnxDetector:
     """An exported detector. `detect(grey)` -> Detections in the image's own pixels."""
 
     def __init__(self, path: str | Path, providers: list[str] | None = None, threads: int = 2,
-                 score_thr: float = 0.3, top_k: int = 200) -> None:
+                 score_thr: float = 0.3, top_k: int = 200, spin: bool = True) -> None:
         import onnxruntime as ort
 
         path = Path(path)
@@ -44,6 +44,8 @@ class OnnxDetector:
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = threads
         opts.inter_op_num_threads = 1
+        # spin=False: worker threads sleep between jobs instead of busy-waiting (see shared/settings.py)
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if spin else "0")
         try:
             self.session = ort.InferenceSession(str(path), opts, providers=providers or available_providers())
         except Exception as e:  # onnxruntime raises its own exception types for bad files

@@ -3,6 +3,8 @@ detector built from the ground truth scoring perfectly on a real (small) recordi
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -100,3 +102,15 @@ def test_onnx_detector_rejects_missing_and_corrupt_models(tmp_path):
     bad.write_bytes(b"not a model")
     with pytest.raises(ValueError, match=r"bad\.onnx"):
         OnnxDetector(bad)
+
+
+def test_onnx_detector_threads_sleep_between_jobs_unless_asked_to_spin():
+    from shared.settings import DetectSettings
+
+    model = Path(__file__).resolve().parents[1] / "models" / "detector_fp32.onnx"
+    assert DetectSettings().spin is False
+    spinning = OnnxDetector(model, threads=1)
+    assert spinning.session.get_session_options().get_session_config_entry("session.intra_op.allow_spinning") == "1"
+    sleeping = OnnxDetector(model, threads=1, spin=False)
+    assert sleeping.session.get_session_options().get_session_config_entry("session.intra_op.allow_spinning") == "0"
+    assert len(sleeping.detect(np.zeros((96, 128), np.uint8))) == 0

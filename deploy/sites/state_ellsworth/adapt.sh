@@ -10,7 +10,7 @@ cd "$(dirname "$0")/../../.."
 SITE=deploy/sites/state_ellsworth
 SIM=${1:?usage: adapt.sh SIM_RECORDING [FOOTAGE_DIR] [MINUTES]}
 FOOTAGE=${2:-../shared/data/state_ellsworth/sample_data}
-MINUTES=${3:-25}
+MINUTES=${3:-20}
 [ -f $SITE/masks/SW.npz ] || bash $SITE/calibrate.sh
 bash $SITE/autolabel.sh "$FOOTAGE" out/autolabel > /dev/null
 COCO=()
