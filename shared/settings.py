@@ -112,6 +112,7 @@ class FuseTrackSettings(Strict):
     max_wait_ms: float = Field(300.0, gt=0)  # wall time a tick waits after its first batch
     camera_timeout_ms: float = Field(1000.0, gt=0)  # wall time without frames before a camera is not waited for
     merge_gate_m: float = Field(3.0, gt=0)  # objects of two cameras this close are one vehicle
+    occlusion_fallback: bool = False  # keep out-of-region objects nobody else saw (services/fuse_track/fusion.py)
     gate_m: float = Field(3.0, gt=0)  # largest track-to-measurement distance
     max_age_ticks: int = Field(3, ge=1)
     min_hits: int = Field(3, ge=1)

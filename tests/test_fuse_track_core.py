@@ -313,8 +313,9 @@ def test_long_gap_emits_at_most_max_empty_ticks():
 
 
 # ---- fusion --------------------------------------------------------------------------------------
-def test_fusion_prefers_the_region_camera_and_keeps_occluded_objects():
-    fusion = Fusion([CameraRegion("A", (-20.0, 0.0)), CameraRegion("B", (20.0, 0.0))], FusionConfig(merge_gate_m=2.5))
+def test_fusion_prefers_the_region_camera_and_keeps_occluded_objects_when_asked():
+    regions = [CameraRegion("A", (-20.0, 0.0)), CameraRegion("B", (20.0, 0.0))]
+    fusion = Fusion(regions, FusionConfig(merge_gate_m=2.5, occlusion_fallback=True))
     objects = ObjectBatch.concat([
         frame("A", 0, [[-15.0, 0.0]], score=0.8),
         # B sees A's vehicle (merged, low weight), a second object next to it (dropped: A's region, and A
@@ -327,6 +328,10 @@ def test_fusion_prefers_the_region_camera_and_keeps_occluded_objects():
     assert fused.xy[0, 0] == pytest.approx((-15.0 * 1.0 + -14.5 * 0.2) / 1.2)
     assert np.allclose(fused.xy[1], [-10.0, 8.0])
     assert fused.camera.tolist() == ["A", "B"]
+    # by default (the paper's rule) B's object in A's region that A did not see is dropped
+    strict = Fusion(regions, FusionConfig(merge_gate_m=2.5)).fuse(objects, 0)
+    assert len(strict) == 1 and strict.sources_of(0) == ["A", "B"]
+    assert strict.xy[0, 0] == pytest.approx(fused.xy[0, 0])
 
 
 def test_fusion_aligns_reversed_headings_and_brings_objects_to_a_common_time():
