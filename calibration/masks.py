@@ -49,6 +49,9 @@ class LookupMasks:
         uv (N, 2) pixels -> (latlon (N, 2) float64 degrees, xy (N, 2) float64 metres, valid (N,)).
         A position is valid when its four neighbouring pixel centres are all valid.
         """
+        if self.lat.size == 0 and self.valid.size:
+            raise ValueError("these masks were loaded without latitude/longitude (load_masks(with_latlon=False)): "
+                             "use services.localize.lift.GroundLookup, which computes them from metres")
         cells = bilinear_cells(uv, *self.valid.shape)
         v0, u0, _, _, inside = cells
         ok = inside & self.valid[v0, u0] & self.valid[v0, u0 + 1] & self.valid[v0 + 1, u0] & self.valid[v0 + 1, u0 + 1]

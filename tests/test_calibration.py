@@ -287,6 +287,8 @@ def test_masks_agree_with_the_model_and_survive_a_round_trip(tmp_path):
     assert light.lat.size == light.lon.size == 0 and light.meta == masks.meta
     np.testing.assert_array_equal(light.xy, masks.xy)
     np.testing.assert_array_equal(light.valid, masks.valid)
+    with pytest.raises(ValueError, match="loaded without latitude/longitude"):
+        light.lookup(uv)
 
 
 def test_lookup_is_exact_at_pixel_centres_and_nan_outside():
