@@ -43,6 +43,15 @@ class LookupMasks:
     def geo(self) -> GeoFrame:
         return GeoFrame.from_dict(self.meta["geo_origin"])
 
+    def camera_position_m(self) -> np.ndarray:
+        """(3,) the fitted camera centre in the masks' site frame (x, y of its foot on the ground, height);
+        ValueError when the file carries no camera pose."""
+        try:
+            return np.asarray(self.meta["camera"]["pose"]["position_m"], np.float64).reshape(3)
+        except (KeyError, TypeError, ValueError):
+            raise ValueError("the masks carry no camera pose (meta.camera.pose.position_m): "
+                             "build them with roadside calibrate") from None
+
     def lookup(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Bilinear lookup at sub-pixel positions.
 

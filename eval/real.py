@@ -33,10 +33,7 @@ MATCH_M = 1.5
 
 
 def camera_foot(masks: LookupMasks) -> np.ndarray:
-    try:
-        return np.asarray(masks.meta["camera"]["pose"]["position_m"][:2], np.float64)
-    except (KeyError, TypeError):
-        raise ValueError("the masks carry no camera pose (meta.camera.pose.position_m)") from None
+    return masks.camera_position_m()[:2]
 
 
 def ground_distance(masks: LookupMasks) -> np.ndarray:

@@ -249,24 +249,25 @@ def _run_eval(args) -> int:
 
         det = OnnxDetector(args.model, threads=args.threads, score_thr=args.score_thr or 0.3)
         result = evaluate_real(args.site / "labels", args.footage, args.site / "masks", det.detect)
-        result["model"] = str(args.model)
-        if not args.json:
-            for cam, r in {"overall": result["overall"], **result["per_camera"]}.items():
-                print(f"{cam:8s} precision {r['precision']} recall {r['recall']} ({r['labels']} labels, "
-                      f"{r['detections']} detections within {result['roi_m']:g} m)", file=sys.stderr)
-        print(json.dumps(result, indent=1))
-        return 0
+        line = ("{name:8s} precision {precision} recall {recall} ({labels} labels, {detections} detections within "
+                f"{result['roi_m']:g} m)")
+        return _print_eval(args, result, "per_camera", line)
     from eval.detector import evaluate
 
     if args.recording is None:
         raise ValueError("eval detector needs --recording")
     det = OnnxDetector(args.model, threads=args.threads, score_thr=args.score_thr or 0.05)
     result = evaluate(args.recording, det.detect, every=args.every)
+    line = "{name:8s} ap50 {ap50} loc {loc_err_m} m yaw {yaw_err_deg} deg size {size_err_m} m ({frames} frames)"
+    return _print_eval(args, result, "per_kind", line)
+
+
+def _print_eval(args, result: dict, per_key: str, line: str) -> int:
+    """The JSON document on stdout, and unless --json a line per group (`line` formatted with its figures)."""
     result["model"] = str(args.model)
     if not args.json:
-        for kind, r in {"overall": result["overall"], **result["per_kind"]}.items():
-            print(f"{kind:8s} ap50 {r['ap50']} loc {r['loc_err_m']} m yaw {r['yaw_err_deg']} deg "
-                  f"size {r['size_err_m']} m ({r['frames']} frames)", file=sys.stderr)
+        for name, r in {"overall": result["overall"], **result[per_key]}.items():
+            print(line.format(name=name, **r), file=sys.stderr)
     print(json.dumps(result, indent=1))
     return 0
 

@@ -43,6 +43,7 @@ from scipy.optimize import linear_sum_assignment
 
 from calibration.masks import LookupMasks, load_masks
 from services.ingest.sources import capture_time_from_name
+from shared.raster import bilinear, bilinear_cells
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
 COCO_PIXEL_OFFSET = 0.5  # COCO coordinate = our pixel-centre coordinate + 0.5 (as training.data)
@@ -138,12 +139,8 @@ class GroundView:
         vi = np.clip(np.round(vq).astype(int), 0, h - 1)
         self.xy = masks.xy[vi[:, None], ui[None, :]].astype(np.float64)
         self.valid = masks.valid[vi[:, None], ui[None, :]]
-        try:
-            pos = masks.meta["camera"]["pose"]["position_m"]
-        except (KeyError, TypeError):
-            raise ValueError("the masks carry no camera pose (meta.camera.pose.position_m): "
-                             "autolabel needs a fisheye or pinhole calibration from roadside calibrate") from None
-        self.foot = np.array(pos[:2], np.float64)
+        pos = masks.camera_position_m()
+        self.foot = pos[:2]
         self.height_m = float(pos[2])
         if not self.height_m > 2.0:
             raise ValueError(f"camera height {self.height_m:.2f} m from the masks is too low for autolabel")
@@ -174,13 +171,10 @@ class GroundView:
         return p
 
     def lookup(self, p: np.ndarray) -> np.ndarray:
+        """Ground point (2,) at working pixel p, bilinear (clamped to the outermost pixel centres)."""
         hs, ws = self.valid.shape
-        u = float(np.clip(p[0], 0, ws - 1.001))
-        v = float(np.clip(p[1], 0, hs - 1.001))
-        u0, v0 = int(u), int(v)
-        fu, fv = u - u0, v - v0
-        q = self.xy[v0:v0 + 2, u0:u0 + 2]
-        return ((1 - fv) * ((1 - fu) * q[0, 0] + fu * q[0, 1]) + fv * ((1 - fu) * q[1, 0] + fu * q[1, 1]))
+        q = np.clip(np.asarray(p, np.float64), 0, [ws - 1, hs - 1])
+        return bilinear(self.xy, bilinear_cells(q[None], hs, ws))[0]
 
     def jacobian(self, p: np.ndarray) -> np.ndarray | None:
         """d(xy)/d(uv) at p (2x2), None where it is singular or off the ground."""
