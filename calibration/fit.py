@@ -5,7 +5,11 @@ The paper lifts detections to the ground with per-segment homographies fitted on
 overfit 5-20 noisy landmarks badly, so the homographies here are plane-induced: the lens and
 the pose are fitted once from all landmarks (robust least squares, gross mistakes rejected by
 their reprojection residual), then each segment gets a ground plane z = a x + b y + c (3
-parameters, pulled toward one global plane when the segment has few landmarks). The pixel ->
+parameters, pulled toward one global plane when the segment has few landmarks). Gross mistakes are
+found by a group outlier test (`_landmark_tests`): a landmark's two pixel and two map residuals,
+corrected for what the fit itself explains (the hat matrix), against a chi-square with two degrees
+of freedom; the smallest mistake each landmark's test would catch is kept, so the report can say
+where a mistake could hide. The pixel ->
 ground map of a segment is then exactly a homography of the undistorted view (`homography`).
 Segments split the image around the camera's nadir and are blended smoothly at their borders.
 Everything is fitted in the local metric site frame, never in raw degrees.
@@ -28,6 +32,7 @@ MIN_PER_SEGMENT = 4
 MIN_LANDMARKS = 5  # below this a gross mistake cannot be told from the rest
 MAX_VIEW_ANGLE_DEG = 86.0  # fisheye pixels further off axis than this look at the horizon
 PLANE_PRIOR_WEIGHT = 2.0  # pull of the global plane on a segment's plane (in landmark units)
+HIDDEN_MISTAKE_M = 3.0  # warn when a map mistake this large at a landmark would pass the outlier test
 
 
 @dataclass(frozen=True)
@@ -81,6 +86,11 @@ class Calibration:
     inliers: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     rejected: list[tuple[str, str]] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    # per landmark (N,), NaN for rejected ones: the outlier test's statistic in sigma units and the
+    # smallest map mistake (m) / pixel mistake (px) that would push it over `outlier_sigma`
+    test_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    detectable_map_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    detectable_pixel_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def weights(self, uv: np.ndarray, dirs: np.ndarray | None = None) -> np.ndarray:
         """(N, P) blending weights of the segments at pixels uv (rows sum to 1)."""
@@ -213,11 +223,13 @@ def _initial_pinhole(uv: np.ndarray, obj: np.ndarray, cfg: CalibConfig) -> tuple
 
 def _fit_camera(
     uv: np.ndarray, obj: np.ndarray, cfg: CalibConfig, p0: np.ndarray | None = None, robust: bool = True
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Errors-in-variables least squares: the lens, the pose and each landmark's true ground
     position (within `map_sigma_m` of the map point) are fitted together, pixel residuals in
     units of `pixel_sigma_px`, so a landmark's map error counts as much as it moves its pixel
-    (a lot under the camera, little far away). Returns (parameters, (N, 2) ground corrections)."""
+    (a lot under the camera, little far away). Returns (parameters, (N, 2) ground corrections,
+    the normalised residuals' Jacobian at the solution: N pixel rows pairs, then N map row pairs,
+    then the priors)."""
     if p0 is None:
         p0, _ = (_initial_fisheye if cfg.kind == "fisheye" else _initial_pinhole)(uv, obj, cfg)
     n = len(uv)
@@ -253,19 +265,38 @@ def _fit_camera(
 
     loss = "soft_l1" if robust else "linear"
     sol = least_squares(resid, x0, bounds=(lo, hi), loss=loss, f_scale=2.5, x_scale="jac", max_nfev=800)
-    return sol.x[:11], sol.x[11:].reshape(n, 2)
+    return sol.x[:11], sol.x[11:].reshape(n, 2), sol.jac
 
 
-def _normalised_residuals(
-    p: np.ndarray, dxy: np.ndarray, uv: np.ndarray, obj: np.ndarray, cfg: CalibConfig
-) -> np.ndarray:
-    """Per landmark, the combined residual in noise units
-    sqrt(|pixel residual|^2 / pixel_sigma^2 + |ground correction|^2 / map_sigma^2)."""
+def _landmark_tests(jac: np.ndarray, uv: np.ndarray, obj: np.ndarray, p: np.ndarray, dxy: np.ndarray,
+                    cfg: CalibConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per landmark of a plain least-squares fit: the group outlier test statistic (sigma units)
+    and the smallest map mistake (m) and pixel mistake (px) it would detect.
+
+    A landmark contributes four normalised residuals (two pixel, two map). Deleting it is tested
+    by w = r_b' (I - H_bb)^+ r_b, H the fit's hat matrix; without a mistake w is chi-square with 2
+    degrees of freedom, so sqrt(w) > `outlier_sigma` is a mistake. A mistake b moves r_b by
+    (I - H_bb) b (normalised), so the mistake that reaches the threshold is
+    outlier_sigma / sqrt(smallest eigenvalue of that block) in noise units."""
+    n = len(uv)
     pts = obj.copy()
     pts[:, :2] += dxy
     proj, ok = _camera(p, cfg).project(pts)
-    res_px = np.where(ok, np.linalg.norm(proj - uv, axis=1), np.inf)
-    return np.sqrt((res_px / cfg.pixel_sigma_px) ** 2 + (np.linalg.norm(dxy, axis=1) / cfg.map_sigma_m) ** 2)
+    r_px = np.where(ok[:, None], proj - uv, 1e3) / cfg.pixel_sigma_px
+    r_map = dxy / cfg.map_sigma_m
+    q, _ = np.linalg.qr(np.asarray(jac, float))
+    stat, mdb_map, mdb_px = np.zeros(n), np.zeros(n), np.zeros(n)
+    for i in range(n):
+        rows = [2 * i, 2 * i + 1, 2 * n + 2 * i, 2 * n + 2 * i + 1]
+        m = np.eye(4) - q[rows] @ q[rows].T
+        r = np.concatenate([r_px[i], r_map[i]])
+        stat[i] = math.sqrt(max(float(r @ np.linalg.pinv(m, rcond=1e-6) @ r), 0.0))
+        # a pixel mistake enters the pixel rows, a map mistake the map rows (with the opposite sign)
+        lam_px = max(float(np.linalg.eigvalsh(m[:2, :2])[0]), 1e-12)
+        lam_map = max(float(np.linalg.eigvalsh(m[2:, 2:])[0]), 1e-12)
+        mdb_px[i] = cfg.outlier_sigma * cfg.pixel_sigma_px / math.sqrt(lam_px)
+        mdb_map[i] = cfg.outlier_sigma * cfg.map_sigma_m / math.sqrt(lam_map)
+    return stat, mdb_map, mdb_px
 
 
 # ---- ground planes --------------------------------------------------------------------------
@@ -318,16 +349,18 @@ def calibrate(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame) -> Calibration:
     xy = lm.to_local(geo)
     n = len(lm)
     obj = np.column_stack([xy, np.zeros(n)])
-    p, dxy = _fit_camera(lm.uv, obj, cfg)
+    p, dxy, _ = _fit_camera(lm.uv, obj, cfg)  # robust: a start that gross mistakes do not drag far
     use = np.ones(n, bool)
-    # Reject the worst landmark while it is inconsistent with the others, refitting each time.
-    while use.sum() > MIN_LANDMARKS:
-        norm = _normalised_residuals(p, dxy, lm.uv[use], obj[use], cfg)
-        worst = int(np.argmax(norm))
-        if norm[worst] <= cfg.outlier_sigma:
+    # Reject the landmark with the worst outlier test while it fails, refitting each time.
+    while True:
+        p, dxy, jac = _fit_camera(lm.uv[use], obj[use], cfg, p, robust=False)
+        stat, mdb_map, mdb_px = _landmark_tests(jac, lm.uv[use], obj[use], p, dxy, cfg)
+        worst = int(np.argmax(stat))
+        if stat[worst] <= cfg.outlier_sigma or use.sum() <= MIN_LANDMARKS:
             break
         use[np.nonzero(use)[0][worst]] = False
-        p, dxy = _fit_camera(lm.uv[use], obj[use], cfg, p)
+    test_sigma, detectable_map, detectable_px = (np.full(n, np.nan) for _ in range(3))
+    test_sigma[use], detectable_map[use], detectable_px[use] = stat, mdb_map, mdb_px
     cam = _camera(p, cfg)
     # Ground planes: a global one, then one per segment around the nadir.
     z, w = _implied_heights(cam, lm.uv[use], xy[use])
@@ -335,7 +368,7 @@ def calibrate(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame) -> Calibration:
     global_plane = _fit_plane(xy[use], z, w, None, centre) if use.sum() >= 6 else np.zeros(3)
     # Refit the camera on the plane's heights (the ground is not at z = 0).
     obj[:, 2] = global_plane[0] * xy[:, 0] + global_plane[1] * xy[:, 1] + global_plane[2]
-    p, dxy = _fit_camera(lm.uv[use], obj[use], cfg, p, robust=False)  # gross mistakes are out: plain least squares
+    p, dxy, _ = _fit_camera(lm.uv[use], obj[use], cfg, p, robust=False)
     cam = _camera(p, cfg)
     xy_use = xy[use] + dxy  # the fitted ground positions of the landmarks
     z, w = _implied_heights(cam, lm.uv[use], xy_use)
@@ -369,7 +402,8 @@ def calibrate(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame) -> Calibration:
         ])
     else:
         edges, planes = np.zeros(0), global_plane[None]
-    cal = Calibration(cfg, geo, cam, planes, centres, nadir_px, edges, use)
+    cal = Calibration(cfg, geo, cam, planes, centres, nadir_px, edges, use,
+                      test_sigma=test_sigma, detectable_map_m=detectable_map, detectable_pixel_px=detectable_px)
     proj, _ = cam.project(obj)
     res_px = np.linalg.norm(proj - lm.uv, axis=1)
     ground, _ = cal.pixel_to_xy(lm.uv)
@@ -383,5 +417,13 @@ def calibrate(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame) -> Calibration:
         )
         for i in np.nonzero(~use)[0]
     ]
+    hidden = [i for i in np.nonzero(use)[0] if detectable_map[i] > HIDDEN_MISTAKE_M]
+    if hidden:
+        worst = max(hidden, key=lambda i: detectable_map[i])
+        warnings.append(
+            f"a map mistake could go unnoticed at {', '.join(lm.ids[i] for i in hidden)} (up to "
+            f"{detectable_map[worst]:.1f} m at {lm.ids[worst]}): the other landmarks cannot check "
+            "them; add landmarks near them or check them by hand"
+        )
     cal.warnings = warnings
     return cal

@@ -22,6 +22,10 @@ def _stats(x: np.ndarray) -> dict:
     }
 
 
+def _opt(values: np.ndarray, k: int, digits: int) -> float | None:
+    return None if k >= len(values) or not np.isfinite(values[k]) else round(float(values[k]), digits)
+
+
 def build_report(cal: Calibration, lm: Landmarks, cfg: CalibConfig, roi: dict, leave_one_out: bool = True) -> dict:
     xy = lm.to_local(cal.geo)
     got, ok = cal.pixel_to_xy(lm.uv)
@@ -71,6 +75,9 @@ def build_report(cal: Calibration, lm: Landmarks, cfg: CalibConfig, roi: dict, l
                 "residual_m": None if np.isnan(res[k]) else round(float(res[k]), 4),
                 "reprojection_px": None if np.isnan(res_px[k]) else round(float(res_px[k]), 2),
                 "leave_one_out_m": None if np.isnan(loo[k]) else round(float(loo[k]), 4),
+                "outlier_test_sigma": _opt(cal.test_sigma, k, 2),
+                "detectable_map_mistake_m": _opt(cal.detectable_map_m, k, 2),
+                "detectable_pixel_mistake_px": _opt(cal.detectable_pixel_px, k, 1),
             }
             for k, lid in enumerate(lm.ids)
         ],

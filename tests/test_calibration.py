@@ -376,3 +376,22 @@ def test_cli_calibrate_writes_masks_report_and_plot(tmp_path):
         cwd=Path(__file__).resolve().parents[1],
     )
     assert bad.returncode == 2 and "landmark file not found" in bad.stderr
+
+
+def test_a_map_mistake_the_other_landmarks_cannot_check_is_warned_about_not_absorbed():
+    """Far from a forward-looking camera a map point slid along the line of sight barely moves
+    its pixel: no test can reject it, so the calibration must say where such a mistake could hide."""
+    cam = _pinhole()
+    lm = _synthetic_landmarks(cam, 12, np.random.default_rng(1), 60.0)
+    xy = lm.to_local(GEO)
+    rng_m = np.linalg.norm(xy - cam.pose.position_m[:2], axis=1)
+    k = int(np.argmax(rng_m))
+    xy[k] += 4.0 * (xy[k] - cam.pose.position_m[:2]) / rng_m[k]  # 4 m further along the line of sight
+    ll = GEO.to_geodetic(np.column_stack([xy, np.zeros(len(xy))]))[:, :2]
+    cal = calibrate(Landmarks(lm.ids, lm.uv, ll, lm.segment), CalibConfig("pinhole", 640, 512), GEO)
+    assert lm.ids[k] in [r[0] for r in cal.rejected] or any(
+        "could go unnoticed" in w and lm.ids[k] in w for w in cal.warnings
+    )
+    inl = cal.inliers
+    assert np.all(np.isfinite(cal.test_sigma[inl])) and np.all(cal.detectable_map_m[inl] > 0)
+    assert cal.detectable_map_m[k] > cal.detectable_map_m[int(np.argmin(rng_m))]  # far is harder to check
