@@ -116,60 +116,81 @@ def _grid_every(out: np.ndarray, x0: int, y0: int, zoom: int, step: int) -> None
 
 
 def score_camera(frames: dict[str, np.ndarray], footage: Path, masks: LookupMasks,
-                 detect: Callable[[np.ndarray], Detections]) -> dict:
-    """Counts for one camera: tp, detections (within ROI_M), labels (within ROI_M), and matched errors."""
+                 detect: Callable[[np.ndarray], Detections], thresholds: tuple[float, ...] = (0.0,)) -> list[dict]:
+    """Counts for one camera at each score threshold (detections below it left out): tp, detections
+    (within ROI_M), labels (within ROI_M), and matched errors. The detector runs once per frame."""
     foot = camera_foot(masks)
-    tp = n_det = n_lab = 0
-    errors = []
+    acc = [{"tp": 0, "n_det": 0, "n_lab": 0, "errors": []} for _ in thresholds]
     for name, labels in sorted(frames.items()):
         path = footage / name
         grey = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
         if grey is None:
             raise ValueError(f"{path}: labelled frame is missing or unreadable")
         det = detect(grey)
-        _, d_xy, d_ok = masks.lookup(det.uv)
         _, l_xy, l_ok = masks.lookup(labels)
         if not l_ok.all():
             raise ValueError(f"{path}: label {int(np.argmin(l_ok))} is outside the calibrated area")
-        d_xy = d_xy[d_ok]
-        d_in = np.hypot(*(d_xy - foot).T) <= ROI_M
         l_in = np.hypot(*(l_xy - foot).T) <= ROI_M
-        n_det += int(d_in.sum())
-        n_lab += int(l_in.sum())
-        if len(d_xy) and len(l_xy):
-            cost = np.linalg.norm(d_xy[:, None] - l_xy[None], axis=2)
-            rows, cols = linear_sum_assignment(np.where(cost <= MATCH_M, cost, 1e6))
-            for r, c in zip(rows, cols, strict=True):
-                if cost[r, c] > MATCH_M:
-                    continue
-                if l_in[c]:
-                    tp += 1
-                    errors.append(cost[r, c])
-                elif d_in[r]:
-                    n_det -= 1  # a hit on a vehicle just outside the ROI is not a false alarm
-    return {"frames": len(frames), "labels": n_lab, "detections": n_det, "true_positives": tp,
-            "precision": round(tp / n_det, 4) if n_det else None, "recall": round(tp / n_lab, 4) if n_lab else None,
-            "loc_err_median_m": round(float(np.median(errors)), 3) if errors else None}
+        _, d_xy_all, d_ok_all = masks.lookup(det.uv)
+        for a, thr in zip(acc, thresholds, strict=True):
+            keep = d_ok_all & (np.asarray(det.score) >= thr)
+            d_xy = d_xy_all[keep]
+            d_in = np.hypot(*(d_xy - foot).T) <= ROI_M
+            a["n_det"] += int(d_in.sum())
+            a["n_lab"] += int(l_in.sum())
+            if len(d_xy) and len(l_xy):
+                cost = np.linalg.norm(d_xy[:, None] - l_xy[None], axis=2)
+                rows, cols = linear_sum_assignment(np.where(cost <= MATCH_M, cost, 1e6))
+                for r, c in zip(rows, cols, strict=True):
+                    if cost[r, c] > MATCH_M:
+                        continue
+                    if l_in[c]:
+                        a["tp"] += 1
+                        a["errors"].append(cost[r, c])
+                    elif d_in[r]:
+                        a["n_det"] -= 1  # a hit on a vehicle just outside the ROI is not a false alarm
+    out = []
+    for a in acc:
+        tp, n_det, n_lab, errors = a["tp"], a["n_det"], a["n_lab"], a["errors"]
+        out.append({"frames": len(frames), "labels": n_lab, "detections": n_det, "true_positives": tp,
+                    "precision": round(tp / n_det, 4) if n_det else None,
+                    "recall": round(tp / n_lab, 4) if n_lab else None,
+                    "loc_err_median_m": round(float(np.median(errors)), 3) if errors else None})
+    return out
+
+
+def _overall(per: dict[str, dict]) -> dict:
+    tot = {k: sum(p[k] for p in per.values()) for k in ("frames", "labels", "detections", "true_positives")}
+    return {**tot, "precision": round(tot["true_positives"] / tot["detections"], 4) if tot["detections"] else None,
+            "recall": round(tot["true_positives"] / tot["labels"], 4) if tot["labels"] else None}
 
 
 def evaluate_real(labels_dir: str | Path, footage: str | Path, masks_dir: str | Path,
                   detect: Callable[[np.ndarray], Detections], held_out_from: time | None = time(11, 0, 40),
-                  folder_pattern: str = "gs_State_Ellsworth_{camera}") -> dict:
-    """Per camera and overall precision / recall within ROI_M for every `labels_dir`/*.json."""
+                  folder_pattern: str = "gs_State_Ellsworth_{camera}", score_thr: float = 0.0,
+                  curve: tuple[float, ...] = ()) -> dict:
+    """Per camera and overall precision / recall within ROI_M for every `labels_dir`/*.json, for the
+    detections scoring at least `score_thr`; `curve`: overall precision / recall at these thresholds too
+    (a model's whole trade-off, from the same detector pass; `detect` must keep scores that low)."""
     labels_dir, footage, masks_dir = Path(labels_dir), Path(footage), Path(masks_dir)
     files = sorted(labels_dir.glob("*.json"))
     if not files:
         raise ValueError(f"no label files in {labels_dir}")
     if not footage.is_dir():
         raise ValueError(f"footage folder not found: {footage}")
-    per = {}
+    thresholds = (score_thr, *curve)
+    per_thr: list[dict] = [{} for _ in thresholds]
     for f in files:
         camera = f.stem
         masks = load_masks(masks_dir / f"{camera}.npz")
         h, w = masks.shape
         frames = load_labels(f, w, h, held_out_from)
-        per[camera] = score_camera(frames, footage / folder_pattern.format(camera=camera), masks, detect)
-    tot = {k: sum(p[k] for p in per.values()) for k in ("frames", "labels", "detections", "true_positives")}
-    overall = {**tot, "precision": round(tot["true_positives"] / tot["detections"], 4) if tot["detections"] else None,
-               "recall": round(tot["true_positives"] / tot["labels"], 4) if tot["labels"] else None}
-    return {"roi_m": ROI_M, "match_m": MATCH_M, "overall": overall, "per_camera": per}
+        rows = score_camera(frames, footage / folder_pattern.format(camera=camera), masks, detect, thresholds)
+        for acc, row in zip(per_thr, rows, strict=True):
+            acc[camera] = row
+    out = {"roi_m": ROI_M, "match_m": MATCH_M, "score_thr": score_thr, "overall": _overall(per_thr[0]),
+           "per_camera": per_thr[0]}
+    if curve:
+        out["curve"] = [{"score_thr": t, **{k: v for k, v in _overall(p).items() if k != "frames"}}
+                        for t, p in zip(curve, per_thr[1:], strict=True)]
+    return out

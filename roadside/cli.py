@@ -247,8 +247,11 @@ def _run_eval(args) -> int:
     if args.what == "real":
         from eval.real import evaluate_real
 
-        det = OnnxDetector(args.model, threads=args.threads, score_thr=args.score_thr or 0.3)
-        result = evaluate_real(args.site / "labels", args.footage, args.site / "masks", det.detect)
+        thr = 0.3 if args.score_thr is None else args.score_thr
+        curve = tuple(round(0.05 * k, 2) for k in range(1, 13))  # 0.05 ... 0.6
+        det = OnnxDetector(args.model, threads=args.threads, score_thr=min(thr, *curve))
+        result = evaluate_real(args.site / "labels", args.footage, args.site / "masks", det.detect, score_thr=thr,
+                               curve=curve)
         line = ("{name:8s} precision {precision} recall {recall} ({labels} labels, {detections} detections within "
                 f"{result['roi_m']:g} m)")
         return _print_eval(args, result, "per_camera", line)
@@ -281,6 +284,9 @@ def _add_autolabel(sub) -> None:
     p.add_argument("--until", help="leave out frames at or after this time of day HH:MM:SS (a held-out slice)")
     p.add_argument("--roi-m", type=_positive_float, default=30.0, help="label within this distance of the camera")
     p.add_argument("--truth", type=Path, help="simulator recording of these frames: score the labels against it")
+    p.add_argument("--teacher", type=Path, help="detector ONNX model whose detections away from the labels become "
+                   "ignore regions: parked and waiting vehicles, which the background model cannot see")
+    p.add_argument("--teacher-thr", type=float, default=0.1, help="teacher detections at least this confident")
 
 
 def _run_autolabel(args) -> int:
@@ -294,8 +300,14 @@ def _run_autolabel(args) -> int:
             until = time.fromisoformat(args.until)
         except ValueError:
             raise ValueError(f"--until must be a time of day HH:MM:SS, got {args.until!r}") from None
-    report = autolabel_camera(args.frames, args.masks, args.out, args.camera, until,
-                              AutolabelConfig(roi_m=args.roi_m), log=lambda m: print(m, file=sys.stderr))
+    cfg = AutolabelConfig(roi_m=args.roi_m, teacher_thr=args.teacher_thr)
+    teacher = None
+    if args.teacher:
+        from shared.inference import OnnxDetector
+
+        teacher = OnnxDetector(args.teacher, score_thr=cfg.teacher_thr, spin=False).detect
+    report = autolabel_camera(args.frames, args.masks, args.out, args.camera, until, cfg,
+                              log=lambda m: print(m, file=sys.stderr), teacher=teacher)
     if args.truth:
         report["score"] = score_labels(args.out / "labels.json", args.truth)
         (args.out / "report.json").write_text(json.dumps(report, indent=1))

@@ -45,13 +45,15 @@ def _labels(site: Path, frames: dict, camera: str = "C1") -> None:
     (site / "labels" / f"{camera}.json").write_text(json.dumps({"camera": camera, "frames": frames}))
 
 
-def _detector(points_by_call: list[np.ndarray]):
+def _detector(points_by_call: list[np.ndarray], scores: list[list[float]] | None = None):
     calls = iter(points_by_call)
+    score_calls = iter(scores) if scores is not None else None
 
     def detect(_grey: np.ndarray) -> Detections:
         uv = np.asarray(next(calls), np.float64).reshape(-1, 2)
         n = len(uv)
-        return Detections(np.full(n, 0.9), uv, np.c_[uv - 5, uv + 5], np.tile([1.0, 0.0], (n, 1)),
+        score = np.asarray(next(score_calls), np.float64) if score_calls else np.full(n, 0.9)
+        return Detections(score, uv, np.c_[uv - 5, uv + 5], np.tile([1.0, 0.0], (n, 1)),
                           np.tile([4.5, 1.8, 1.5], (n, 1)), np.zeros(n, np.int64), np.tile([1.0, 0, 0, 0, 0], (n, 1)))
     return detect
 
@@ -75,6 +77,17 @@ def test_counts_hits_misses_false_alarms_and_the_band_outside_the_roi(tmp_path):
     assert c["precision"] == pytest.approx(1 / 3, abs=1e-4) and c["recall"] == 0.5
     assert c["loc_err_median_m"] == pytest.approx(1.0, abs=1e-3)
     assert r["overall"]["true_positives"] == 1
+
+
+def test_the_curve_scores_every_threshold_from_one_detector_pass(tmp_path):
+    site, footage = _site(tmp_path)
+    _labels(site, {"2023-12-19 11-00-41-000000.jpg": [[200, 120]], "2023-12-19 11-00-43-000000.jpg": [[160, 140]]})
+    # the hit in frame 1 scores 0.5, its false alarm 0.2; frame 2's hit scores 0.25
+    detect = _detector([[[200, 121], [120, 120]], [[160, 141]]], [[0.5, 0.2], [0.25]])
+    r = evaluate_real(site / "labels", footage, site / "masks", detect, score_thr=0.3, curve=(0.1, 0.22, 0.6))
+    assert (r["overall"]["true_positives"], r["overall"]["detections"]) == (1, 1)  # at 0.3
+    assert [(c["true_positives"], c["detections"]) for c in r["curve"]] == [(2, 3), (2, 2), (0, 0)]
+    assert r["curve"][1]["precision"] == 1.0 and r["curve"][1]["recall"] == 1.0 and r["curve"][2]["recall"] == 0.0
 
 
 def test_perfect_detections_score_one(tmp_path):
