@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from datetime import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -80,7 +81,8 @@ def test_labels_moving_vehicles_with_centre_heading_and_drops_the_small_one(scen
     assert report["frames"] == 10  # the 11th frame is at 11:00:02
     doc = json.loads((tmp_path / "out" / "labels.json").read_text())
     labs = [a for a in doc["annotations"] if not a.get("iscrowd")]
-    assert report["vehicles"] == len(labs) == 20  # two cars in ten frames, the pedestrian dropped
+    assert report["vehicles"] == len(labs) == 20  # two cars in ten frames
+    assert report["dropped"]["too_small"] == 10  # the pedestrian: fewer pixels than min_area_px
     assert report["tracks_long_enough"] == 2
     assert report["dropped"]["merged"] >= 1  # the car behind the post
     for a in labs:
@@ -97,6 +99,46 @@ def test_labels_moving_vehicles_with_centre_heading_and_drops_the_small_one(scen
     refs = samples_from_coco(tmp_path / "out" / "labels.json")
     assert len(refs) == 10 and sum(r.n_positive for r in refs) == 20
     assert refs[0].load().image.shape == (H, W)
+
+
+@pytest.mark.parametrize("ignore_small", [True, False])
+def test_a_footprint_too_small_for_a_vehicle_is_an_ignore_region_or_dropped(scene, tmp_path, ignore_small):
+    frames, masks = scene
+    cfg = AutolabelConfig(scale=1.0, vehicle_height_m=0.01, roi_m=40.0, length_m=(5.0, 20.0),
+                          ignore_small=ignore_small)
+    report = autolabel_camera(frames, masks, tmp_path / "out", "CAM", until=time(11, 0, 2), cfg=cfg, log=None)
+    assert report["vehicles"] == 0  # 4.5 m cars are short of this config's 5 m
+    small = report["ignored_small"] if ignore_small else report["dropped"]["not_vehicle_size"]
+    assert small >= 20  # two cars in ten frames (the one behind the post in two pieces where it is cut)
+    assert (report["dropped"]["not_vehicle_size"] if ignore_small else report["ignored_small"]) == 0
+
+
+class _Teacher:
+    """A detector that sees a parked car at (10, -8) m (which the background model cannot) and the
+    eastbound car (which already has a label)."""
+
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self, grey: np.ndarray) -> SimpleNamespace:
+        assert grey.shape == (H, W)
+        moving = _uv(np.array(MOVERS[0][0]) + self.t * np.array(MOVERS[0][1]))
+        self.t += 1 / HZ
+        uv = np.array([_uv((10.0, -8.0)), moving, _uv((0.0, 0.0))])
+        half = np.array([20.0, 10.0])
+        box = np.column_stack([uv - half, uv + half])
+        return SimpleNamespace(score=np.array([0.3, 0.9, 0.05]), uv=uv, box=box)
+
+
+def test_teacher_detections_away_from_the_labels_become_ignore_regions(scene, tmp_path):
+    frames, masks = scene
+    report = autolabel_camera(frames, masks, tmp_path / "out", "CAM", until=time(11, 0, 2), cfg=CFG, log=None,
+                              teacher=_Teacher())
+    assert report["vehicles"] == 20 and report["ignored_teacher"] == 10  # the parked car, once per frame
+    doc = json.loads((tmp_path / "out" / "labels.json").read_text())
+    parked = _uv((10.0, -8.0)) + 0.5  # COCO coordinates
+    crowd = [a for a in doc["annotations"] if a.get("iscrowd") and abs(a["bbox"][0] + 20 - parked[0]) < 1]
+    assert len(crowd) == 10 and all(a["bbox"][2:] == [40.0, 20.0] for a in crowd)
 
 
 def test_outside_the_roi_is_blanked_and_a_blob_bigger_than_a_vehicle_is_ignored(scene, tmp_path):

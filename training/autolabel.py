@@ -21,7 +21,14 @@ Per camera (one folder of frames, capture time in the file names, and the camera
 4. Linking: footprints of consecutive frames are matched (Hungarian, gate `max_speed_mps` * dt); the
    heading comes from a straight-line fit of a track's positions over `heading_window` frames, kept where
    the vehicle moves at least `min_speed_mps`. A track shorter than `min_track_frames` is an ignore region.
-5. Output: each frame as a grey image at `scale` with everything outside the region of interest set to
+5. What the labels may miss: every vehicle left unlabelled on a training image teaches the detector to
+   miss it. A foreground component too small for a vehicle (a part of one, a pedestrian) is an ignore
+   region (`ignore_small`). A parked or waiting vehicle is part of the background, so steps 1-4 never see
+   it: with a `teacher` (a detector, e.g. the simulator-trained model), its detections (score >=
+   `teacher_thr`, low: this is about what might be a vehicle) further than `teacher_clear_m` from every
+   label and ignore region of the frame become ignore regions too. (Labelling them instead was tried: the
+   persistent teacher detections at this site were mostly lamp heads, painted words and grass patches.)
+6. Output: each frame as a grey image at `scale` with everything outside the region of interest set to
    the frame's mean grey (parked vehicles there are never labelled, so they must not be shown as
    background), and the labels: bottom centre (the footprint centre, mapped back to the image through the
    masks' local Jacobian), 2D box (the component's), image-space heading, type unknown ("vehicle").
@@ -65,6 +72,9 @@ class AutolabelConfig:
     heading_window: int = 5  # frames in the straight-line fit for the heading
     min_speed_mps: float = 1.5  # slower vehicles get no heading
     min_valid_share: float = 0.8  # a component with fewer of its pixels on calibrated ground is ignored
+    ignore_small: bool = True  # components too small for a vehicle become ignore regions (else dropped)
+    teacher_thr: float = 0.1  # teacher detections at least this confident become ignore regions
+    teacher_clear_m: float = 2.5  # ... when at least this far from the frame's labels and ignore regions
 
     def __post_init__(self) -> None:
         if not 0 < self.scale <= 1:
@@ -77,6 +87,8 @@ class AutolabelConfig:
             lo, hi = getattr(self, name)
             if not 0 < lo < hi:
                 raise ValueError(f"{name} must be (low, high) with 0 < low < high, got {(lo, hi)}")
+        if not 0 < self.teacher_thr <= 1:
+            raise ValueError(f"teacher_thr must be in (0, 1], got {self.teacher_thr}")
         if self.min_track_frames < 1 or self.heading_window < 2 or self.min_area_px < 1:
             raise ValueError("min_track_frames must be >= 1, heading_window >= 2, min_area_px >= 1")
 
@@ -89,7 +101,7 @@ class Blob:
     box: np.ndarray  # (4,) x1, y1, x2, y2 pixel edges
     centre_xy: np.ndarray  # (2,) footprint centre, site metres
     extent_m: tuple[float, float]  # (along the bearing, across it)
-    status: str  # "vehicle" | "too_big" | "off_ground"
+    status: str  # "vehicle" | "too_big" | "too_small" | "off_ground"
     track: int = -1
     heading_xy: np.ndarray | None = None  # unit vector, site frame
 
@@ -281,7 +293,7 @@ def find_blobs(index: int, frame: np.ndarray, bg: np.ndarray, view: GroundView, 
                 break
     blobs = []
     for (ys, xs), (status, centre, extent) in zip(comps, measured, strict=True):
-        if status == "too_small":
+        if status == "too_small" and not cfg.ignore_small:
             counts["not_vehicle_size"] += 1
             continue
         blobs.append(Blob(index, _box(ys, xs), centre, extent, status))
@@ -333,10 +345,27 @@ def headings(per_frame: list[list[Blob]], times_s: np.ndarray, cfg: AutolabelCon
     return {k: len(v) for k, v in tracks.items()}
 
 
+def teacher_regions(frames: list[np.ndarray], view: GroundView, detect, cfg: AutolabelConfig) -> list[list]:
+    """Per frame, the teacher's detections in the ROI (score >= `teacher_thr`) as (ground point, box)."""
+    out = []
+    hs, ws = view.valid.shape
+    for frame in frames:
+        d = detect(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY))
+        found = []
+        for k in np.nonzero(np.asarray(d.score) >= cfg.teacher_thr)[0]:
+            u, v = (int(round(c)) for c in d.uv[k])
+            if 0 <= u < ws and 0 <= v < hs and view.roi[v, u]:
+                found.append((view.lookup(np.asarray(d.uv[k], np.float64)), np.asarray(d.box[k], np.float64)))
+        out.append(found)
+    return out
+
+
 def autolabel_camera(frames_dir: str | Path, masks_path: str | Path, out_dir: str | Path, camera: str,
-                     until: time | None = None, cfg: AutolabelConfig | None = None, log=print) -> dict:
+                     until: time | None = None, cfg: AutolabelConfig | None = None, log=print,
+                     teacher=None) -> dict:
     """Label one camera's frames; writes `out_dir`/images/*.png and `out_dir`/labels.json (COCO-style);
-    returns the report (also in `out_dir`/report.json)."""
+    returns the report (also in `out_dir`/report.json). `teacher`: a detector (grey image -> detections
+    with score, uv, box) whose detections become ignore regions (module doc, step 5); None: no teacher."""
     cfg = cfg or AutolabelConfig()
     masks = load_masks(masks_path)
     view = GroundView(masks, cfg.scale, cfg.roi_m)
@@ -351,12 +380,13 @@ def autolabel_camera(frames_dir: str | Path, masks_path: str | Path, out_dir: st
     per_frame = [find_blobs(i, f, bg, view, cfg, counts) for i, f in enumerate(frames)]
     n_tracks = link(per_frame, times_s, cfg)
     lengths = headings(per_frame, times_s, cfg)
+    taught = teacher_regions(frames, view, teacher, cfg) if teacher is not None else [[] for _ in frames]
 
     out_dir = Path(out_dir)
     (out_dir / "images").mkdir(parents=True, exist_ok=True)
     images, annotations = [], []
     n = {"vehicles": 0, "with_heading": 0, "ignored_too_big": 0, "ignored_off_ground": 0, "ignored_short_track": 0,
-         "ignored_no_pixel": 0}
+         "ignored_no_pixel": 0, "ignored_small": 0, "ignored_teacher": 0}
     for i, ((t_ns, path), frame) in enumerate(zip(listed, frames, strict=True)):
         grey = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
         shown = np.where(view.roi, grey, np.uint8(round(float(grey[view.roi].mean())))).astype(np.uint8)
@@ -374,7 +404,8 @@ def autolabel_camera(frames_dir: str | Path, masks_path: str | Path, out_dir: st
             uv = None if crowd else view.to_pixel(b.centre_xy, tuple(int(c) for c in b.box))
             if crowd or uv is None:
                 ann["iscrowd"] = 1
-                key = {"too_big": "ignored_too_big", "off_ground": "ignored_off_ground"}.get(b.status)
+                key = {"too_big": "ignored_too_big", "off_ground": "ignored_off_ground",
+                       "too_small": "ignored_small"}.get(b.status)
                 n[key or ("ignored_no_pixel" if not crowd else "ignored_short_track")] += 1
             else:
                 ann["bottom_center"] = [float(uv[0] + COCO_PIXEL_OFFSET), float(uv[1] + COCO_PIXEL_OFFSET)]
@@ -389,6 +420,15 @@ def autolabel_camera(frames_dir: str | Path, masks_path: str | Path, out_dir: st
                         ann["ground_yaw_rad"] = round(math.atan2(b.heading_xy[1], b.heading_xy[0]), 4)
                         n["with_heading"] += 1
             annotations.append(ann)
+        taken = [b.centre_xy for b in per_frame[i] if np.all(np.isfinite(b.centre_xy))]
+        for xy, box in taught[i]:
+            if taken and min(np.linalg.norm(xy - t) for t in taken) < cfg.teacher_clear_m:
+                continue
+            x1, y1, x2, y2 = box
+            annotations.append({"id": len(annotations), "image_id": i, "category_id": 0, "iscrowd": 1,
+                                "bbox": [float(x1), float(y1), float(x2 - x1), float(y2 - y1)]})
+            n["ignored_teacher"] += 1
+            taken.append(xy)
     doc = {"info": {"description": f"roadside autolabel of {camera} from {frames_dir}", "config": asdict(cfg)},
            "images": images, "annotations": annotations, "categories": [{"id": 0, "name": "vehicle"}]}
     (out_dir / "labels.json").write_text(json.dumps(doc))
