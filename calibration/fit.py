@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
+from scipy.optimize import OptimizeResult, least_squares
 
 from calibration.landmarks import Landmarks
 from shared.cameras import Camera, Pose
@@ -223,13 +223,13 @@ def _initial_pinhole(uv: np.ndarray, obj: np.ndarray, cfg: CalibConfig) -> tuple
 
 def _fit_camera(
     uv: np.ndarray, obj: np.ndarray, cfg: CalibConfig, p0: np.ndarray | None = None, robust: bool = True
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, OptimizeResult]:
     """Errors-in-variables least squares: the lens, the pose and each landmark's true ground
     position (within `map_sigma_m` of the map point) are fitted together, pixel residuals in
     units of `pixel_sigma_px`, so a landmark's map error counts as much as it moves its pixel
     (a lot under the camera, little far away). Returns (parameters, (N, 2) ground corrections,
-    the normalised residuals' Jacobian at the solution: N pixel rows pairs, then N map row pairs,
-    then the priors)."""
+    the solver's result: normalised residuals `fun` and their Jacobian `jac`, rows 2i, 2i+1 landmark
+    i's pixel, rows 2N + 2i, 2N + 2i + 1 its map correction, then the priors)."""
     if p0 is None:
         p0, _ = (_initial_fisheye if cfg.kind == "fisheye" else _initial_pinhole)(uv, obj, cfg)
     n = len(uv)
@@ -265,33 +265,26 @@ def _fit_camera(
 
     loss = "soft_l1" if robust else "linear"
     sol = least_squares(resid, x0, bounds=(lo, hi), loss=loss, f_scale=2.5, x_scale="jac", max_nfev=800)
-    return sol.x[:11], sol.x[11:].reshape(n, 2), sol.jac
+    return sol.x[:11], sol.x[11:].reshape(n, 2), sol
 
 
-def _landmark_tests(jac: np.ndarray, uv: np.ndarray, obj: np.ndarray, p: np.ndarray, dxy: np.ndarray,
-                    cfg: CalibConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per landmark of a plain least-squares fit: the group outlier test statistic (sigma units)
-    and the smallest map mistake (m) and pixel mistake (px) it would detect.
+def _landmark_tests(sol: OptimizeResult, n: int, cfg: CalibConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per landmark of a plain least-squares fit (`_fit_camera`'s result): the group outlier test
+    statistic (sigma units) and the smallest map mistake (m) and pixel mistake (px) it would detect.
 
     A landmark contributes four normalised residuals (two pixel, two map). Deleting it is tested
     by w = r_b' (I - H_bb)^+ r_b, H the fit's hat matrix; without a mistake w is chi-square with 2
     degrees of freedom, so sqrt(w) > `outlier_sigma` is a mistake. A mistake b moves r_b by
     (I - H_bb) b (normalised), so the mistake that reaches the threshold is
     outlier_sigma / sqrt(smallest eigenvalue of that block) in noise units."""
-    n = len(uv)
-    pts = obj.copy()
-    pts[:, :2] += dxy
-    proj, ok = _camera(p, cfg).project(pts)
-    r_px = np.where(ok[:, None], proj - uv, 1e3) / cfg.pixel_sigma_px
-    r_map = dxy / cfg.map_sigma_m
-    q, _ = np.linalg.qr(np.asarray(jac, float))
+    q, _ = np.linalg.qr(np.asarray(sol.jac, float))
     stat, mdb_map, mdb_px = np.zeros(n), np.zeros(n), np.zeros(n)
     for i in range(n):
         rows = [2 * i, 2 * i + 1, 2 * n + 2 * i, 2 * n + 2 * i + 1]
         m = np.eye(4) - q[rows] @ q[rows].T
-        r = np.concatenate([r_px[i], r_map[i]])
+        r = sol.fun[rows]
         stat[i] = math.sqrt(max(float(r @ np.linalg.pinv(m, rcond=1e-6) @ r), 0.0))
-        # a pixel mistake enters the pixel rows, a map mistake the map rows (with the opposite sign)
+        # a pixel mistake enters the pixel rows, a map mistake the map rows
         lam_px = max(float(np.linalg.eigvalsh(m[:2, :2])[0]), 1e-12)
         lam_map = max(float(np.linalg.eigvalsh(m[2:, 2:])[0]), 1e-12)
         mdb_px[i] = cfg.outlier_sigma * cfg.pixel_sigma_px / math.sqrt(lam_px)
@@ -353,8 +346,8 @@ def calibrate(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame) -> Calibration:
     use = np.ones(n, bool)
     # Reject the landmark with the worst outlier test while it fails, refitting each time.
     while True:
-        p, dxy, jac = _fit_camera(lm.uv[use], obj[use], cfg, p, robust=False)
-        stat, mdb_map, mdb_px = _landmark_tests(jac, lm.uv[use], obj[use], p, dxy, cfg)
+        p, dxy, sol = _fit_camera(lm.uv[use], obj[use], cfg, p, robust=False)
+        stat, mdb_map, mdb_px = _landmark_tests(sol, int(use.sum()), cfg)
         worst = int(np.argmax(stat))
         if stat[worst] <= cfg.outlier_sigma or use.sum() <= MIN_LANDMARKS:
             break
