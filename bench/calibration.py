@@ -111,6 +111,13 @@ def main(argv: list[str] | None = None) -> int:
             out[f"{name}_out_roi_mean_m{label}"] = _mean(sel, "out_roi_mean_m")
             for lo, hi in BANDS_M:
                 out[f"{name}_band_{lo:.0f}_{hi:.0f}_mean_m{label}"] = _mean(sel, f"band_{lo:.0f}_{hi:.0f}_mean_m")
+    # gross mistakes in the input (10-20 landmarks): how many were rejected, and good landmarks rejected
+    sel = [r for r in rows if r["n"] >= 10]
+    gross = sum(len(r["gross_in_input"]) for r in sel)
+    caught = sum(len(set(r["gross_in_input"]) & set(r["rejected"])) for r in sel)
+    out["gross_mistakes"] = gross
+    out["gross_rejected_share"] = round(caught / gross, 4) if gross else None
+    out["good_landmarks_rejected"] = sum(len(set(r["rejected"]) - set(r["gross_in_input"])) for r in sel)
     fisheye_masks = [r["masks_s"] for r in rows if r["kind"] == "fisheye"]
     out["fisheye_mask_build_s_max"] = round(max(fisheye_masks), 3) if fisheye_masks else None
     lookups = [r["lookup_100_ms"] for r in rows]
