@@ -285,10 +285,11 @@ def _landmark_tests(sol: OptimizeResult, n: int, cfg: CalibConfig) -> tuple[np.n
         r = sol.fun[rows]
         stat[i] = math.sqrt(max(float(r @ np.linalg.pinv(m, rcond=1e-6) @ r), 0.0))
         # a pixel mistake enters the pixel rows, a map mistake the map rows
-        lam_px = max(float(np.linalg.eigvalsh(m[:2, :2])[0]), 1e-12)
-        lam_map = max(float(np.linalg.eigvalsh(m[2:, 2:])[0]), 1e-12)
-        mdb_px[i] = cfg.outlier_sigma * cfg.pixel_sigma_px / math.sqrt(lam_px)
-        mdb_map[i] = cfg.outlier_sigma * cfg.map_sigma_m / math.sqrt(lam_map)
+        # (no redundancy left there: no mistake of any size would show, inf)
+        lam_px = float(np.linalg.eigvalsh(m[:2, :2])[0])
+        lam_map = float(np.linalg.eigvalsh(m[2:, 2:])[0])
+        mdb_px[i] = cfg.outlier_sigma * cfg.pixel_sigma_px / math.sqrt(lam_px) if lam_px > 1e-9 else math.inf
+        mdb_map[i] = cfg.outlier_sigma * cfg.map_sigma_m / math.sqrt(lam_map) if lam_map > 1e-9 else math.inf
     return stat, mdb_map, mdb_px
 
 
@@ -345,11 +346,20 @@ def calibrate(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame) -> Calibration:
     p, dxy, _ = _fit_camera(lm.uv, obj, cfg)  # robust: a start that gross mistakes do not drag far
     use = np.ones(n, bool)
     # Reject the landmark with the worst outlier test while it fails, refitting each time.
+    warnings: list[str] = []
     while True:
-        p, dxy, sol = _fit_camera(lm.uv[use], obj[use], cfg, p, robust=False)
+        p_ls, dxy_ls, sol = _fit_camera(lm.uv[use], obj[use], cfg, p, robust=False)
         stat, mdb_map, mdb_px = _landmark_tests(sol, int(use.sum()), cfg)
         worst = int(np.argmax(stat))
-        if stat[worst] <= cfg.outlier_sigma or use.sum() <= MIN_LANDMARKS:
+        if use.sum() <= MIN_LANDMARKS:  # too few to tell a mistake from the rest: keep the robust fit
+            if stat[worst] > cfg.outlier_sigma:
+                warnings.append(
+                    f"{lm.ids[np.nonzero(use)[0][worst]]} fails the outlier test ({stat[worst]:.1f} sigma), but with "
+                    f"{int(use.sum())} landmarks a mistake cannot be told from the rest: check it, add landmarks"
+                )
+            break
+        p, dxy = p_ls, dxy_ls
+        if stat[worst] <= cfg.outlier_sigma:
             break
         use[np.nonzero(use)[0][worst]] = False
     test_sigma, detectable_map, detectable_px = (np.full(n, np.nan) for _ in range(3))
@@ -378,7 +388,6 @@ def calibrate(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame) -> Calibration:
         edges = np.quantile(ranges, np.arange(1, p) / p)
         return np.zeros(p), edges, np.searchsorted(edges, ranges)
 
-    warnings: list[str] = []
     n_seg = cfg.wanted_segments
     while n_seg > 1 and np.bincount(split(n_seg)[2], minlength=n_seg).min() < MIN_PER_SEGMENT:
         n_seg -= 1
@@ -413,10 +422,10 @@ def calibrate(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame) -> Calibration:
     hidden = [i for i in np.nonzero(use)[0] if detectable_map[i] > HIDDEN_MISTAKE_M]
     if hidden:
         worst = max(hidden, key=lambda i: detectable_map[i])
+        size = f"up to {detectable_map[worst]:.1f} m" if np.isfinite(detectable_map[worst]) else "of any size"
         warnings.append(
-            f"a map mistake could go unnoticed at {', '.join(lm.ids[i] for i in hidden)} (up to "
-            f"{detectable_map[worst]:.1f} m at {lm.ids[worst]}): the other landmarks cannot check "
-            "them; add landmarks near them or check them by hand"
+            f"a map mistake could go unnoticed at {', '.join(lm.ids[i] for i in hidden)} ({size} at "
+            f"{lm.ids[worst]}): the other landmarks cannot check them; add landmarks near them or check them by hand"
         )
     cal.warnings = warnings
     return cal

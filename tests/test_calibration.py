@@ -395,3 +395,15 @@ def test_a_map_mistake_the_other_landmarks_cannot_check_is_warned_about_not_abso
     inl = cal.inliers
     assert np.all(np.isfinite(cal.test_sigma[inl])) and np.all(cal.detectable_map_m[inl] > 0)
     assert cal.detectable_map_m[k] > cal.detectable_map_m[int(np.argmin(rng_m))]  # far is harder to check
+
+
+def test_with_too_few_landmarks_to_reject_a_mistake_it_is_named_in_a_warning():
+    cam = _fisheye()
+    lm = _synthetic_landmarks(cam, 5, np.random.default_rng(2), 40.0, pixel_sigma=1.0, map_sigma=0.05)
+    xy = lm.to_local(GEO)
+    xy[2] += [6.0, 3.0]  # the neighbouring stripe's corner on the map
+    ll = GEO.to_geodetic(np.column_stack([xy, np.zeros(len(xy))]))[:, :2]
+    cfg = CalibConfig("fisheye", 1280, 960, image_circle=(639.5, 479.5, cam.image_circle_radius_px()), fov_deg=188.0)
+    cal = calibrate(Landmarks(lm.ids, lm.uv, ll, lm.segment), cfg, GEO)
+    assert cal.rejected == [] and cal.inliers.all()  # five cannot outvote one
+    assert any("fails the outlier test" in w and "cannot be told from the rest" in w for w in cal.warnings)
