@@ -287,6 +287,8 @@ def _add_autolabel(sub) -> None:
     p.add_argument("--teacher", type=Path, help="detector ONNX model whose detections away from the labels become "
                    "ignore regions: parked and waiting vehicles, which the background model cannot see")
     p.add_argument("--teacher-thr", type=float, default=0.1, help="teacher detections at least this confident")
+    p.add_argument("--ignore-small", action="store_true",
+                   help="foreground regions too small for a vehicle become ignore regions instead of being dropped")
 
 
 def _run_autolabel(args) -> int:
@@ -300,7 +302,7 @@ def _run_autolabel(args) -> int:
             until = time.fromisoformat(args.until)
         except ValueError:
             raise ValueError(f"--until must be a time of day HH:MM:SS, got {args.until!r}") from None
-    cfg = AutolabelConfig(roi_m=args.roi_m, teacher_thr=args.teacher_thr)
+    cfg = AutolabelConfig(roi_m=args.roi_m, teacher_thr=args.teacher_thr, ignore_small=args.ignore_small)
     teacher = None
     if args.teacher:
         from shared.inference import OnnxDetector

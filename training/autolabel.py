@@ -21,13 +21,14 @@ Per camera (one folder of frames, capture time in the file names, and the camera
 4. Linking: footprints of consecutive frames are matched (Hungarian, gate `max_speed_mps` * dt); the
    heading comes from a straight-line fit of a track's positions over `heading_window` frames, kept where
    the vehicle moves at least `min_speed_mps`. A track shorter than `min_track_frames` is an ignore region.
-5. What the labels may miss: every vehicle left unlabelled on a training image teaches the detector to
-   miss it. A foreground component too small for a vehicle (a part of one, a pedestrian) is an ignore
-   region (`ignore_small`). A parked or waiting vehicle is part of the background, so steps 1-4 never see
-   it: with a `teacher` (a detector, e.g. the simulator-trained model), its detections (score >=
-   `teacher_thr`, low: this is about what might be a vehicle) further than `teacher_clear_m` from every
-   label and ignore region of the frame become ignore regions too. (Labelling them instead was tried: the
-   persistent teacher detections at this site were mostly lamp heads, painted words and grass patches.)
+5. What the labels may miss (both optional): every vehicle left unlabelled on a training image teaches the
+   detector to miss it. With `ignore_small`, a foreground component too small for a vehicle (a part of
+   one, a pedestrian) is an ignore region instead of being dropped. A parked or waiting vehicle is part of
+   the background, so steps 1-4 never see it: with a `teacher` (a detector, e.g. the simulator-trained
+   model), its detections (score >= `teacher_thr`, low: this is about what might be a vehicle) further
+   than `teacher_clear_m` from every label and ignore region of the frame become ignore regions too.
+   (Labelling them instead was tried: the persistent teacher detections at this site were mostly lamp
+   heads, painted words and grass patches.)
 6. Output: each frame as a grey image at `scale` with everything outside the region of interest set to
    the frame's mean grey (parked vehicles there are never labelled, so they must not be shown as
    background), and the labels: bottom centre (the footprint centre, mapped back to the image through the
@@ -72,7 +73,7 @@ class AutolabelConfig:
     heading_window: int = 5  # frames in the straight-line fit for the heading
     min_speed_mps: float = 1.5  # slower vehicles get no heading
     min_valid_share: float = 0.8  # a component with fewer of its pixels on calibrated ground is ignored
-    ignore_small: bool = True  # components too small for a vehicle become ignore regions (else dropped)
+    ignore_small: bool = False  # components too small for a vehicle become ignore regions (else dropped)
     teacher_thr: float = 0.1  # teacher detections at least this confident become ignore regions
     teacher_clear_m: float = 2.5  # ... when at least this far from the frame's labels and ignore regions
 
