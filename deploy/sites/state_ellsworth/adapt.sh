@@ -3,7 +3,7 @@
 # 11:00:40), fine-tune the simulator-trained model on those labels mixed with simulator frames (so it keeps
 # what it learned there), export to ONNX. No manual training labels.
 # Starts from models/detector.pt (the shipped simulator-trained checkpoint).
-# Usage: adapt.sh SIM_RECORDING [FOOTAGE_DIR] [MINUTES]
+# Usage: adapt.sh SIM_RECORDING [FOOTAGE_DIR] [MINUTES]  (MINUTES: stage 1's budget, default 20)
 #   SIM_RECORDING  a simulator recording of this site (roadside sim --site state_ellsworth --seconds 90 --hz 2 ...)
 set -euo pipefail
 cd "$(dirname "$0")/../../.."
@@ -15,6 +15,10 @@ MINUTES=${3:-20}
 bash $SITE/autolabel.sh "$FOOTAGE" out/autolabel > /dev/null
 COCO=()
 for c in NE NW SE SW; do COCO+=(--coco out/autolabel/$c/labels.json --coco out/autolabel/$c/labels.json); done  # real x2
+# Stage 1 (20 min, 1,274 steps for the shipped model), then stage 2 from its result at a lower learning rate
+# (1,800 steps, 28 min): 50 min in all.
 .venv/bin/roadside train --init models/detector.pt "${COCO[@]}" --recording "$SIM" \
     --out out/train_state_ellsworth --minutes "$MINUTES" --batch-size 12 --lr 5e-4 --beta-heading 0.05 --seed 6
-.venv/bin/roadside export out/train_state_ellsworth/model.pt --out out/train_state_ellsworth/detector.onnx
+.venv/bin/roadside train --init out/train_state_ellsworth/model.pt "${COCO[@]}" --recording "$SIM" \
+    --out out/train_state_ellsworth_2 --steps 1800 --minutes 45 --batch-size 12 --lr 3e-4 --beta-heading 0.05 --seed 7
+.venv/bin/roadside export out/train_state_ellsworth_2/model.pt --out out/train_state_ellsworth_2/detector.onnx
