@@ -3,8 +3,8 @@
 The paper lifts detections to the ground with per-segment homographies fitted on landmarks
 (fisheye images first undistorted with a Kannala-Brandt model). Free 8-parameter homographies
 overfit 5-20 noisy landmarks badly, so the homographies here are plane-induced: the lens and
-the pose are fitted once from all landmarks (robust least squares, gross mistakes rejected by
-their reprojection residual), then each segment gets a ground plane z = a x + b y + c (3
+the pose are fitted once from all landmarks (errors-in-variables least squares, gross mistakes
+rejected one at a time), then each segment gets a ground plane z = a x + b y + c (3
 parameters, pulled toward one global plane when the segment has few landmarks). Gross mistakes are
 found by a group outlier test (`_landmark_tests`): a landmark's two pixel and two map residuals,
 corrected for what the fit itself explains (the hat matrix), against a chi-square with two degrees
@@ -421,11 +421,11 @@ def calibrate(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame) -> Calibration:
     ]
     hidden = [i for i in np.nonzero(use)[0] if detectable_map[i] > HIDDEN_MISTAKE_M]
     if hidden:
-        worst = max(hidden, key=lambda i: detectable_map[i])
-        size = f"up to {detectable_map[worst]:.1f} m" if np.isfinite(detectable_map[worst]) else "of any size"
+        least = max(hidden, key=lambda i: detectable_map[i])  # the least checked landmark
+        size = f"up to {detectable_map[least]:.1f} m" if np.isfinite(detectable_map[least]) else "of any size"
         warnings.append(
             f"a map mistake could go unnoticed at {', '.join(lm.ids[i] for i in hidden)} ({size} at "
-            f"{lm.ids[worst]}): the other landmarks cannot check them; add landmarks near them or check them by hand"
+            f"{lm.ids[least]}): the other landmarks cannot check them; add landmarks near them or check them by hand"
         )
     cal.warnings = warnings
     return cal
