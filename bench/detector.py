@@ -5,7 +5,9 @@ Without --model an untrained default model (or --stride variant) is exported and
 untrained-for-timing-only. Prints one JSON document.
 
     python -m bench.detector [--model detector.onnx] [--model-fp16 detector_fp16.onnx] [--size 512]
-                             [--threads 2] [--runs 50] [--warmup 10] [--stride 4]
+                             [--height H] [--threads 2] [--runs 50] [--warmup 10] [--stride 4]
+
+--height makes the input S wide and H high (a fisheye frame at full resolution: --size 1280 --height 960).
 """
 
 from __future__ import annotations
@@ -41,10 +43,16 @@ class BenchSettings:
     runs: int = 50
     warmup: int = 10
     stride: int = 4
+    height_px: int | None = None  # None: square (size_px)
+
+    @property
+    def hw(self) -> tuple[int, int]:
+        return (self.height_px or self.size_px, self.size_px)
 
     def __post_init__(self) -> None:
-        if self.size_px % 32 or self.size_px < 32:
-            raise ValueError(f"size_px must be a positive multiple of 32, got {self.size_px}")
+        for name, v in (("size_px", self.size_px), ("height_px", self.height_px or 32)):
+            if v % 32 or v < 32:
+                raise ValueError(f"{name} must be a positive multiple of 32, got {v}")
         for name in ("threads", "runs"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -65,7 +73,8 @@ def time_session(session: ort.InferenceSession, image: np.ndarray, runs: int, wa
 
 def run(settings: BenchSettings, workdir: Path) -> dict:
     """Time the model(s) named in settings, exporting into workdir when none is given."""
-    out: dict = {"benchmark": "detector", "input": [1, 1, settings.size_px, settings.size_px],
+    h, w = settings.hw
+    out: dict = {"benchmark": "detector", "input": [1, 1, h, w],
                  "cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
                  "load_average_1min": round(os.getloadavg()[0], 2), "onnxruntime": ort.__version__}
     fp32, fp16 = settings.model, settings.model_fp16
@@ -73,7 +82,7 @@ def run(settings: BenchSettings, workdir: Path) -> dict:
         model = Detector(DetectorConfig(stride=settings.stride))
         fp32, fp16 = workdir / "detector.onnx", workdir / "detector_fp16.onnx"
         export_onnx(model, fp32, fp16 if set(GPU_PROVIDERS) & set(ort.get_available_providers()) else None,
-                    (settings.size_px, settings.size_px))
+                    (h, w))
         out["model"] = "untrained-for-timing-only"
     else:
         out["model"] = str(fp32)
@@ -83,8 +92,8 @@ def run(settings: BenchSettings, workdir: Path) -> dict:
     session = ort.InferenceSession(str(fp32), options, providers=["CPUExecutionProvider"])
     config = DetectorConfig(**json.loads(session.get_modelmeta().custom_metadata_map[CONFIG_KEY]))
     out["config"] = asdict(config)
-    out["macs"] = count_macs(Detector(config), settings.size_px, settings.size_px)
-    image = np.random.default_rng(0).random((1, 1, settings.size_px, settings.size_px), dtype=np.float32)
+    out["macs"] = count_macs(Detector(config), h, w)
+    image = np.random.default_rng(0).random((1, 1, h, w), dtype=np.float32)
     out["cpu_fp32"] = {"threads": settings.threads, **time_session(session, image, settings.runs, settings.warmup)}
     for provider in GPU_PROVIDERS:
         if provider not in ort.get_available_providers() or fp16 is None:
@@ -106,13 +115,14 @@ def _parse(argv: list[str] | None = None) -> BenchSettings:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--model", type=Path, help="exported fp32 ONNX model (default: untrained, for timing only)")
     p.add_argument("--model-fp16", type=Path, help="its fp16 copy, timed on CUDA / TensorRT where available")
-    p.add_argument("--size", type=int, default=512, help="square input side in pixels")
+    p.add_argument("--size", type=int, default=512, help="input width (and height, without --height) in pixels")
+    p.add_argument("--height", type=int, help="input height in pixels (default: --size)")
     p.add_argument("--threads", type=int, default=2, help="ONNX Runtime intra-op threads on CPU")
     p.add_argument("--runs", type=int, default=50)
     p.add_argument("--warmup", type=int, default=10)
     p.add_argument("--stride", type=int, default=4, help="output stride of the untrained model")
     a = p.parse_args(argv)
-    return BenchSettings(a.model, a.model_fp16, a.size, a.threads, a.runs, a.warmup, a.stride)
+    return BenchSettings(a.model, a.model_fp16, a.size, a.threads, a.runs, a.warmup, a.stride, a.height)
 
 
 if __name__ == "__main__":

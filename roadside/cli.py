@@ -168,6 +168,11 @@ def _add_train(sub) -> None:
                    help="predict the heading's axis too (training/model.py); with --init, adds it to that model")
     p.add_argument("--beta-heading", type=_positive_float,
                    help="weight of the heading term (default 0.01, the paper's)")
+    p.add_argument("--beta-box", type=float, default=0.0,
+                   help="extra weight of the 2D box (width, height, centre offset); default 0, the paper's loss")
+    p.add_argument("--input-long-side", type=int,
+                   help="network input: images shrunk so their longer side is at most this (default 640, or the "
+                        "--init model's); with --init, the starting weights are kept")
 
 
 UNLIMITED_STEPS = 10**9  # with --minutes alone the clock ends the run
@@ -185,8 +190,9 @@ def _run_train(args) -> int:
                       steps=args.steps or (UNLIMITED_STEPS if args.minutes else 4000),
                       minutes=args.minutes, batch_size=args.batch_size, crop=args.crop, lr=args.lr, every=args.every,
                       center=args.center, seed=args.seed, init=args.init, add_axis_head=args.axis_head,
+                      input_long_side=args.input_long_side,
                       model=DetectorConfig(stride=args.stride, axis_head=args.axis_head),
-                      loss=LossConfig(topk_fraction=None if args.no_topk else 0.01,
+                      loss=LossConfig(topk_fraction=None if args.no_topk else 0.01, beta_box=args.beta_box,
                                       **({} if args.beta_heading is None else {"beta_heading": args.beta_heading})))
     print(json.dumps(train(cfg), indent=1))
     return 0

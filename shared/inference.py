@@ -1,4 +1,4 @@
-"""Run an exported detector (ONNX) on one image: resize so the longer side is the model's input size,
+"""Run an exported detector (ONNX) on one image: shrink it so the longer side is at most the model's input size,
 pad to a multiple of 32, infer with ONNX Runtime, decode, and map the detections back to the original
 image's pixels. NumPy, OpenCV and ONNX Runtime only (no PyTorch): the detect service uses this.
 
@@ -72,7 +72,7 @@ class OnnxDetector:
 
     def input_shape(self, height: int, width: int) -> tuple[float, int, int]:
         """(scale, network height, network width) for an image of this size."""
-        scale = self.long_side / max(height, width)
+        scale = min(1.0, self.long_side / max(height, width))  # never enlarged (training.train.input_scale)
         h, w = round(height * scale), round(width * scale)
         return scale, -(-h // PAD_MULTIPLE) * PAD_MULTIPLE, -(-w // PAD_MULTIPLE) * PAD_MULTIPLE
 

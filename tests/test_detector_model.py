@@ -308,6 +308,18 @@ def test_loss_topk_ablation_changes_value_and_perfect_regression_is_zero():
                "vtype": 50.0 * nn.functional.one_hot(targets["vtype"].clamp(min=0), 5).permute(0, 3, 1, 2).float()}
     _, parts_perfect = detector_loss(perfect, targets)
     assert all(value == pytest.approx(0.0, abs=1e-6) for value in parts_perfect.values())
+    # the extra 2D-box term: off by default, adds beta_box x (box log-size + box-centre offset error)
+    assert parts["box"] > 0
+    total_box, _ = detector_loss(out, targets, LossConfig(beta_box=0.5))
+    assert total_box.item() == pytest.approx(total.item() + 0.5 * parts["box"], rel=1e-5)
+    only_box = dict(perfect, size=perfect["size"].clone(), offset=perfect["offset"].clone())
+    only_box["size"][:, 3:5] *= 1.5
+    _, parts_only_box = detector_loss(only_box, targets)
+    assert parts_only_box["box"] > 0 and parts_only_box["offset"] == pytest.approx(0.0, abs=1e-6)
+    only_box["offset"][:, 0:2] += 0.3  # the sub-cell offset is not part of the box term
+    assert detector_loss(only_box, targets)[1]["box"] == pytest.approx(parts_only_box["box"])
+    with pytest.raises(ValueError, match="beta_box"):
+        LossConfig(beta_box=-1.0)
     with pytest.raises(ValueError, match="topk_fraction"):
         LossConfig(topk_fraction=0.0)
 
@@ -418,6 +430,13 @@ def test_export_parity(trained, tmp_path):
     assert report["detections_match_fp32"] and report["detections_match_fp16"], report
     wide = parity(model, tmp_path / "d.onnx", None, np.tile(images, (1, 1, 2)))  # dynamic width: 64 x 128
     assert wide["detections_match_fp32"] and "detections_fp16" not in wide
+    # the service shrinks large frames to the model's input size and never enlarges small ones
+    from shared.inference import OnnxDetector
+
+    onnx = OnnxDetector(tmp_path / "d.onnx")
+    long_side = model.config.input_long_side
+    assert onnx.input_shape(long_side, 2 * long_side) == (0.5, long_side // 2, long_side)
+    assert onnx.input_shape(50, 70) == (1.0, 64, 96)
 
 
 def test_model_stride_needs_the_export_metadata():
@@ -427,12 +446,14 @@ def test_model_stride_needs_the_export_metadata():
 
 
 def test_bench_detector_smoke():
-    run = subprocess.run([sys.executable, "-m", "bench.detector", "--size", "64", "--runs", "2", "--warmup", "1"],
+    run = subprocess.run([sys.executable, "-m", "bench.detector", "--size", "64", "--height", "96", "--runs", "2",
+                          "--warmup", "1"],
                          cwd=Path(__file__).resolve().parents[1], capture_output=True, text=True, timeout=120,
                          check=True)
     report = json.loads(run.stdout)
     assert report["model"] == "untrained-for-timing-only"
-    assert report["macs"] == count_macs(Detector(), 64, 64)
+    assert report["input"] == [1, 1, 96, 64]
+    assert report["macs"] == count_macs(Detector(), 96, 64)
     assert report["cpu_fp32"]["median_ms"] > 0
 
 

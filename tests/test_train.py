@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import pytest
 
 torch = pytest.importorskip("torch")
 
 from training.model import DetectorConfig, load_detector  # noqa: E402
-from training.train import TrainConfig, train  # noqa: E402
+from training.train import TrainConfig, input_scale, train  # noqa: E402
 
 TINY = DetectorConfig(width_mult=0.25, decoder_channels=16, head_channels=8, stride=4, input_long_side=320)
 
@@ -40,8 +41,23 @@ def test_train_writes_the_model_and_log_then_fine_tunes_from_it(small_recording,
         assert set(grown.state_dict()) - set(start.state_dict()) == {k for k in grown.state_dict()
                                                                      if k.startswith("heads.axis.")}
         assert "added an axis head" in " ".join(messages)
+        # a new input size for the starting weights (the fisheye frames at full resolution)
+        train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "e"), steps=1, batch_size=2,
+                          crop=64, threads=1, init=str(tmp_path / "a" / "model.pt"), input_long_side=1280),
+              log=messages.append)
+        resized = load_detector(tmp_path / "e" / "model.pt")
+        assert resized.config == replace(TINY, input_long_side=1280)
+        assert "input size 320 -> 1280 px" in " ".join(messages)
         with pytest.raises(FileNotFoundError, match=r"init model not found: .*nope\.pt"):
             train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "c"), steps=1,
                               init=str(tmp_path / "nope.pt")), log=lambda _m: None)
     finally:
         torch.set_num_threads(threads)
+
+
+def test_input_scale_shrinks_but_never_enlarges():
+    assert input_scale(1280, 960, 640) == 0.5
+    assert input_scale(1920, 1080, 1280) == pytest.approx(2 / 3)
+    assert input_scale(640, 512, 1280) == 1.0  # a thermal frame stays at its own resolution
+    with pytest.raises(ValueError, match="input_long_side must be >= 32"):
+        TrainConfig(recordings=("r",), out="o", input_long_side=8)

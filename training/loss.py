@@ -1,5 +1,5 @@
 """The paper's multi-task loss: total = heat + beta_size * size + beta_heading * heading + beta_vtype * vtype
-+ beta_offset * offset.
++ beta_offset * offset (+ beta_box * box, off by default).
 
 heat     per-cell squared error over cells not ignored, averaged over the top `topk_fraction` of the batch's
          INPUT pixels' worth of cells (hard-example selection; None averages all of them: the paper's
@@ -13,6 +13,9 @@ heading  squared error, summed over the two components
 axis     (models with an axis head) the same for the doubled-angle axis vector, weighted by beta_heading too
 vtype    cross-entropy of the logits
 offset   squared error, summed over the four components
+box      (beta_box > 0 only) the 2D box's part of size and offset again: log-space error of the box width and
+         height plus the squared error of the box centre's offset, so the box can be weighted above the 3D
+         size without changing the rest (the 2D box is what ap50 scores; the paper has no such term)
 The regression terms are weighted per cell by the targets' `weight` (and masks) and divided by the sum of
 those weights, so they are means per vehicle cell.
 """
@@ -40,11 +43,12 @@ class LossConfig:
     beta_heading: float = 0.01
     beta_vtype: float = 0.01
     beta_offset: float = 0.1
+    beta_box: float = 0.0
 
     def __post_init__(self) -> None:
         if self.topk_fraction is not None and not 0 < self.topk_fraction <= 1:
             raise ValueError(f"topk_fraction must be in (0, 1] or None, got {self.topk_fraction}")
-        for name in ("beta_size", "beta_heading", "beta_vtype", "beta_offset"):
+        for name in ("beta_size", "beta_heading", "beta_vtype", "beta_offset", "beta_box"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
 
@@ -90,9 +94,12 @@ def detector_loss(outputs: dict[str, torch.Tensor], targets: dict[str, torch.Ten
     vtype_known = targets["vtype"] >= 0
     ce = F.cross_entropy(outputs["vtype"], targets["vtype"].clamp(min=0), reduction="none")
     vtype = _weighted(ce, weight * vtype_known)
-    offset = _weighted(((outputs["offset"] - targets["offset"]) ** 2).sum(dim=1), weight)
+    offset_err = (outputs["offset"] - targets["offset"]) ** 2
+    offset = _weighted(offset_err.sum(dim=1), weight)
+    box_known = size_mask[:, 3:5].sum(dim=1) > 0
+    box = _weighted((log_err * size_mask)[:, 3:5].sum(dim=1) + offset_err[:, 2:4].sum(dim=1), weight * box_known)
     total = (heat + cfg.beta_size * size + cfg.beta_heading * (heading + axis) + cfg.beta_vtype * vtype
-             + cfg.beta_offset * offset)
+             + cfg.beta_offset * offset + cfg.beta_box * box)
     parts = {"heat": heat, "size": size, "heading": heading, "axis": axis, "vtype": vtype, "offset": offset,
-             "total": total}
+             "box": box, "total": total}
     return total, {name: float(value.detach()) for name, value in parts.items()}

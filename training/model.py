@@ -45,8 +45,8 @@ class DetectorConfig:
     stride            output stride in input pixels (1, 2 or 4)
     input_mean/std    the network sees (x - input_mean) / input_std for x in [0, 1]
     num_types         vehicle classes
-    input_long_side   images are resized so their longer side is this many pixels before the network
-                      (then padded to a multiple of 32); training crops are taken at this scale
+    input_long_side   images are shrunk so their longer side is at most this many pixels before the network
+                      (never enlarged; then padded to a multiple of 32); training crops are taken at this scale
     axis_head         also predict the heading's axis (see the module docstring). Where the network cannot
                       yet tell a vehicle's front from its back, the squared error of the heading vector is
                       least for a zero vector, and the heading head learns nothing (measured: its loss stayed

@@ -1,7 +1,7 @@
 """Train the detector on simulator recordings and/or COCO-style annotation files.
 
-Every image is resized so its longer side is `DetectorConfig.input_long_side` (the size the detect
-service feeds the network), then augmented random crops are trained with the paper's loss. The
+Every image is shrunk so its longer side is at most `DetectorConfig.input_long_side` (the size the
+detect service feeds the network), then augmented random crops are trained with the paper's loss. The
 learning rate follows a one-cycle cosine schedule over the run; with `minutes` the schedule follows
 the clock (fraction of the budget spent), so a run on a busy machine still ends on time with the
 schedule complete. Writes `model.pt` (config + weights), `train_log.jsonl` (loss parts every `log_every`
@@ -47,6 +47,7 @@ class TrainConfig:
     seed: int = 0
     init: str | None = None  # model.pt to start from (fine-tuning); its network config replaces `model`
     add_axis_head: bool = False  # with `init`: give the starting model an axis head (new, the rest kept)
+    input_long_side: int | None = None  # network input size (longer side); with `init`, replaces its (weights kept)
     threads: int = 2
     log_every: int = 25
     model: DetectorConfig = field(default_factory=DetectorConfig)
@@ -61,13 +62,16 @@ class TrainConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.crop % 32:
             raise ValueError(f"crop must be a multiple of 32, got {self.crop}")
+        if self.input_long_side is not None and self.input_long_side < 32:
+            raise ValueError(f"input_long_side must be >= 32, got {self.input_long_side}")
         if self.minutes is not None and not self.minutes > 0:
             raise ValueError(f"minutes must be > 0, got {self.minutes}")
 
 
 def input_scale(width: int, height: int, long_side: int) -> float:
-    """Resize factor that brings an image's longer side to `long_side`."""
-    return long_side / max(width, height)
+    """Resize factor that brings an image's longer side down to `long_side` (1.0 if it is no longer:
+    enlarging adds compute, not detail). `shared.inference.OnnxDetector` uses the same rule."""
+    return min(1.0, long_side / max(width, height))
 
 
 def training_refs(cfg: TrainConfig) -> list[SampleRef]:
@@ -128,9 +132,14 @@ def train(cfg: TrainConfig, log=print) -> dict:
                 raise ValueError(f"{cfg.init}: weights do not fit the network with an axis head "
                                  f"(missing {missing}, unexpected {unexpected})")
             log("[train] added an axis head to the starting model")
+        if cfg.input_long_side is not None and cfg.input_long_side != model.config.input_long_side:
+            log(f"[train] input size {model.config.input_long_side} -> {cfg.input_long_side} px (longer side)")
+            model.config = replace(model.config, input_long_side=cfg.input_long_side)
         cfg = replace(cfg, model=model.config)  # input size and stride follow the starting model
         log(f"[train] starting from {cfg.init}")
     else:
+        if cfg.input_long_side is not None:
+            cfg = replace(cfg, model=replace(cfg.model, input_long_side=cfg.input_long_side))
         model = Detector(cfg.model)
     refs = training_refs(cfg)
     n_pos = sum(r.n_positive for r in refs)
