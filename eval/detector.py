@@ -10,11 +10,20 @@
   lifted; full circle, so a reversed heading is 180 deg; `yaw_axis_err_deg`: the same modulo 180 deg, the
   error of the heading's axis alone); `size_err_m`, the mean absolute length, width
   and height difference (`size_err_l2_m`: the norm of the 3D difference); `type_acc`.
+- Where the AP goes, at the detect service's default score threshold (`BREAKDOWN_SCORE`):
+  `false_alarms`, the detections that count and match nothing, split into `box` (on a vehicle to detect
+  that nothing matched: found, but its 2D box misses IoU 0.5), `duplicate` (on a vehicle already matched)
+  and `background`; `recall_by_size`, per size band of the vehicles to detect (the square root of the 2D
+  box's area, original pixels), the share matched at IoU 0.5 (`matched`) and the share with a detection
+  whose bottom centre is within a third of that size (`found`, whatever its box).
 """
 
 from __future__ import annotations
 
+import itertools
+import math
 import time
+from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 
@@ -27,6 +36,9 @@ from sim.recording import Recording
 from training.data import samples_from_recording
 
 IOU_MATCH = 0.5
+BREAKDOWN_SCORE = 0.3  # the detect service's default threshold
+SIZE_BANDS_PX = (0.0, 20.0, 45.0, math.inf)  # sqrt of the 2D box area, original pixels
+NEAR_FRACTION = 1 / 3  # a detection "on" a vehicle: bottom centre within this share of its size
 HEADING_STEP_PX = 6.0  # pixels along the detected heading for the second lifted point
 
 
@@ -107,6 +119,36 @@ def best_f1(scores: np.ndarray, hits: np.ndarray, n_pos: int) -> dict:
             "best_f1_precision": round(float(precision[k]), 4), "best_f1_recall": round(float(recall[k]), 4)}
 
 
+def size_of_boxes(box: np.ndarray) -> np.ndarray:
+    """Square root of each 2D box's area (x1, y1, x2, y2 edges)."""
+    return np.sqrt(np.prod(np.clip(box[:, 2:] - box[:, :2], 0, None), axis=1))
+
+
+def breakdown_frame(det: Detections, box: np.ndarray, bottom_uv: np.ndarray, weight: np.ndarray,
+                    gt_of: np.ndarray, counts: np.ndarray) -> tuple[dict[str, int], np.ndarray, np.ndarray]:
+    """At `BREAKDOWN_SCORE`: the frame's false alarms by kind ({"box", "duplicate", "background"}) and,
+    per label, whether it is matched and whether a detection lies on it (see the module docstring)."""
+    keep = det.score >= BREAKDOWN_SCORE
+    size = np.maximum(size_of_boxes(box), 1.0)
+    near = np.zeros((len(det), len(box)), bool)
+    if len(det) and len(box):
+        dist = np.linalg.norm(det.uv[:, None, :] - bottom_uv[None, :, :], axis=2)
+        near = (dist <= np.maximum(NEAR_FRACTION * size, 2.0)[None]) | (box_iou(det.box, box) >= 0.1)
+    matched_any = np.zeros(len(box), bool)
+    matched_any[gt_of[(gt_of >= 0) & keep]] = True
+    alarms = {"box": 0, "duplicate": 0, "background": 0}
+    for i in np.nonzero(keep & counts & (gt_of < 0))[0]:
+        on = near[i] & (weight > 0)
+        if (on & ~matched_any).any():
+            alarms["box"] += 1
+        elif on.any():
+            alarms["duplicate"] += 1
+        else:
+            alarms["background"] += 1
+    found = (near & keep[:, None]).any(axis=0) if len(det) else np.zeros(len(box), bool)
+    return alarms, matched_any, found
+
+
 def evaluate(recording: str | Path, detect: Callable[[np.ndarray], Detections], every: int = 1,
              cameras: list[str] | None = None, log=None) -> dict:
     """Score `detect(grey image) -> Detections` (original pixels) on every `every`-th frame."""
@@ -121,7 +163,8 @@ def evaluate(recording: str | Path, detect: Callable[[np.ndarray], Detections], 
         lift = GroundLifter(*ground_lookup(cam, rec.terrain))
         truth = {g["t_ns"]: g for g in rec.ground_truth(name)}
         acc = per.setdefault(kind, {"scores": [], "hits": [], "n_pos": 0, "loc": [], "yaw": [], "size": [],
-                                    "size_l2": [], "type": [], "frames": 0})
+                                    "size_l2": [], "type": [], "frames": 0, "alarms": Counter(),
+                                    "pos_size": [], "pos_matched": [], "pos_found": []})
         for ref in samples_from_recording(rec.path, [name], every=every):
             sample = ref.load()
             t0 = time.perf_counter()
@@ -133,6 +176,13 @@ def evaluate(recording: str | Path, detect: Callable[[np.ndarray], Detections], 
             acc["scores"] += list(det.score[counts])
             acc["hits"] += list(gt_of[counts] >= 0)
             acc["n_pos"] += int((sample.weight > 0).sum())
+            alarms, matched_any, found = breakdown_frame(det, sample.box, sample.bottom_uv, sample.weight, gt_of,
+                                                         counts)
+            acc["alarms"].update(alarms)
+            pos = sample.weight > 0
+            acc["pos_size"] += list(size_of_boxes(sample.box[pos]))
+            acc["pos_matched"] += list(matched_any[pos])
+            acc["pos_found"] += list(found[pos])
             hit = np.nonzero(gt_of >= 0)[0]
             if len(hit) == 0:
                 continue
@@ -178,7 +228,22 @@ def evaluate(recording: str | Path, detect: Callable[[np.ndarray], Detections], 
             "size_err_l2_m": stat(pool["size_l2"], np.nanmean),
             "type_acc": stat(pool["type"], np.nanmean),
             **best_f1(scores, hits, n_pos),
+            "breakdown_score_thr": BREAKDOWN_SCORE,
+            "false_alarms": {k: sum(a["alarms"][k] for a in accs) for k in ("box", "duplicate", "background")},
+            "recall_by_size": by_size(accs),
         }
+
+    def by_size(accs: list[dict]) -> list[dict]:
+        size = np.array([x for a in accs for x in a["pos_size"]], float)
+        matched = np.array([x for a in accs for x in a["pos_matched"]], bool)
+        found = np.array([x for a in accs for x in a["pos_found"]], bool)
+        bands = []
+        for lo, hi in itertools.pairwise(SIZE_BANDS_PX):
+            sel = (size >= lo) & (size < hi)
+            bands.append({"size_px": [lo, hi if math.isfinite(hi) else None], "positives": int(sel.sum()),
+                          "matched": round(float(matched[sel].mean()), 4) if sel.any() else None,
+                          "found": round(float(found[sel].mean()), 4) if sel.any() else None})
+        return bands
 
     out = {"recording": str(rec.path), "every": every, "overall": summary(list(per.values()))}
     out["per_kind"] = {k: summary([a]) for k, a in sorted(per.items())}

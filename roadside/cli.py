@@ -267,7 +267,9 @@ def _run_eval(args) -> int:
         raise ValueError("eval detector needs --recording")
     det = OnnxDetector(args.model, threads=args.threads, score_thr=args.score_thr or 0.05)
     result = evaluate(args.recording, det.detect, every=args.every)
-    line = "{name:8s} ap50 {ap50} loc {loc_err_m} m yaw {yaw_err_deg} deg size {size_err_m} m ({frames} frames)"
+    line = ("{name:8s} ap50 {ap50} loc {loc_err_m} m yaw {yaw_err_deg} deg size {size_err_m} m ({frames} frames); "
+            "false alarms at {breakdown_score_thr}: {false_alarms[box]} boxes off a found vehicle, "
+            "{false_alarms[duplicate]} duplicates, {false_alarms[background]} on the background")
     return _print_eval(args, result, "per_kind", line)
 
 

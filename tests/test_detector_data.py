@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
-from training.augment import AugmentConfig, augment, resize_sample, warp_sample
+from training.augment import AugmentConfig, augment, resize_sample, transform_labels, warp_sample
 from training.data import (
     MIN_VISIBLE_FRACTION,
     MIN_VISIBLE_PX,
@@ -460,3 +460,24 @@ def test_batcher_yields_augmented_batches(recording):
         Batcher(refs, aug, batch_size=0, rng=np.random.default_rng(0))
     with pytest.raises(ValueError, match="no samples"):
         Batcher([], aug, batch_size=1, rng=np.random.default_rng(0))
+
+
+def test_box_under_rotation_keeps_its_size_not_its_corners():
+    """A rotated box becomes the bounds of its rotated inscribed ellipse: a square keeps its size at any
+    angle (the corners' bounds would be 1.41 times wider at 45 degrees), a 40 x 20 box turned 90 degrees
+    is 20 x 40, and scale, flip and crop stay exact."""
+    image = np.zeros((200, 200), np.uint8)
+
+    def one_vehicle(box):
+        return Sample(image, [[100.0, 110.0]], [box], [[1.0, 0.0]], [[4.5, 1.8, 1.5]], [0], [1.0])
+
+    sample = one_vehicle([80.0, 80.0, 120.0, 120.0])
+    for angle in (0.3, math.pi / 4, 2.0):
+        c, s = math.cos(angle), math.sin(angle)
+        rot = np.array([[c, -s, 100 - 100 * c + 100 * s], [s, c, 100 - 100 * s - 100 * c]])  # about (100, 100)
+        np.testing.assert_allclose(transform_labels(sample, rot, image).box[0], [80, 80, 120, 120], atol=1e-9)
+    wide = one_vehicle([80.0, 90.0, 120.0, 110.0])
+    quarter = np.array([[0.0, -1.0, 200.0], [1.0, 0.0, 0.0]])  # 90 degrees about (100, 100)
+    np.testing.assert_allclose(transform_labels(wide, quarter, image).box[0], [90, 80, 110, 120], atol=1e-9)
+    flip_zoom = np.array([[-2.0, 0.0, 300.0], [0.0, 2.0, -100.0]])
+    np.testing.assert_allclose(transform_labels(wide, flip_zoom, image).box[0], [60, 80, 140, 120], atol=1e-9)

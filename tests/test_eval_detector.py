@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eval.detector import GroundLifter, best_f1, box_iou, evaluate, match_frame, voc07_ap
+from eval.detector import GroundLifter, best_f1, box_iou, breakdown_frame, evaluate, match_frame, voc07_ap
 from shared.decode import Detections
 from shared.inference import OnnxDetector
 from training.data import samples_from_recording
@@ -93,6 +93,34 @@ def test_an_oracle_detector_scores_perfectly(small_recording):
     assert rev["yaw_err_median_deg"] > 170.0 and rev["yaw_axis_err_median_deg"] < 10.0  # the axis is still right
     assert overall["size_err_m"] == pytest.approx(0.0) and overall["type_acc"] == pytest.approx(1.0)
     assert set(result["per_kind"]) == {"fisheye", "thermal"}
+    assert overall["false_alarms"] == {"box": 0, "duplicate": 0, "background": 0}
+    bands = [b for b in overall["recall_by_size"] if b["positives"]]
+    assert bands and all(b["matched"] == 1.0 and b["found"] == 1.0 for b in bands)
+    assert sum(b["positives"] for b in overall["recall_by_size"]) == overall["positives"]
+
+
+def test_false_alarm_breakdown_by_kind():
+    """Vehicles 0 and 1 to detect (40 px boxes, bottom centres at their lower edges), vehicle 2 ignored."""
+    box = np.array([[0, 0, 40, 40], [100, 0, 140, 40], [200, 0, 240, 40]], float)
+    bottom = np.array([[20, 40], [120, 40], [220, 40]], float)
+    weight = np.array([1.0, 1.0, 0.0])
+    det_box = np.array([
+        [0, 0, 40, 40],  # matches vehicle 0
+        [2, 2, 42, 42],  # a second detection of vehicle 0
+        [110, 20, 180, 80],  # on vehicle 1, but its box is off (IoU < 0.5)
+        [400, 400, 440, 440],  # background
+        [105, 0, 145, 40],  # would match vehicle 1, but scores under the breakdown threshold
+    ], float)
+    uv = np.array([[20, 40], [22, 42], [122, 42], [420, 440], [125, 40]], float)
+    score = np.array([0.9, 0.8, 0.7, 0.6, 0.1])
+    n = len(score)
+    det = Detections(score, uv, det_box, np.tile([1.0, 0.0], (n, 1)), np.ones((n, 3)), np.zeros(n, int),
+                     np.full((n, 5), 0.2))
+    gt_of, counts = match_frame(det, box, weight)
+    alarms, matched, found = breakdown_frame(det, box, bottom, weight, gt_of, counts)
+    assert alarms == {"box": 1, "duplicate": 1, "background": 1}
+    assert list(matched) == [True, False, False]  # vehicle 1's match scores under the threshold
+    assert list(found[:2]) == [True, True]
 
 
 def test_onnx_detector_rejects_missing_and_corrupt_models(tmp_path):

@@ -5,9 +5,12 @@ Geometry is one affine map M (2x3, source pixels -> output pixels) applied to th
 
     bottom_uv   M @ [u, v, 1]                                   exact (a point stays on its pixel)
     heading_uv  the linear part of M applied, then renormalised  exact in direction
-    box         bounds of the four transformed box corners, clipped to the output image: exact for
-                scale / flip / crop; for a rotation it is the axis-aligned box around the rotated box,
-                a little larger than the box a person would draw around the rotated vehicle
+    box         bounds of the transformed ellipse inscribed in the box, clipped to the output image:
+                exact for scale / flip / crop. For a rotation, the bounds of the rotated box's corners would
+                be up to 1.41 times too wide and high (a square turned 45 degrees: twice the area, IoU 0.5
+                with the true box), and fisheye samples are turned by any angle: trained on those, the
+                network learnt boxes too large for ap50 (models/README.md). A vehicle's outline is rounder
+                than its box's corners, and the ellipse keeps a box's size under rotation by 90 degrees.
     meta["principal_point"]  transformed like bottom_uv, so later steps rotate about the right point
 
 Pixel convention (docs/recording-format.md): the centre of the top-left pixel is (0, 0) and an image W
@@ -127,11 +130,11 @@ def transform_labels(sample: Sample, m: np.ndarray, image: np.ndarray) -> Sample
     heading = sample.heading_uv @ a.T
     with np.errstate(invalid="ignore", divide="ignore"):
         heading = heading / np.linalg.norm(heading, axis=1, keepdims=True)
-    x1, y1, x2, y2 = sample.box.T
-    corners = np.stack([np.stack([x1, y1], 1), np.stack([x2, y1], 1), np.stack([x2, y2], 1), np.stack([x1, y2], 1)], 1)
-    corners = corners @ a.T + t  # (N, 4, 2)
-    lo = np.clip(corners.min(axis=1), -0.5, [w - 0.5, h - 0.5])
-    hi = np.clip(corners.max(axis=1), -0.5, [w - 0.5, h - 0.5])
+    centre = (sample.box[:, :2] + sample.box[:, 2:]) / 2 @ a.T + t
+    half = (sample.box[:, 2:] - sample.box[:, :2]) / 2  # the inscribed ellipse's half axes
+    half = np.sqrt((half**2) @ (a**2).T)  # bounds of the mapped ellipse: sqrt(sum_j a_ij^2 half_j^2)
+    lo = np.clip(centre - half, -0.5, [w - 0.5, h - 0.5])
+    hi = np.clip(centre + half, -0.5, [w - 0.5, h - 0.5])
     box = np.concatenate([lo, hi], axis=1)
     inside = (uv[:, 0] >= -0.5) & (uv[:, 0] < w - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < h - 0.5)
     overlaps = (hi[:, 0] > lo[:, 0]) & (hi[:, 1] > lo[:, 1])
