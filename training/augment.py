@@ -9,7 +9,7 @@ Geometry is one affine map M (2x3, source pixels -> output pixels) applied to th
                 exact for scale / flip / crop. For a rotation, the bounds of the rotated box's corners would
                 be up to 1.41 times too wide and high (a square turned 45 degrees: twice the area, IoU 0.5
                 with the true box), and fisheye samples are turned by any angle: trained on those, the
-                network learnt boxes too large for ap50 (models/README.md). A vehicle's outline is rounder
+                network learns boxes too large for ap50 (models/README.md). A vehicle's outline is rounder
                 than its box's corners, and the ellipse keeps a box's size under rotation by 90 degrees.
     meta["principal_point"]  transformed like bottom_uv, so later steps rotate about the right point
 
