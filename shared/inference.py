@@ -31,6 +31,12 @@ def available_providers(wanted: tuple[str, ...] = PREFERRED_PROVIDERS) -> list[s
 OUTPUT_NAMES = {"heat", "size", "heading", "vtype_prob", "offset", "axis"}
 
 
+def input_scale(width: int, height: int, long_side: int) -> float:
+    """Resize factor that brings an image's longer side down to `long_side` (1.0 if it is no longer:
+    enlarging adds compute, not detail). Training (`training.train`) and the detect service both use it."""
+    return min(1.0, long_side / max(width, height))
+
+
 class OnnxDetector:
     """An exported detector. `detect(grey)` -> Detections in the image's own pixels."""
 
@@ -72,7 +78,7 @@ class OnnxDetector:
 
     def input_shape(self, height: int, width: int) -> tuple[float, int, int]:
         """(scale, network height, network width) for an image of this size."""
-        scale = min(1.0, self.long_side / max(height, width))  # never enlarged (training.train.input_scale)
+        scale = input_scale(width, height, self.long_side)
         h, w = round(height * scale), round(width * scale)
         return scale, -(-h // PAD_MULTIPLE) * PAD_MULTIPLE, -(-w // PAD_MULTIPLE) * PAD_MULTIPLE
 

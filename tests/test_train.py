@@ -9,8 +9,9 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
+from shared.inference import input_scale  # noqa: E402
 from training.model import DetectorConfig, load_detector  # noqa: E402
-from training.train import TrainConfig, input_scale, train  # noqa: E402
+from training.train import TrainConfig, train  # noqa: E402
 
 TINY = DetectorConfig(width_mult=0.25, decoder_channels=16, head_channels=8, stride=4, input_long_side=320)
 

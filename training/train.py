@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from shared.inference import input_scale
 from sim.recording import Recording
 from training.augment import AugmentConfig, augment
 from training.data import Batcher, SampleRef, samples_from_coco, samples_from_recording
@@ -66,12 +67,6 @@ class TrainConfig:
             raise ValueError(f"input_long_side must be >= 32, got {self.input_long_side}")
         if self.minutes is not None and not self.minutes > 0:
             raise ValueError(f"minutes must be > 0, got {self.minutes}")
-
-
-def input_scale(width: int, height: int, long_side: int) -> float:
-    """Resize factor that brings an image's longer side down to `long_side` (1.0 if it is no longer:
-    enlarging adds compute, not detail). `shared.inference.OnnxDetector` uses the same rule."""
-    return min(1.0, long_side / max(width, height))
 
 
 def training_refs(cfg: TrainConfig) -> list[SampleRef]:
