@@ -100,7 +100,8 @@ def make_site(cfg: DemoConfig, rec_dir: Path, log) -> tuple[Path, dict]:
         "origin": origin,
         "cameras": cameras,
         "bus": {"mode": "peer", "port_base": cfg.port_base},
-        "ingest": {"source": str(rec_dir.resolve()), "pace": cfg.pace, "encoding": "gray8", "decode_scale": 2},
+        "ingest": {"source": str(rec_dir.resolve()), "pace": cfg.pace, "encoding": "gray8",
+                   "decode_long_side": model_long_side(cfg.model)},
         "detect": {"model": str(Path(cfg.model).resolve()), "model_gpu": None, "threads": 2,
                    "score_thr": cfg.score_thr},
         "fuse_track": {"tick_ms": 1000.0 / cfg.hz, "record": str((cfg.out / "tracks.jsonl").resolve())},
@@ -110,27 +111,35 @@ def make_site(cfg: DemoConfig, rec_dir: Path, log) -> tuple[Path, dict]:
     return path, reports
 
 
-def detector_alone(cfg: DemoConfig, rec_dir: Path, decode_scale: int = 2) -> dict:
-    """The detector by itself on the pipeline's input (JPEG decoded at 1/decode_scale, grey), one thread
+def model_long_side(model: str | Path) -> int:
+    """The detector's input size (longer side), from the model's metadata."""
+    from shared.inference import OnnxDetector
+
+    return OnnxDetector(model, providers=["CPUExecutionProvider"], threads=1).long_side
+
+
+def detector_alone(cfg: DemoConfig, rec_dir: Path) -> dict:
+    """The detector by itself on the pipeline's input (JPEG decoded as ingest does, grey), one thread
     pool of 2: frames/s and ms per frame."""
     import cv2
 
-    from services.ingest.__main__ import REDUCED
+    from services.ingest.__main__ import REDUCED, decode_scale_for
     from shared.inference import OnnxDetector
     from sim.recording import Recording
 
     rec = Recording(rec_dir)
-    frames = [p for c in rec.camera_names for _, p in rec.frames(c)]
-    step = max(1, len(frames) // cfg.baseline_frames)
-    images = [cv2.imdecode(np.fromfile(p, np.uint8), REDUCED[decode_scale]) for p in frames[::step]]
     det = OnnxDetector(cfg.model, providers=["CPUExecutionProvider"], threads=2)
-    for img in images[:5]:
-        det.detect(img)
+    frames = [(p, decode_scale_for(rec.cameras[c].width, rec.cameras[c].height, det.long_side))
+              for c in rec.camera_names for _, p in rec.frames(c)]
+    step = max(1, len(frames) // cfg.baseline_frames)
+    images = [(cv2.imdecode(np.fromfile(p, np.uint8), REDUCED[n]), 1.0 / n) for p, n in frames[::step]]
+    for img, scale in images[:5]:
+        det.detect(img, scale)
     times = []
     t_all = time.perf_counter()
-    for img in images:
+    for img, scale in images:
         t0 = time.perf_counter()
-        det.detect(img)
+        det.detect(img, scale)
         times.append((time.perf_counter() - t0) * 1e3)
     wall = time.perf_counter() - t_all
     return {"frames": len(images), "fps": len(images) / wall, "ms_p50": float(np.median(times)),

@@ -1,6 +1,7 @@
-"""Run an exported detector (ONNX) on one image: shrink it so the longer side is at most the model's input size,
-pad to a multiple of 32, infer with ONNX Runtime, decode, and map the detections back to the original
-image's pixels. NumPy, OpenCV and ONNX Runtime only (no PyTorch): the detect service uses this.
+"""Run an exported detector (ONNX) on one image: bring it to the scale the model was trained at (the
+camera's full-resolution image shrunk so its longer side is at most the model's input size), pad to a
+multiple of 32, infer with ONNX Runtime, decode, and map the detections back to the given image's pixels.
+NumPy, OpenCV and ONNX Runtime only (no PyTorch): the detect service uses this.
 
 Execution providers are chosen at start from what the installed ONNX Runtime offers, in the order
 TensorRT -> CUDA -> CPU unless given; an fp16 model is meant for GPUs, the fp32 one for CPUs (fp16 runs
@@ -76,25 +77,34 @@ class OnnxDetector:
     def providers(self) -> list[str]:
         return self.session.get_providers()
 
-    def input_shape(self, height: int, width: int) -> tuple[float, int, int]:
-        """(scale, network height, network width) for an image of this size."""
-        scale = input_scale(width, height, self.long_side)
+    def input_shape(self, height: int, width: int, source_scale: float = 1.0) -> tuple[float, int, int]:
+        """(scale, network height, network width) for an image of this size that is a copy of the camera's
+        image at `source_scale` of its full size (ingest may decode at 1/2 or 1/4). The network sees what it
+        was trained on: the full-size image shrunk to at most `long_side`; a copy decoded smaller than that
+        is enlarged back to it (scale > 1: the vehicles keep the size the model learnt, the detail is lost)."""
+        if not source_scale > 0:
+            raise ValueError(f"source_scale must be > 0, got {source_scale!r}")
+        full_w, full_h = width / source_scale, height / source_scale
+        scale = input_scale(round(full_w), round(full_h), self.long_side) / source_scale
+        if abs(scale - 1.0) < 1e-6:
+            scale = 1.0
         h, w = round(height * scale), round(width * scale)
         return scale, -(-h // PAD_MULTIPLE) * PAD_MULTIPLE, -(-w // PAD_MULTIPLE) * PAD_MULTIPLE
 
-    def preprocess(self, grey: np.ndarray) -> tuple[np.ndarray, float]:
+    def preprocess(self, grey: np.ndarray, source_scale: float = 1.0) -> tuple[np.ndarray, float]:
         """(1, 1, H, W) float32 network input and the resize factor."""
         if grey.ndim != 2 or grey.dtype != np.uint8:
             raise ValueError(f"detector input must be a (H, W) uint8 grey image, got {grey.shape} {grey.dtype}")
-        scale, hp, wp = self.input_shape(*grey.shape)
+        scale, hp, wp = self.input_shape(*grey.shape, source_scale)
         h, w = round(grey.shape[0] * scale), round(grey.shape[1] * scale)
         small = cv2.resize(grey, (w, h), interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR)
         x = np.full((1, 1, hp, wp), 0.5, np.float32)
         x[0, 0, :h, :w] = small.astype(np.float32) / 255.0
         return x, scale
 
-    def detect(self, grey: np.ndarray) -> Detections:
-        x, scale = self.preprocess(grey)
+    def detect(self, grey: np.ndarray, source_scale: float = 1.0) -> Detections:
+        """Detections in `grey`'s own pixels; `source_scale`: see `input_shape`."""
+        x, scale = self.preprocess(grey, source_scale)
         outs = self.session.run(None, {self.input_name: x})
         det = decode(**{name: o[0] for name, o in zip(self.output_names, outs, strict=True)}, stride=self.stride,
                      score_thr=self.score_thr, top_k=self.top_k)

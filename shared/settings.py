@@ -69,7 +69,9 @@ class IngestSettings(Strict):
     pace: str = "1"  # "1" real time, "N" N x real time, "max": as fast as detect takes frames
     loop: bool = False
     encoding: Literal["jpeg", "gray8"] = "gray8"
-    decode_scale: Literal[1, 2, 4] = 2  # decode JPEGs at 1/scale (DCT-domain, cheap); the detector downsizes anyway
+    # each camera's JPEGs are decoded at the largest reduction (1/1, 1/2, 1/4: DCT-domain, cheap) that keeps the
+    # longer side at least this long: the detector's input size (`input_long_side` in models/README.md)
+    decode_long_side: int = Field(640, ge=32)
     fps: float | None = Field(None, gt=0)  # capture times from a frame rate where the source has none
     max_frames: int | None = Field(None, gt=0)  # stop after this many frames per camera
     max_in_flight: int = Field(1, ge=1)  # pace "max": frames published but not yet detected

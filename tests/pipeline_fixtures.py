@@ -76,7 +76,7 @@ def site_config(recording_dir: Path, masks: str = f"masks/{CAMERA}.npz") -> dict
                      "masks": masks}],
         "bus": {"mode": "peer"},
         "ingest": {"source": str(Path(recording_dir).resolve()), "pace": "max", "encoding": "gray8",
-                   "decode_scale": 2},
+                   "decode_long_side": 640},
         "detect": {"model": "model.onnx", "model_gpu": None, "threads": 1, "score_thr": 0.01},
         "fuse_track": {"tick_ms": 100.0},
     }

@@ -437,6 +437,12 @@ def test_export_parity(trained, tmp_path):
     long_side = model.config.input_long_side
     assert onnx.input_shape(long_side, 2 * long_side) == (0.5, long_side // 2, long_side)
     assert onnx.input_shape(50, 70) == (1.0, 64, 96)
+    # a copy decoded at 1/2 or 1/4 (ingest) is brought to the scale of its full-size image
+    assert onnx.input_shape(long_side // 2, long_side, 0.5) == (1.0, long_side // 2, long_side)
+    assert onnx.input_shape(long_side // 4, long_side // 2, 0.25) == (2.0, long_side // 2, long_side)
+    assert onnx.input_shape(long_side, 2 * long_side, 0.5) == (0.5, long_side // 2, long_side)
+    with pytest.raises(ValueError, match="source_scale"):
+        onnx.input_shape(64, 64, 0.0)
 
 
 def test_model_stride_needs_the_export_metadata():

@@ -97,12 +97,12 @@ def peer(port_base: int):
 # --- message builders -----------------------------------------------------------------------------------------------
 
 
-def good_frame(site: str, recording: Path, seq: int) -> Frame:
-    """The recording's first NE frame as ingest sends it (grey, decoded at half size)."""
+def good_frame(site: str, recording: Path, seq: int, reduced: int = 2) -> Frame:
+    """The recording's first NE frame as ingest sends it (grey, decoded at 1/2 size, or 1/4)."""
     path = sorted((recording / "frames" / CAMERA).glob("*.jpg"))[0]
-    grey = cv2.imread(str(path), cv2.IMREAD_REDUCED_GRAYSCALE_2)
+    grey = cv2.imread(str(path), {2: cv2.IMREAD_REDUCED_GRAYSCALE_2, 4: cv2.IMREAD_REDUCED_GRAYSCALE_4}[reduced])
     return Frame(site=site, camera=CAMERA, seq=seq, t_capture_ns=T0 + seq * TICK_NS, camera_kind="fisheye",
-                 encoding="gray8", width=grey.shape[1], height=grey.shape[0], scale=0.5, data=grey.tobytes(),
+                 encoding="gray8", width=grey.shape[1], height=grey.shape[0], scale=1 / reduced, data=grey.tobytes(),
                  stamps=[("ingest", T0)])
 
 
@@ -195,6 +195,7 @@ def test_chain_plays_two_frames_through_all_four_services(site, site_name, small
     ingest = launch("ingest", site, *sets, "ingest.pace=max", "ingest.max_frames=2")
     assert_clean_exit(ingest, ingest.wait(WAIT_S))
     assert "done: 2 frames published, 0 bad" in ingest.log()
+    assert "n per camera: {'NE': 2}" in ingest.log()  # 1280x960 decoded at half size for a 640 px model
 
     def seqs(name: str) -> set[int]:
         return {m.seq for m in peer.got[name]}
@@ -235,6 +236,16 @@ def test_chain_plays_two_frames_through_all_four_services(site, site_name, small
     assert "stopped: 2 messages localized, 0 bad" in localize.log()
 
 
+def test_ingest_decodes_each_camera_as_small_as_the_detector_allows():
+    from services.ingest.__main__ import decode_scale_for
+
+    assert decode_scale_for(1280, 960, 640) == 2  # fisheye for a 640 px model
+    assert decode_scale_for(640, 512, 640) == 1  # thermal: already the model's size
+    assert decode_scale_for(1280, 960, 1280) == 1  # a full-resolution model
+    assert decode_scale_for(2560, 1920, 640) == 4
+    assert decode_scale_for(1280, 960, 2000) == 1  # never larger than the camera's image
+
+
 # --- b. bad input on the bus at every service -----------------------------------------------------------------------
 
 
@@ -264,7 +275,15 @@ def test_detect_drops_bad_frames_and_keeps_running(site, site_name, small_record
 
     peer.put(key, encode(good_frame(site_name, small_recording, 1)))
     assert peer.wait_for(lambda: any(d.seq == 1 for d in peer.got["detections"]), WAIT_S), detect.log()
+    # a frame decoded smaller than the model's input (1/4 of 1280x960 for a 640 px model): detected at the
+    # model's scale, with a warning naming the setting, and not counted as bad
+    peer.put(key, encode(good_frame(site_name, small_recording, 2, reduced=4)))
+    assert peer.wait_for(lambda: any(d.seq == 2 for d in peer.got["detections"]), WAIT_S), detect.log()
+    small = next(d for d in peer.got["detections"] if d.seq == 2)
+    assert (small.width, small.height) == (1280, 960) and len(small) > 0
     assert_clean_exit(detect, detect.terminate())
+    assert "camera NE: frames come at 320x240, smaller than the model's input" in detect.log()
+    assert "set ingest.decode_long_side to 640" in detect.log()
     assert bad_count(detect, r"(\d+) bad messages") == len(cases)
 
 

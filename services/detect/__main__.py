@@ -7,6 +7,8 @@ frames): a detector slower than the cameras drops old frames, it never queues th
 from several cameras are taken oldest capture time first. Execution providers are chosen at start
 (TensorRT -> CUDA -> CPU); on a GPU the fp16 model (`detect.model_gpu`) is used, on CPU the fp32 one.
 Detections are published in original-sensor pixels on `roadside/<site>/cam/<camera>/detections`.
+A frame decoded smaller than the model's input needs (`Frame.scale`: ingest's `decode_long_side` below the
+model's `input_long_side`) is enlarged back to the scale the model was trained at, with one warning per camera.
 """
 
 from __future__ import annotations
@@ -85,6 +87,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
         pubs = {c: session.declare_publisher(camera_key(settings.site, c, "detections")) for c in cams}
         tokens = declare_alive(session, settings.site, "detect", cams)  # after the subscribers: ready
         waiting: list[tuple[int, Frame]] = []
+        warned: set[str] = set()  # cameras whose frames come too small for the model
         done = 0
         while not stopper.is_set():
             for c, r in receivers.items():
@@ -112,9 +115,14 @@ def main(settings: Settings, stopper: Stopper) -> int:
             except ValueError as exc:
                 bad(str(exc), frame.camera)
                 continue
+            if frame.camera not in warned and detector.input_shape(*img.shape, frame.scale)[0] > 1.0:
+                warned.add(frame.camera)
+                log.warning("camera %s: frames come at %dx%d, smaller than the model's input (longer side %d); "
+                            "enlarged, detail lost: set ingest.decode_long_side to %d", frame.camera, frame.width,
+                            frame.height, detector.long_side, detector.long_side)
             t0 = time.perf_counter()
             try:
-                det = detector.detect(img)
+                det = detector.detect(img, frame.scale)
             except cv2.error as exc:  # e.g. an image too thin to resize to the network's input
                 bad(f"camera {frame.camera} seq {frame.seq}: cannot detect on a {frame.width}x{frame.height} image "
                     f"({str(exc).strip().splitlines()[-1]})", frame.camera)

@@ -31,6 +31,11 @@ PIPELINE_WAIT_S = 60.0
 REDUCED = {1: cv2.IMREAD_GRAYSCALE, 2: cv2.IMREAD_REDUCED_GRAYSCALE_2, 4: cv2.IMREAD_REDUCED_GRAYSCALE_4}
 
 
+def decode_scale_for(width: int, height: int, long_side: int) -> int:
+    """The largest JPEG reduction (4, 2 or 1) that keeps an image's longer side at least `long_side`."""
+    return next((s for s in (4, 2) if max(width, height) // s >= long_side), 1)
+
+
 def to_frame_fields(sf: SourceFrame, cam: CameraSettings, encoding: str, decode_scale: int) -> dict:
     """The image part of a Frame: encoding, width, height, scale, data. ValueError for a bad image."""
     if encoding == "jpeg" and sf.jpeg is not None:
@@ -131,6 +136,8 @@ def main(settings: Settings, stopper: Stopper) -> int:
         seen = wait_for_peers(session, all_alive_key(settings.site), len(cams) * 3 + 1, PIPELINE_WAIT_S)
         log.info("source %s, %d cameras, pace %s; %d liveliness tokens on the bus", cfg.source, len(cams),
                  cfg.pace, seen)
+        scales = {c: decode_scale_for(cam.width, cam.height, cfg.decode_long_side) for c, cam in cams.items()}
+        log.info("decoded at 1/n of full size, n per camera: %s", scales)
         pacer = Pacer(cfg.pace, stopper)
         seq = dict.fromkeys(cams, 0)
         published = 0
@@ -151,7 +158,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
                 last = t
                 pacer.wait(t)
                 try:
-                    fields = to_frame_fields(sf, cams[sf.camera], cfg.encoding, cfg.decode_scale)
+                    fields = to_frame_fields(sf, cams[sf.camera], cfg.encoding, scales[sf.camera])
                 except ValueError as exc:
                     bad(str(exc), sf.camera)
                     continue
