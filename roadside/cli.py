@@ -299,17 +299,21 @@ def _add_autolabel(sub) -> None:
                    help="foreground regions too small for a vehicle become ignore regions instead of being dropped")
 
 
-def _run_autolabel(args) -> int:
+def _time_of_day(text: str | None):
     from datetime import time
 
+    if not text:
+        return None
+    try:
+        return time.fromisoformat(text)
+    except ValueError:
+        raise ValueError(f"--until must be a time of day HH:MM:SS, got {text!r}") from None
+
+
+def _run_autolabel(args) -> int:
     from training.autolabel import AutolabelConfig, autolabel_camera, score_labels
 
-    until = None
-    if args.until:
-        try:
-            until = time.fromisoformat(args.until)
-        except ValueError:
-            raise ValueError(f"--until must be a time of day HH:MM:SS, got {args.until!r}") from None
+    until = _time_of_day(args.until)
     cfg = AutolabelConfig(roi_m=args.roi_m, teacher_thr=args.teacher_thr, ignore_small=args.ignore_small)
     teacher = None
     if args.teacher:
@@ -321,6 +325,45 @@ def _run_autolabel(args) -> int:
     if args.truth:
         report["score"] = score_labels(args.out / "labels.json", args.truth)
         (args.out / "report.json").write_text(json.dumps(report, indent=1))
+    print(json.dumps(report, indent=1))
+    return 0
+
+
+def _add_composite(sub) -> None:
+    p = sub.add_parser("composite", help="training images for a real camera: simulated vehicles drawn over its "
+                       "real background, with exact labels")
+    p.add_argument("--frames", type=Path, required=True, help="one camera's frames (capture time in the names)")
+    p.add_argument("--masks", type=Path, required=True,
+                   help="the camera's lookup masks (roadside calibrate; they carry the camera model)")
+    p.add_argument("--camera", required=True, help="camera name written into the labels")
+    p.add_argument("--out", type=Path, required=True, help="folder for labels.json, images/ and report.json")
+    p.add_argument("--until", help="background from frames before this time of day HH:MM:SS only (training slice)")
+    p.add_argument("--sim-site", default="state_ellsworth",
+                   help="simulator site in the masks' site frame (name or YAML path) whose traffic is drawn")
+    p.add_argument("--seconds", type=_positive_float, default=60.0, help="simulated traffic")
+    p.add_argument("--hz", type=_positive_float, default=1.0, help="images per simulated second")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--demand-scale", type=_positive_float, default=1.0, help="more (> 1) or less traffic")
+    p.add_argument("--roi-m", type=_positive_float, default=30.0, help="shown and labelled within this distance "
+                   "of the camera")
+    p.add_argument("--teacher", type=Path, help="detector ONNX model whose detections on the background become "
+                   "ignore regions: vehicles standing through the whole slice are in the background")
+    p.add_argument("--teacher-thr", type=float, default=0.5, help="teacher detections at least this confident")
+
+
+def _run_composite(args) -> int:
+    from training.composite import CompositeConfig, composite_camera
+
+    until = _time_of_day(args.until)
+    cfg = CompositeConfig(sim_site=args.sim_site, seconds=args.seconds, hz=args.hz, seed=args.seed,
+                          roi_m=args.roi_m, demand_scale=args.demand_scale, teacher_thr=args.teacher_thr)
+    teacher = None
+    if args.teacher:
+        from shared.inference import OnnxDetector
+
+        teacher = OnnxDetector(args.teacher, score_thr=cfg.teacher_thr, spin=False).detect
+    report = composite_camera(args.frames, args.masks, args.out, args.camera, until, cfg,
+                              log=lambda m: print(m, file=sys.stderr), teacher=teacher)
     print(json.dumps(report, indent=1))
     return 0
 
@@ -516,6 +559,7 @@ def main(argv: list[str] | None = None) -> int:
     _add_bench(sub)
     _add_train(sub)
     _add_autolabel(sub)
+    _add_composite(sub)
     _add_export(sub)
     _add_eval(sub)
     _add_up(sub)
@@ -524,8 +568,8 @@ def main(argv: list[str] | None = None) -> int:
     _add_viz(sub)
     args = parser.parse_args(argv)
     runners = {"sim": _run_sim, "demo": _run_demo, "calibrate": _run_calibrate, "bench": _run_bench,
-               "train": _run_train, "autolabel": _run_autolabel, "export": _run_export, "eval": _run_eval,
-               "up": _run_up,
+               "train": _run_train, "autolabel": _run_autolabel, "composite": _run_composite, "export": _run_export,
+               "eval": _run_eval, "up": _run_up,
                "tracks": _run_tracks, "health": _run_health, "viz": _run_viz}
     try:
         return runners[args.job](args)
