@@ -338,8 +338,12 @@ def _add_composite(sub) -> None:
     p.add_argument("--camera", required=True, help="camera name written into the labels")
     p.add_argument("--out", type=Path, required=True, help="folder for labels.json, images/ and report.json")
     p.add_argument("--until", help="background from frames before this time of day HH:MM:SS only (training slice)")
+    p.add_argument("--placements", type=Path, help="where vehicles go: a roadside autolabel labels.json of this "
+                   "camera (positions and headings of the moving vehicles it found); without it, simulator traffic "
+                   "of --sim-site")
     p.add_argument("--sim-site", default="state_ellsworth",
-                   help="simulator site in the masks' site frame (name or YAML path) whose traffic is drawn")
+                   help="simulator site in the masks' site frame (name or YAML path): its traffic where no "
+                   "--placements are given, and its vehicle models")
     p.add_argument("--seconds", type=_positive_float, default=60.0, help="simulated traffic")
     p.add_argument("--hz", type=_positive_float, default=1.0, help="images per simulated second")
     p.add_argument("--seed", type=int, default=0)
@@ -363,7 +367,7 @@ def _run_composite(args) -> int:
 
         teacher = OnnxDetector(args.teacher, score_thr=cfg.teacher_thr, spin=False).detect
     report = composite_camera(args.frames, args.masks, args.out, args.camera, until, cfg,
-                              log=lambda m: print(m, file=sys.stderr), teacher=teacher)
+                              log=lambda m: print(m, file=sys.stderr), teacher=teacher, placements=args.placements)
     print(json.dumps(report, indent=1))
     return 0
 

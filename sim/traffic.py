@@ -62,6 +62,24 @@ class VehicleInfo:
     parked: bool
 
 
+def sample_vehicle(rng: np.random.Generator, vid: int = 0, parked: bool = False,
+                   allowed: tuple[str, ...] = VEHICLE_TYPES) -> VehicleInfo:
+    """A vehicle drawn from the type mix, size distributions and colour palette."""
+    shares = np.array([TYPE_SIZES[t][0] for t in allowed])
+    typ = allowed[int(rng.choice(len(allowed), p=shares / shares.sum()))]
+    _, lm, wm, hm = TYPE_SIZES[typ]
+    size = [float(np.clip(rng.normal(m, sd), m - 2.5 * sd, m + 2.5 * sd)) for m, sd in (lm, wm, hm)]
+    if typ == "bus":
+        color = [(230, 190, 30), (240, 240, 238), (40, 80, 150)][int(rng.integers(3))]
+    elif typ == "truck":
+        color = [(235, 235, 232), (200, 30, 30), (60, 90, 160), (240, 240, 240)][int(rng.integers(4))]
+    else:
+        shares = np.array([p for _, p in PALETTE])
+        base = PALETTE[int(rng.choice(len(PALETTE), p=shares / shares.sum()))][0]
+        color = tuple(int(np.clip(c + rng.normal(0, 8), 0, 255)) for c in base)
+    return VehicleInfo(vid, typ, size[0], size[1], size[2], tuple(color), parked)
+
+
 @dataclass
 class SceneState:
     """All vehicles at one instant (struct of arrays, N vehicles).
@@ -139,19 +157,7 @@ class TrafficSim:
 
     # ---- vehicles ---------------------------------------------------------------------------
     def _new_vehicle(self, parked: bool, allowed: tuple[str, ...] = VEHICLE_TYPES) -> VehicleInfo:
-        shares = np.array([TYPE_SIZES[t][0] for t in allowed])
-        typ = allowed[int(self.rng.choice(len(allowed), p=shares / shares.sum()))]
-        _, lm, wm, hm = TYPE_SIZES[typ]
-        size = [float(np.clip(self.rng.normal(m, sd), m - 2.5 * sd, m + 2.5 * sd)) for m, sd in (lm, wm, hm)]
-        if typ == "bus":
-            color = [(230, 190, 30), (240, 240, 238), (40, 80, 150)][int(self.rng.integers(3))]
-        elif typ == "truck":
-            color = [(235, 235, 232), (200, 30, 30), (60, 90, 160), (240, 240, 240)][int(self.rng.integers(4))]
-        else:
-            shares = np.array([p for _, p in PALETTE])
-            base = PALETTE[int(self.rng.choice(len(PALETTE), p=shares / shares.sum()))][0]
-            color = tuple(int(np.clip(c + self.rng.normal(0, 8), 0, 255)) for c in base)
-        info = VehicleInfo(self._next_id, typ, size[0], size[1], size[2], tuple(color), parked)
+        info = sample_vehicle(self.rng, self._next_id, parked, allowed)
         self.info[info.id] = info
         self._next_id += 1
         return info

@@ -15,7 +15,7 @@ from pipeline_fixtures import write_exact_masks
 
 from calibration.masks import load_masks
 from roadside.cli import main
-from training.composite import CompositeConfig, composite_camera, real_background
+from training.composite import CompositeConfig, composite_camera, load_placements, real_background
 from training.data import samples_from_coco
 
 CAMERA = "NE"
@@ -100,3 +100,50 @@ def test_the_labels_file_says_how_it_was_made(made):
     doc = json.loads((out / "labels.json").read_text())
     assert doc["info"]["config"]["seed"] == CFG.seed and doc["info"]["environment"]["name"] == "clear"
     assert json.loads((out / "report.json").read_text()) == report
+
+
+def _placements(recording: Path, masks: Path, path: Path) -> Path:
+    """A labels file as roadside autolabel writes it: ground positions and headings of vehicles near NE."""
+    m = load_masks(masks)
+    foot = np.asarray(m.meta["camera"]["pose"]["position_m"][:2])
+    anns = []
+    for line in (recording / "gt" / f"{CAMERA}.jsonl").read_text().splitlines():
+        for v in json.loads(line)["vehicles"]:
+            if not v["parked"] and np.hypot(*(np.asarray(v["xyz"][:2]) - foot)) < 25:
+                anns.append({"ground_xy_m": v["xyz"][:2], "ground_yaw_rad": v["yaw"]})
+    anns.append({"bbox": [0, 0, 5, 5], "iscrowd": 1})  # an ignore region: no placement
+    path.write_text(json.dumps({"images": [], "annotations": anns, "categories": []}))
+    return path
+
+
+def test_placements_put_vehicles_where_the_labels_file_saw_them(small_recording, masks, tmp_path):
+    pool = load_placements(_placements(small_recording, masks, tmp_path / "found.json"))
+    assert len(pool) >= 2 and pool.shape[1] == 3
+    cfg = CompositeConfig(seconds=2.0, hz=1.0, seed=5, roi_m=45.0, vehicles_per_image=(2, 4), along_m=3.0)
+    report = composite_camera(small_recording / "frames" / CAMERA, masks, tmp_path / "out", CAMERA, None, cfg,
+                              log=None, placements=tmp_path / "found.json")
+    assert report["placements"] == len(pool) and report["vehicles"] >= 2, report
+    m = load_masks(masks)
+    for ref in samples_from_coco(tmp_path / "out" / "labels.json"):
+        s = ref.load()
+        assert 1 <= int(np.sum(s.weight > 0)) <= 4
+        full_uv = (s.bottom_uv[s.weight > 0] + 0.5) * 2 - 0.5
+        _, xy, ok = m.lookup(full_uv)
+        assert ok.all()
+        # moved along its heading by up to 3 m; the masks' ground is the simulator's terrain, the placements'
+        # a plane, which moves a point seen obliquely by a few decimetres
+        nearest = np.min(np.linalg.norm(xy[:, None] - pool[None, :, :2], axis=2), axis=1)
+        assert np.all(nearest < 3.0 + 1.0), nearest
+
+
+def test_bad_placements_are_named(tmp_path):
+    with pytest.raises(ValueError, match="placements file not found"):
+        load_placements(tmp_path / "none.json")
+    (tmp_path / "empty.json").write_text(json.dumps({"images": [], "annotations": [{"bbox": [0, 0, 1, 1]}]}))
+    with pytest.raises(ValueError, match="no vehicle with a ground position and heading"):
+        load_placements(tmp_path / "empty.json")
+    (tmp_path / "bad.json").write_text("[1, 2]")
+    with pytest.raises(ValueError, match="not a roadside autolabel labels file"):
+        load_placements(tmp_path / "bad.json")
+    with pytest.raises(ValueError, match="vehicles_per_image"):
+        CompositeConfig(vehicles_per_image=(5, 2))

@@ -7,11 +7,19 @@ Per camera (one folder of frames, capture time in the file names, and the camera
 2. Camera: the calibrated camera model and pose stored in the masks (`meta.camera`, written by `roadside
    calibrate`). Vehicles are projected through it, so a label lands where the vehicle is drawn whatever the
    calibration's error on the real ground.
-3. Vehicles: simulator traffic on a simulator site in the same site frame (the same geodetic origin; for the
-   State/Ellsworth cameras `sim/sites/state_ellsworth.yaml`, a replica of the roundabout), rendered by the
-   simulator's renderer through that camera over the real background instead of the simulated world: vehicle
-   bodies and their shadows on the ground, occluded only by each other (the real posts and trees in front of a
-   vehicle are not known, so vehicles are drawn over them).
+3. Vehicles, placed one of two ways:
+   - `placements` (the real site): a labels file of `roadside autolabel` for the same camera and slice. Each
+     image gets 3-10 vehicles at the ground positions and headings of moving vehicles found there (so on the
+     real lanes, going the real way), each moved along its heading by up to 5 m and given a type, size and
+     colour from the simulator's mix; vehicles that would overlap are not placed. The ground is the
+     calibration's plane (z = 0).
+   - none: simulator traffic on the simulator site `sim_site`, in the same site frame (the same geodetic
+     origin) and on its terrain; right where the simulator site is the camera's own (tests, simulated
+     sites). (`sim/sites/state_ellsworth.yaml` shares the real roundabout's origin, but its roads do not
+     lie on the real ones.)
+   The simulator's renderer draws them through the camera over the real background instead of the simulated
+   world: vehicle bodies and their shadows on the ground, occluded only by each other (the real posts and
+   trees in front of a vehicle are not known, so vehicles are drawn over them).
 4. Labels: the simulator's exact ground truth and label policy (training.data: a vehicle mostly hidden by
    another is an ignore region), type and size included.
 5. What the labels may miss: a vehicle standing still through the whole slice is part of the background and
@@ -57,6 +65,8 @@ class CompositeConfig:
     demand_scale: float = 1.0
     background_frames: int = 120  # at most this many frames (evenly spread) make the median
     teacher_thr: float = 0.5  # high: a teacher's false alarms (painted words) are what composites correct
+    vehicles_per_image: tuple[int, int] = (3, 10)  # with placements: drawn uniformly in this range
+    along_m: float = 5.0  # with placements: each vehicle moved along its heading by up to this
 
     def __post_init__(self) -> None:
         if not 0 < self.scale <= 1:
@@ -71,6 +81,77 @@ class CompositeConfig:
             raise ValueError("seed must be >= 0, max_vehicles >= 1, background_frames >= 1")
         if not 0 < self.teacher_thr <= 1:
             raise ValueError(f"teacher_thr must be in (0, 1], got {self.teacher_thr}")
+        lo, hi = self.vehicles_per_image
+        if not 1 <= lo <= hi:
+            raise ValueError(f"vehicles_per_image must be (low, high) with 1 <= low <= high, got {(lo, hi)}")
+        if not (math.isfinite(self.along_m) and self.along_m >= 0):
+            raise ValueError(f"along_m must be >= 0, got {self.along_m}")
+
+
+def load_placements(labels_json: str | Path) -> np.ndarray:
+    """(N, 3) x, y (site metres), yaw (rad) of the labelled moving vehicles in a `roadside autolabel` file."""
+    path = Path(labels_json)
+    if not path.is_file():
+        raise ValueError(f"placements file not found: {path}")
+    try:
+        anns = json.loads(path.read_text())["annotations"]
+        rows = [[*a["ground_xy_m"], a["ground_yaw_rad"]] for a in anns
+                if "ground_xy_m" in a and "ground_yaw_rad" in a]
+    except (json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: not a roadside autolabel labels file ({exc})") from None
+    out = np.asarray(rows, np.float64).reshape(-1, 3)
+    if not len(out) or not np.isfinite(out).all():
+        raise ValueError(f"{path}: no vehicle with a ground position and heading (ground_xy_m, ground_yaw_rad)")
+    return out
+
+
+def _corners(xy: np.ndarray, yaw: float, lw: tuple[float, float]) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    local = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]]) * (np.asarray(lw) / 2)
+    return xy + local @ np.array([[c, s], [-s, c]])
+
+
+def _overlap(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two convex quadrilaterals (4, 2) overlap (separating axis test)."""
+    for poly in (a, b):
+        for k in range(4):
+            edge = poly[(k + 1) % 4] - poly[k]
+            axis = np.array([-edge[1], edge[0]])
+            pa, pb = a @ axis, b @ axis
+            if pa.max() <= pb.min() or pb.max() <= pa.min():
+                return False
+    return True
+
+
+def placed_scene(pool: np.ndarray, rng: np.random.Generator, cfg: CompositeConfig, t_s: float):
+    """A SceneState of vehicles at pool positions (moved along their heading), none overlapping another."""
+    from sim.traffic import VEHICLE_TYPES as SIM_TYPES
+    from sim.traffic import SceneState, sample_vehicle
+
+    want = int(rng.integers(cfg.vehicles_per_image[0], cfg.vehicles_per_image[1] + 1))
+    xy, yaw, infos, shapes = [], [], [], []
+    for k in rng.permutation(len(pool))[: want * 4]:
+        if len(infos) == want:
+            break
+        info = sample_vehicle(rng, len(infos) + 1)
+        a = float(pool[k, 2] + rng.normal(0, 0.05))
+        p = pool[k, :2] + rng.uniform(-cfg.along_m, cfg.along_m) * np.array([math.cos(a), math.sin(a)])
+        shape = _corners(p, a, (info.length_m + 0.6, info.width_m + 0.4))  # a little room around each
+        if any(_overlap(shape, other) for other in shapes):
+            continue
+        xy.append(p)
+        yaw.append(a)
+        infos.append(info)
+        shapes.append(shape)
+    n = len(infos)
+    return SceneState(
+        t_s=t_s, ids=np.arange(1, n + 1), xy=np.asarray(xy, np.float64).reshape(n, 2),
+        yaw=np.asarray(yaw, np.float64),
+        lwh=np.array([[i.length_m, i.width_m, i.height_m] for i in infos]).reshape(n, 3),
+        speed=np.zeros(n), velocity=np.zeros((n, 2)),
+        type_idx=np.array([SIM_TYPES.index(i.type) for i in infos], np.int64),
+        colors=np.array([i.color for i in infos], np.uint8).reshape(n, 3), parked=np.zeros(n, bool),
+        ped_xy=np.zeros((0, 2)), ped_yaw=np.zeros(0), ped_color=np.zeros((0, 3), np.uint8))
 
 
 def real_background(frames_dir: str | Path, size: tuple[int, int], until: time | None,
@@ -121,10 +202,11 @@ def backdrop_renderer(cam, world, env, shadows, bg_bgr: np.ndarray, shadow: floa
 
 def composite_camera(frames_dir: str | Path, masks_path: str | Path, out_dir: str | Path, camera: str,
                      until: time | None = None, cfg: CompositeConfig | None = None, log=print,
-                     teacher=None) -> dict:
+                     teacher=None, placements: str | Path | None = None) -> dict:
     """Write `out_dir`/images/*.png and `out_dir`/labels.json (COCO-style) for one camera; returns the report
     (also in `out_dir`/report.json). `teacher`: a detector (grey image -> detections with score, uv, box)
-    whose detections on the background become ignore regions (module doc, step 5); None: no teacher."""
+    whose detections on the background become ignore regions (module doc, step 5); None: no teacher.
+    `placements`: a `roadside autolabel` labels file of this camera (module doc, step 3)."""
     from shared.cameras import Camera
     from sim.groundtruth import frame_ground_truth
     from sim.render import ShadowCaster, build_world, sample_environment
@@ -142,8 +224,11 @@ def composite_camera(frames_dir: str | Path, masks_path: str | Path, out_dir: st
     if (cam.width, cam.height) != (masks.shape[1], masks.shape[0]):
         raise ValueError(f"{masks_path}: camera model is {cam.width}x{cam.height}, masks "
                          f"{masks.shape[1]}x{masks.shape[0]}")
+    pool = load_placements(placements) if placements is not None else None
     site = load_site(cfg.sim_site)
     _check_same_frame(masks.meta, site, masks_path)
+    if pool is not None:  # the calibration's ground plane, not the simulator site's terrain
+        site = site.model_copy(update={"terrain": {}})
     view = GroundView(masks, cfg.scale, cfg.roi_m)
     ws, hs = view.valid.shape[1], view.valid.shape[0]
     bg, n_bg = real_background(frames_dir, view.size, until, cfg.background_frames)
@@ -152,8 +237,10 @@ def composite_camera(frames_dir: str | Path, masks_path: str | Path, out_dir: st
     env = sample_environment(np.random.default_rng([cfg.seed, 31]), cfg.weather)
     hz = cfg.hz
     times = np.arange(int(math.floor(cfg.seconds * hz + 1e-9))) / hz
-    history = simulate_traffic(site, world.net, cfg.seconds + 1.0 / hz, cfg.seed, max_vehicles=cfg.max_vehicles,
-                               demand_scale=cfg.demand_scale)
+    history = None
+    if pool is None:
+        history = simulate_traffic(site, world.net, cfg.seconds + 1.0 / hz, cfg.seed,
+                                   max_vehicles=cfg.max_vehicles, demand_scale=cfg.demand_scale)
     shadows = ShadowCaster(world, env)
     renderer = backdrop_renderer(cam, world, env, shadows, bg, cfg.shadow, seed=cfg.seed)
 
@@ -173,7 +260,10 @@ def composite_camera(frames_dir: str | Path, masks_path: str | Path, out_dir: st
     images, annotations = [], []
     n = {"vehicles": 0, "ignored_hidden": 0, "ignored_outside_roi": 0, "ignored_teacher": 0}
     for i, t in enumerate(times):
-        scene = history.state_at(float(t))
+        if history is None:
+            scene = placed_scene(pool, np.random.default_rng([cfg.seed, 37, i]), cfg, float(t))
+        else:
+            scene = history.state_at(float(t))
         res = renderer.render(scene, np.random.default_rng([cfg.seed, 29, i]))
         vehicles = frame_ground_truth(cam, scene, res, site.ground, site.geo)
         labels, _, _ = _recording_labels(vehicles, f"{camera} composite frame {i}")
@@ -210,10 +300,12 @@ def composite_camera(frames_dir: str | Path, masks_path: str | Path, out_dir: st
             n["ignored_teacher"] += 1
     categories = [{"id": 0, "name": "vehicle"}] + [{"id": k + 1, "name": v} for k, v in enumerate(VEHICLE_TYPES)]
     doc = {"info": {"description": f"roadside composite of {camera}: simulated vehicles over {frames_dir}",
-                    "config": asdict(cfg), "environment": env.to_dict()},
+                    "config": asdict(cfg), "environment": env.to_dict(),
+                    "placements": None if placements is None else str(placements)},
            "images": images, "annotations": annotations, "categories": categories}
     (out_dir / "labels.json").write_text(json.dumps(doc))
-    report = {"camera": camera, "images": len(images), "background_frames": n_bg, **n,
+    report = {"camera": camera, "images": len(images), "background_frames": n_bg,
+              "placements": None if pool is None else len(pool), **n,
               "teacher_regions": len(ignore_boxes), "wall_s": round(clock.perf_counter() - wall0, 1)}
     (out_dir / "report.json").write_text(json.dumps(report, indent=1))
     if log:
