@@ -43,11 +43,10 @@ import cv2
 import numpy as np
 
 from calibration.masks import load_masks
-from training.autolabel import GroundView, _read, background, list_frames
+from training.autolabel import COCO_PIXEL_OFFSET, GroundView, _read, background, list_frames
 from training.data import _recording_labels
 from training.sample import VEHICLE_TYPES
 
-COCO_PIXEL_OFFSET = 0.5  # COCO coordinate = our pixel-centre coordinate + 0.5 (as training.data)
 ORIGIN_TOL_DEG = 1e-7  # ~1 cm: the masks and the simulator site must share the site frame
 
 
