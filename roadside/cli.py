@@ -310,16 +310,21 @@ def _time_of_day(text: str | None):
         raise ValueError(f"--until must be a time of day HH:MM:SS, got {text!r}") from None
 
 
+def _teacher(model: Path | None, score_thr: float):
+    """The detect function of a teacher model (autolabel, composite), None without one."""
+    if model is None:
+        return None
+    from shared.inference import OnnxDetector
+
+    return OnnxDetector(model, score_thr=score_thr, spin=False).detect
+
+
 def _run_autolabel(args) -> int:
     from training.autolabel import AutolabelConfig, autolabel_camera, score_labels
 
     until = _time_of_day(args.until)
     cfg = AutolabelConfig(roi_m=args.roi_m, teacher_thr=args.teacher_thr, ignore_small=args.ignore_small)
-    teacher = None
-    if args.teacher:
-        from shared.inference import OnnxDetector
-
-        teacher = OnnxDetector(args.teacher, score_thr=cfg.teacher_thr, spin=False).detect
+    teacher = _teacher(args.teacher, cfg.teacher_thr)
     report = autolabel_camera(args.frames, args.masks, args.out, args.camera, until, cfg,
                               log=lambda m: print(m, file=sys.stderr), teacher=teacher)
     if args.truth:
@@ -361,11 +366,7 @@ def _run_composite(args) -> int:
     until = _time_of_day(args.until)
     cfg = CompositeConfig(sim_site=args.sim_site, seconds=args.seconds, hz=args.hz, seed=args.seed,
                           roi_m=args.roi_m, demand_scale=args.demand_scale, teacher_thr=args.teacher_thr)
-    teacher = None
-    if args.teacher:
-        from shared.inference import OnnxDetector
-
-        teacher = OnnxDetector(args.teacher, score_thr=cfg.teacher_thr, spin=False).detect
+    teacher = _teacher(args.teacher, cfg.teacher_thr)
     report = composite_camera(args.frames, args.masks, args.out, args.camera, until, cfg,
                               log=lambda m: print(m, file=sys.stderr), teacher=teacher, placements=args.placements)
     print(json.dumps(report, indent=1))

@@ -347,7 +347,8 @@ def headings(per_frame: list[list[Blob]], times_s: np.ndarray, cfg: AutolabelCon
 
 
 def teacher_regions(frames: list[np.ndarray], view: GroundView, detect, cfg: AutolabelConfig) -> list[list]:
-    """Per frame, the teacher's detections in the ROI (score >= `teacher_thr`) as (ground point, box)."""
+    """Per frame (BGR), the teacher's detections in the ROI (score >= `cfg.teacher_thr`) as (ground point, box).
+    Also used by training.composite on its background (its config has the same `teacher_thr`)."""
     out = []
     hs, ws = view.valid.shape
     for frame in frames:

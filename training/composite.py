@@ -43,7 +43,7 @@ import cv2
 import numpy as np
 
 from calibration.masks import load_masks
-from training.autolabel import COCO_PIXEL_OFFSET, GroundView, _read, background, list_frames
+from training.autolabel import COCO_PIXEL_OFFSET, GroundView, _read, background, list_frames, teacher_regions
 from training.data import _recording_labels
 from training.sample import VEHICLE_TYPES
 
@@ -246,12 +246,9 @@ def composite_camera(frames_dir: str | Path, masks_path: str | Path, out_dir: st
     bg_small = cv2.resize(cv2.cvtColor(bg, cv2.COLOR_BGR2GRAY), (ws, hs), interpolation=cv2.INTER_AREA)
     fill = np.uint8(round(float(bg_small[view.roi].mean()))) if view.roi.any() else np.uint8(128)
     ignore_boxes = []
-    if teacher is not None:
-        d = teacher(bg_small)
-        for k in np.nonzero(np.asarray(d.score) >= cfg.teacher_thr)[0]:
-            u, v = (int(round(c)) for c in d.uv[k])
-            if 0 <= u < ws and 0 <= v < hs and view.roi[v, u]:
-                ignore_boxes.append([float(c) for c in d.box[k]])
+    if teacher is not None:  # the background is one frame for autolabel's teacher step
+        bg_at_scale = cv2.resize(bg, (ws, hs), interpolation=cv2.INTER_AREA)
+        ignore_boxes = [box for _, box in teacher_regions([bg_at_scale], view, teacher, cfg)[0]]
 
     out_dir = Path(out_dir)
     (out_dir / "images").mkdir(parents=True, exist_ok=True)
