@@ -170,6 +170,9 @@ def _add_train(sub) -> None:
                    help="weight of the heading term (default 0.01, the paper's)")
     p.add_argument("--beta-box", type=float, default=0.0,
                    help="extra weight of the 2D box (width, height, centre offset); default 0, the paper's loss")
+    p.add_argument("--fisheye-rotation", choices=["any", "quarter", "off"], default="any",
+                   help="augmentation: turn fisheye crops about the principal point by any angle (2D boxes "
+                        "approximated), by multiples of 90 degrees (boxes exact) or not at all")
     p.add_argument("--input-long-side", type=int,
                    help="network input: images shrunk so their longer side is at most this (default 640, or the "
                         "--init model's); with --init, the starting weights are kept")
@@ -183,6 +186,7 @@ def _run_train(args) -> int:
         from training.train import TrainConfig, train
     except ImportError as exc:
         raise RuntimeError(f"training needs the train extra (pip install -e '.[train]'): {exc}") from exc
+    from training.augment import AugmentConfig
     from training.loss import LossConfig
     from training.model import DetectorConfig
 
@@ -191,6 +195,7 @@ def _run_train(args) -> int:
                       minutes=args.minutes, batch_size=args.batch_size, crop=args.crop, lr=args.lr, every=args.every,
                       center=args.center, seed=args.seed, init=args.init, add_axis_head=args.axis_head,
                       input_long_side=args.input_long_side,
+                      augment=AugmentConfig(fisheye_rotation=args.fisheye_rotation),
                       model=DetectorConfig(stride=args.stride, axis_head=args.axis_head),
                       loss=LossConfig(topk_fraction=None if args.no_topk else 0.01, beta_box=args.beta_box,
                                       **({} if args.beta_heading is None else {"beta_heading": args.beta_heading})))

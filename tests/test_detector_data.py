@@ -363,6 +363,26 @@ def test_fisheye_rotation_is_about_the_principal_point():
     np.testing.assert_allclose(out.heading_uv, pinhole.heading_uv[out.meta["track_id"]], atol=1e-12)
 
 
+def test_quarter_turns_keep_every_box_exact():
+    rng = np.random.default_rng(4)
+    sample = _dot_sample(rng, "fisheye")
+    config = AugmentConfig(scale_range=(1.0, 1.0), flip_prob=0.0, focus_prob=0.0, photometric=False,
+                           fisheye_rotation="quarter")
+    turns = set()
+    for _ in range(12):
+        out = augment(sample, rng, out_hw=(400, 400), config=config)
+        _check_dots(out, sample)
+        src = sample.box[out.meta["track_id"]]
+        wh, src_wh = out.box[:, 2:] - out.box[:, :2], src[:, 2:] - src[:, :2]
+        inside = (out.box[:, 0] > -0.5) & (out.box[:, 1] > -0.5) & (out.box[:, 2] < 399.5) & (out.box[:, 3] < 399.5)
+        turned = np.allclose(wh[inside], src_wh[inside][:, ::-1])
+        assert turned or np.allclose(wh[inside], src_wh[inside])  # a box is kept or its sides swap, exactly
+        a = sample.heading_uv[out.meta["track_id"][0]]
+        b = out.heading_uv[0]
+        turns.add(round(math.degrees(math.atan2(a[0] * b[1] - a[1] * b[0], a @ b))) % 360)
+    assert turns <= {0, 90, 180, 270} and len(turns) >= 3
+
+
 def test_flip_crop_and_scale_are_exact():
     sample = _dot_sample(np.random.default_rng(5), "pinhole")
     # flip and shift: u' = c - u, v' = v + 10, with c putting one dot 3 px left of the output
@@ -430,6 +450,8 @@ def test_bad_augment_config_is_named():
         AugmentConfig(scale_range=(1.3, 0.7))
     with pytest.raises(ValueError, match="flip_prob must be in"):
         AugmentConfig(flip_prob=2.0)
+    with pytest.raises(ValueError, match="fisheye_rotation must be one of"):
+        AugmentConfig(fisheye_rotation=True)
 
 
 # ---- batches ------------------------------------------------------------------------------------

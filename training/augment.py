@@ -44,6 +44,7 @@ from training.sample import Sample
 GREY = 128  # padding where the output crop extends past the (warped) source image
 # meta entries that hold one value per vehicle; kept in step when vehicles are dropped
 PER_VEHICLE_META = ("track_id", "parked")
+FISHEYE_ROTATIONS = ("any", "quarter", "off")
 
 
 @dataclass(frozen=True)
@@ -52,7 +53,9 @@ class AugmentConfig:
 
     scale_range         zoom factor drawn uniformly from this range (1 = the sample's own resolution)
     flip_prob           probability of a horizontal flip
-    fisheye_rotation    rotate fisheye samples by a uniform random angle about the principal point
+    fisheye_rotation    how fisheye samples are turned about the principal point: "any" (a uniform random
+                        angle; boxes approximated, see the module docstring), "quarter" (a random multiple of
+                        90 degrees: boxes exact) or "off"
     focus_prob          probability of centring the crop near a random positive (else uniform crop)
     photometric         apply the intensity jitter below at all (False: geometry only)
     gamma_range         gamma of (x / 255) ** gamma
@@ -64,7 +67,7 @@ class AugmentConfig:
 
     scale_range: tuple[float, float] = (0.7, 1.3)
     flip_prob: float = 0.5
-    fisheye_rotation: bool = True
+    fisheye_rotation: str = "any"
     focus_prob: float = 0.5
     photometric: bool = True
     gamma_range: tuple[float, float] = (0.7, 1.4)
@@ -90,6 +93,9 @@ class AugmentConfig:
             p = getattr(self, name)
             if not 0.0 <= p <= 1.0:
                 raise ValueError(f"AugmentConfig.{name} must be in [0, 1], got {p}")
+        if self.fisheye_rotation not in FISHEYE_ROTATIONS:
+            raise ValueError(f"AugmentConfig.fisheye_rotation must be one of {FISHEYE_ROTATIONS}, "
+                             f"got {self.fisheye_rotation!r}")
         if not 0.0 <= self.noise_sigma_max < 128:
             raise ValueError(f"AugmentConfig.noise_sigma_max must be in [0, 128), got {self.noise_sigma_max}")
 
@@ -190,11 +196,14 @@ def random_affine(
     h, w = sample.shape
     out_h, out_w = out_hw
     m = np.eye(3)
-    if config.fisheye_rotation and sample.meta.get("kind") == "fisheye":
+    if config.fisheye_rotation != "off" and sample.meta.get("kind") == "fisheye":
         pp = sample.meta.get("principal_point")
         cx, cy = ((w - 1) / 2, (h - 1) / 2) if pp is None else (float(pp[0]), float(pp[1]))
-        angle = rng.uniform(0.0, 2.0 * math.pi)
-        c, s = math.cos(angle), math.sin(angle)
+        if config.fisheye_rotation == "quarter":
+            c, s = [(1.0, 0.0), (0.0, 1.0), (-1.0, 0.0), (0.0, -1.0)][int(rng.integers(4))]
+        else:
+            angle = rng.uniform(0.0, 2.0 * math.pi)
+            c, s = math.cos(angle), math.sin(angle)
         m = _translate(cx, cy) @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ _translate(-cx, -cy) @ m
     zoom = rng.uniform(*config.scale_range)
     m = np.diag([zoom, zoom, 1.0]) @ m
