@@ -1,11 +1,13 @@
 """Detector latency: ONNX Runtime ms per frame (median after warm-up) for one (1, 1, S, S) input, fp32 on
 CPU with a fixed thread count and, where the CUDA or TensorRT providers exist, fp16 on them; plus MACs.
+`cpu_fp32_throughput` compares, in the same run, frames/s of one inference at a time with `threads` threads
+against `workers` single-threaded inferences side by side (how the detect service runs on a CPU).
 The load average is recorded: on a shared machine the CPU numbers are upper bounds.
 Without --model an untrained default model (or --stride variant) is exported and timed, labelled
 untrained-for-timing-only. Prints one JSON document.
 
     python -m bench.detector [--model detector.onnx] [--model-fp16 detector_fp16.onnx] [--size 512]
-                             [--height H] [--threads 2] [--runs 50] [--warmup 10] [--stride 4]
+                             [--height H] [--threads 2] [--workers 2] [--runs 50] [--warmup 10] [--stride 4]
 
 --height makes the input S wide and H high (a fisheye frame at full resolution: --size 1280 --height 960).
 """
@@ -19,6 +21,7 @@ import platform
 import statistics
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -44,6 +47,7 @@ class BenchSettings:
     warmup: int = 10
     stride: int = 4
     height_px: int | None = None  # None: square (size_px)
+    workers: int = 2
 
     @property
     def hw(self) -> tuple[int, int]:
@@ -53,7 +57,7 @@ class BenchSettings:
         for name, v in (("size_px", self.size_px), ("height_px", self.height_px or 32)):
             if v % 32 or v < 32:
                 raise ValueError(f"{name} must be a positive multiple of 32, got {v}")
-        for name in ("threads", "runs"):
+        for name in ("threads", "runs", "workers"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
 
@@ -69,6 +73,20 @@ def time_session(session: ort.InferenceSession, image: np.ndarray, runs: int, wa
         times.append((time.perf_counter() - t0) * 1e3)
     return {"median_ms": round(statistics.median(times), 2), "min_ms": round(min(times), 2),
             "p90_ms": round(float(np.percentile(times, 90)), 2), "runs": runs}
+
+
+def side_by_side_fps(path: Path, image: np.ndarray, workers: int, runs: int, warmup: int) -> float:
+    """Frames/s of `workers` single-threaded inferences of one session run side by side (a thread pool;
+    ONNX Runtime releases the GIL), over `runs` frames per worker after `warmup` each."""
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 1
+    options.inter_op_num_threads = 1
+    session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    with ThreadPoolExecutor(workers) as pool:
+        list(pool.map(lambda _: session.run(None, {INPUT_NAME: image}), range(warmup * workers)))
+        t0 = time.perf_counter()
+        list(pool.map(lambda _: session.run(None, {INPUT_NAME: image}), range(runs * workers)))
+        return runs * workers / (time.perf_counter() - t0)
 
 
 def run(settings: BenchSettings, workdir: Path) -> dict:
@@ -95,6 +113,13 @@ def run(settings: BenchSettings, workdir: Path) -> dict:
     out["macs"] = count_macs(Detector(config), h, w)
     image = np.random.default_rng(0).random((1, 1, h, w), dtype=np.float32)
     out["cpu_fp32"] = {"threads": settings.threads, **time_session(session, image, settings.runs, settings.warmup)}
+    t0 = time.perf_counter()
+    time_session(session, image, settings.runs, 0)
+    one = settings.runs / (time.perf_counter() - t0)
+    side = side_by_side_fps(fp32, image, settings.workers, settings.runs, settings.warmup)
+    out["cpu_fp32_throughput"] = {f"one_at_a_time_{settings.threads}_threads_fps": round(one, 1),
+                                  f"{settings.workers}_workers_1_thread_fps": round(side, 1),
+                                  "ratio": round(side / one, 3)}
     for provider in GPU_PROVIDERS:
         if provider not in ort.get_available_providers() or fp16 is None:
             continue
@@ -118,11 +143,12 @@ def _parse(argv: list[str] | None = None) -> BenchSettings:
     p.add_argument("--size", type=int, default=512, help="input width (and height, without --height) in pixels")
     p.add_argument("--height", type=int, help="input height in pixels (default: --size)")
     p.add_argument("--threads", type=int, default=2, help="ONNX Runtime intra-op threads on CPU")
+    p.add_argument("--workers", type=int, default=2, help="single-threaded inferences side by side (throughput)")
     p.add_argument("--runs", type=int, default=50)
     p.add_argument("--warmup", type=int, default=10)
     p.add_argument("--stride", type=int, default=4, help="output stride of the untrained model")
     a = p.parse_args(argv)
-    return BenchSettings(a.model, a.model_fp16, a.size, a.threads, a.runs, a.warmup, a.stride, a.height)
+    return BenchSettings(a.model, a.model_fp16, a.size, a.threads, a.runs, a.warmup, a.stride, a.height, a.workers)
 
 
 if __name__ == "__main__":

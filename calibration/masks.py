@@ -52,11 +52,12 @@ class LookupMasks:
             raise ValueError("the masks carry no camera pose (meta.camera.pose.position_m): "
                              "build them with roadside calibrate") from None
 
-    def lookup(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def lookup(self, uv: np.ndarray, geodetic: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Bilinear lookup at sub-pixel positions.
 
         uv (N, 2) pixels -> (latlon (N, 2) float64 degrees, xy (N, 2) float64 metres, valid (N,)).
-        A position is valid when its four neighbouring pixel centres are all valid.
+        A position is valid when its four neighbouring pixel centres are all valid. `geodetic=False`
+        leaves latlon NaN (metres only).
         """
         if self.lat.size == 0 and self.valid.size:
             raise ValueError("these masks were loaded without latitude/longitude (load_masks(with_latlon=False)): "
@@ -64,8 +65,11 @@ class LookupMasks:
         cells = bilinear_cells(uv, *self.valid.shape)
         v0, u0, _, _, inside = cells
         ok = inside & self.valid[v0, u0] & self.valid[v0, u0 + 1] & self.valid[v0 + 1, u0] & self.valid[v0 + 1, u0 + 1]
-        latlon = np.column_stack([bilinear(self.lat, cells)[:, 0], bilinear(self.lon, cells)[:, 0]])
         xy = bilinear(self.xy, cells)
+        if not geodetic:
+            xy[~ok] = np.nan
+            return np.full_like(xy, np.nan), xy, ok
+        latlon = np.column_stack([bilinear(self.lat, cells)[:, 0], bilinear(self.lon, cells)[:, 0]])
         latlon[~ok] = np.nan
         xy[~ok] = np.nan
         return latlon, xy, ok

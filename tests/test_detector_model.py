@@ -218,6 +218,18 @@ def test_decode_threshold_and_top_k():
     assert len(decode(*maps, stride=4, top_k=0)) == 0
 
 
+def test_peak_mask_is_the_3x3_maximum_everywhere():
+    rng = np.random.default_rng(0)
+    for shape in [(1, 1), (1, 5), (4, 1), (7, 9), (120, 160)]:
+        for levels in (None, 4):  # continuous values, and coarse ones with plateaus
+            heat = rng.random(shape).astype(np.float32)
+            if levels:
+                heat = np.round(heat * levels) / levels
+            padded = np.pad(heat, 1, constant_values=-np.inf)
+            want = heat == np.max([padded[i:i + shape[0], j:j + shape[1]] for i in range(3) for j in range(3)], axis=0)
+            np.testing.assert_array_equal(peak_mask(heat), want, err_msg=f"{shape} {levels}")
+
+
 def test_peak_mask_plateau_and_border():
     heat = np.array([[0.5, 0.5, 0.1], [0.2, 0.1, 0.0], [0.0, 0.0, 0.3]])
     np.testing.assert_array_equal(peak_mask(heat), [[1, 1, 0], [0, 0, 0], [0, 0, 1]])

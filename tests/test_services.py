@@ -246,6 +246,36 @@ def test_ingest_decodes_each_camera_as_small_as_the_detector_allows():
     assert decode_scale_for(1280, 960, 2000) == 1  # never larger than the camera's image
 
 
+def test_detect_workers_infer_a_burst_side_by_side_and_publish_each_frame_once(site, site_name, small_recording,
+                                                                              port_base, peer, launch):
+    peer.subscribe("detections", camera_key(site_name, CAMERA, "detections"), Detections)
+    detect = launch("detect", site, *bus_sets(port_base), "detect.workers=2", "detect.threads=1", "detect.ring=8")
+    assert peer.wait_alive(alive_key(site_name, "detect", CAMERA), 1, WAIT_S), detect.log()
+    key = camera_key(site_name, CAMERA, "frame")
+    warm_up(peer, key, encode(good_frame(site_name, small_recording, 0)), lambda: peer.got["detections"], "a frame")
+    for seq in range(1, 7):
+        peer.put(key, encode(good_frame(site_name, small_recording, seq)))
+    assert peer.wait_for(lambda: {d.seq for d in peer.got["detections"]} >= set(range(1, 7)), WAIT_S), detect.log()
+    assert_clean_exit(detect, detect.terminate())
+    seqs = [d.seq for d in peer.got["detections"] if d.seq > 0]
+    assert sorted(seqs) == list(range(1, 7))  # every frame once, none lost or doubled by the pool
+    assert "2 workers x 1 threads" in detect.log()
+
+
+def test_detect_keeps_the_newest_frames_per_camera_oldest_first():
+    from services.detect.__main__ import newest_per_camera
+
+    def frame(cam: str, seq: int) -> tuple[int, Frame]:
+        return seq, Frame(site="s", camera=cam, seq=seq, t_capture_ns=T0 + seq * TICK_NS, camera_kind="fisheye",
+                          encoding="gray8", width=2, height=1, scale=1.0, data=b"ab", stamps=[])
+
+    waiting = [frame("NE", 3), frame("SW", 1), frame("NE", 1), frame("NE", 2), frame("SW", 4)]
+    kept = newest_per_camera(waiting, 2)
+    assert [(f.camera, f.seq) for _, f in kept] == [("SW", 1), ("NE", 2), ("NE", 3), ("SW", 4)]
+    assert [(f.camera, f.seq) for _, f in newest_per_camera(waiting, 1)] == [("NE", 3), ("SW", 4)]
+    assert newest_per_camera([], 2) == []
+
+
 # --- b. bad input on the bus at every service -----------------------------------------------------------------------
 
 

@@ -7,6 +7,10 @@ frames): a detector slower than the cameras drops old frames, it never queues th
 from several cameras are taken oldest capture time first. Execution providers are chosen at start
 (TensorRT -> CUDA -> CPU); on a GPU the fp16 model (`detect.model_gpu`) is used, on CPU the fp32 one.
 Detections are published in original-sensor pixels on `roadside/<site>/cam/<camera>/detections`.
+`detect.workers` frames are inferred at once, each with `detect.threads` ONNX Runtime threads (one session,
+run from a thread pool; the runtime releases the GIL): on a CPU two single-threaded inferences side by side
+take 27 % more frames per second than one two-threaded inference, at a higher latency per frame
+(shared/settings.py). Detections of one camera may then be published slightly out of capture order.
 A frame decoded smaller than the model's input needs (`Frame.scale`: ingest's `decode_long_side` below the
 model's `input_long_side`) is enlarged back to the scale the model was trained at, with one warning per camera.
 """
@@ -16,6 +20,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import cv2
 import numpy as np
@@ -76,10 +81,13 @@ def detections_message(frame: Frame, det, infer_ms: float, t_in_ns: int) -> Dete
 
 def main(settings: Settings, stopper: Stopper) -> int:
     detector = load_detector(settings)
-    log.info("model %s on %s", detector.path, detector.providers)
+    workers = settings.detect.workers
+    log.info("model %s on %s, %d workers x %d threads", detector.path, detector.providers, workers,
+             settings.detect.threads)
     cams = [c.name for c in settings.cameras]
     bad = BadInput("detect")
     session = open_session(settings, "detect")
+    pool = ThreadPoolExecutor(workers, thread_name_prefix="infer")
     try:
         wake = threading.Event()
         receivers = {c: Receiver(session, camera_key(settings.site, c, "frame"), Frame, bad,
@@ -87,8 +95,15 @@ def main(settings: Settings, stopper: Stopper) -> int:
         pubs = {c: session.declare_publisher(camera_key(settings.site, c, "detections")) for c in cams}
         tokens = declare_alive(session, settings.site, "detect", cams)  # after the subscribers: ready
         waiting: list[tuple[int, Frame]] = []
+        running: list[tuple[Future, Frame, int]] = []
         warned: set[str] = set()  # cameras whose frames come too small for the model
         done = 0
+
+        def infer(img: np.ndarray, scale: float):
+            t0 = time.perf_counter()
+            det = detector.detect(img, scale)
+            return det, (time.perf_counter() - t0) * 1e3
+
         while not stopper.is_set():
             for c, r in receivers.items():
                 for msg in r.poll():
@@ -96,45 +111,53 @@ def main(settings: Settings, stopper: Stopper) -> int:
                         bad(f"frame for camera {msg.camera} on the key of camera {c}", c)
                         continue
                     waiting.append((time.time_ns(), msg))
-            if not waiting:
+            waiting = newest_per_camera(waiting, settings.detect.ring)
+            while waiting and len(running) < workers:
+                t_in, frame = waiting.pop(0)
+                try:
+                    img = frame_image(frame)
+                except ValueError as exc:
+                    bad(str(exc), frame.camera)
+                    continue
+                if frame.camera not in warned and detector.input_shape(*img.shape, frame.scale)[0] > 1.0:
+                    warned.add(frame.camera)
+                    log.warning("camera %s: frames come at %dx%d, smaller than the model's input (longer side %d); "
+                                "enlarged, detail lost: set ingest.decode_long_side to %d", frame.camera,
+                                frame.width, frame.height, detector.long_side, detector.long_side)
+                future = pool.submit(infer, img, frame.scale)
+                future.add_done_callback(lambda _: wake.set())
+                running.append((future, frame, t_in))
+            for item in [r for r in running if r[0].done()]:
+                running.remove(item)
+                future, frame, t_in = item
+                try:
+                    det, infer_ms = future.result()
+                except cv2.error as exc:  # e.g. an image too thin to resize to the network's input
+                    bad(f"camera {frame.camera} seq {frame.seq}: cannot detect on a {frame.width}x{frame.height} "
+                        f"image ({str(exc).strip().splitlines()[-1]})", frame.camera)
+                    continue
+                pubs[frame.camera].put(encode(detections_message(frame, det, infer_ms, t_in)))
+                done += 1
+            if not any(r[0].done() for r in running) and (not waiting or len(running) >= workers):
                 wake.wait(IDLE_WAIT_S)
                 wake.clear()
-                continue
-            waiting.sort(key=lambda w: w[1].t_capture_ns)
-            # keep at most `ring` per camera (newest), as the channel does
-            per_cam: dict[str, int] = {}
-            kept = []
-            for w in reversed(waiting):
-                per_cam[w[1].camera] = per_cam.get(w[1].camera, 0) + 1
-                if per_cam[w[1].camera] <= settings.detect.ring:
-                    kept.append(w)
-            waiting = sorted(kept, key=lambda w: w[1].t_capture_ns)
-            t_in, frame = waiting.pop(0)
-            try:
-                img = frame_image(frame)
-            except ValueError as exc:
-                bad(str(exc), frame.camera)
-                continue
-            if frame.camera not in warned and detector.input_shape(*img.shape, frame.scale)[0] > 1.0:
-                warned.add(frame.camera)
-                log.warning("camera %s: frames come at %dx%d, smaller than the model's input (longer side %d); "
-                            "enlarged, detail lost: set ingest.decode_long_side to %d", frame.camera, frame.width,
-                            frame.height, detector.long_side, detector.long_side)
-            t0 = time.perf_counter()
-            try:
-                det = detector.detect(img, frame.scale)
-            except cv2.error as exc:  # e.g. an image too thin to resize to the network's input
-                bad(f"camera {frame.camera} seq {frame.seq}: cannot detect on a {frame.width}x{frame.height} image "
-                    f"({str(exc).strip().splitlines()[-1]})", frame.camera)
-                continue
-            infer_ms = (time.perf_counter() - t0) * 1e3
-            pubs[frame.camera].put(encode(detections_message(frame, det, infer_ms, t_in)))
-            done += 1
         log.info("stopped: %d frames detected, %d bad messages %s", done, bad.total, dict(bad.counts))
         del tokens
     finally:
+        pool.shutdown(wait=True, cancel_futures=True)
         session.close()
     return 0
+
+
+def newest_per_camera(waiting: list[tuple[int, Frame]], ring: int) -> list[tuple[int, Frame]]:
+    """At most `ring` frames per camera (the newest, as the channel keeps), oldest capture time first."""
+    per_cam: dict[str, int] = {}
+    kept = []
+    for w in sorted(waiting, key=lambda w: w[1].t_capture_ns, reverse=True):
+        per_cam[w[1].camera] = per_cam.get(w[1].camera, 0) + 1
+        if per_cam[w[1].camera] <= ring:
+            kept.append(w)
+    return kept[::-1]
 
 
 if __name__ == "__main__":

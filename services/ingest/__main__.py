@@ -3,8 +3,9 @@
 `python -m services.ingest --site SITE [--set ingest.source=PATH] [--set ingest.pace=max]`
 
 Playback pace: `1` real time, `N` N x real time, `max` as fast as the pipeline takes it (at most
-`max_in_flight` frames published and not yet detected; an acknowledgement that does not come within
-`ACK_TIMEOUT_S` is given up, so a detect restart does not stall playback). With `loop`, the source
+`max_in_flight` frames published and not yet detected, by default as many as detect has workers; an
+acknowledgement that does not come within `ACK_TIMEOUT_S` is given up, so a detect restart does not
+stall playback). With `loop`, the source
 repeats with capture times shifted so event time keeps increasing. A frame that cannot be decoded
 (corrupt JPEG) is counted, logged and skipped. Exits 0 when the source ends.
 """
@@ -131,7 +132,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
         acks = None
         if cfg.pace == "max":
             acks = Acks(Receiver(session, all_cameras_key(settings.site, "detections"), Detections, bad),
-                        cfg.max_in_flight, stopper)
+                        cfg.max_in_flight or settings.detect.workers, stopper)
         tokens = declare_alive(session, settings.site, "ingest", list(cams))
         seen = wait_for_peers(session, all_alive_key(settings.site), len(cams) * 3 + 1, PIPELINE_WAIT_S)
         log.info("source %s, %d cameras, pace %s; %d liveliness tokens on the bus", cfg.source, len(cams),

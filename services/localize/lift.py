@@ -34,8 +34,9 @@ class GroundLookup:
     def shape(self) -> tuple[int, int]:
         return self.valid.shape
 
-    def lookup(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """uv (N, 2) px -> (latlon (N, 2) deg, xy (N, 2) m site frame, valid (N,)); NaN where invalid."""
+    def lookup(self, uv: np.ndarray, geodetic: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """uv (N, 2) px -> (latlon (N, 2) deg, xy (N, 2) m site frame, valid (N,)); NaN where invalid.
+        `geodetic=False` leaves latlon NaN (the ellipsoid conversion is most of a lookup's time)."""
         cells = bilinear_cells(uv, *self.valid.shape)
         v0, u0, _, _, inside = cells
         va = self.valid
@@ -43,10 +44,13 @@ class GroundLookup:
         xy = bilinear(self.xy, cells)
         xy[~ok] = np.nan
         latlon = np.full_like(xy, np.nan)
-        if ok.any():
-            latlon[ok] = self.masks_geo.to_geodetic(xy[ok])[:, :2]
-            if self.site_geo != self.masks_geo:
-                xy[ok] = self.site_geo.to_enu(latlon[ok, 0], latlon[ok, 1], self.site_geo.alt0_m)[:, :2]
+        other_site = self.site_geo != self.masks_geo
+        if ok.any() and (geodetic or other_site):
+            ll = self.masks_geo.to_geodetic(xy[ok])[:, :2]
+            if other_site:
+                xy[ok] = self.site_geo.to_enu(ll[:, 0], ll[:, 1], self.site_geo.alt0_m)[:, :2]
+            if geodetic:
+                latlon[ok] = ll
         return latlon, xy, ok
 
 
@@ -71,8 +75,8 @@ def lift(masks: GroundLookup | LookupMasks, uv: np.ndarray, heading_uv: np.ndarr
     if n == 0:
         return Lifted(np.zeros(0, bool), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0))
     latlon, xy, ok = masks.lookup(uv)
-    _, fwd, ok_f = masks.lookup(uv + step_px * heading)
-    _, back, ok_b = masks.lookup(uv - step_px * heading)
+    _, fwd, ok_f = masks.lookup(uv + step_px * heading, geodetic=False)
+    _, back, ok_b = masks.lookup(uv - step_px * heading, geodetic=False)
     d = np.where(ok_f[:, None], fwd - xy, xy - back)
     yaw = np.arctan2(d[:, 1], d[:, 0])
     valid = ok & (ok_f | ok_b) & (np.hypot(d[:, 0], d[:, 1]) > 1e-6)
