@@ -96,9 +96,9 @@ class DetectSettings(Strict):
     model: Path = Path("models/detector_fp32.onnx")  # CPU model
     model_gpu: Path | None = Path("models/detector_fp16.onnx")  # used when a GPU provider is available
     providers: list[str] | None = None  # default: TensorRT -> CUDA -> CPU, what onnxruntime has
-    # On a CPU, two single-threaded inferences side by side beat one two-threaded inference: 44.9 against 35.3
-    # frames/s at 640x480 on the 2-core development machine (CPU 43 against 56 ms per frame: the threads of one
-    # inference wait on each other), at 41 against 28 ms per frame. With a GPU provider use one worker.
+    # On a CPU, two single-threaded inferences side by side beat one two-threaded inference: 51.0 against 34.8
+    # frames/s at 640x480 on the 2-core development machine (CPU 39 against 57 ms per frame: the threads of one
+    # inference wait on each other), at ~37 against ~29 ms per frame. With a GPU provider one worker may do.
     workers: int = Field(2, ge=1, le=16)  # frames inferred at once
     threads: int = Field(1, ge=1)  # ONNX Runtime threads per inference
     score_thr: float = Field(0.3, gt=0, lt=1)

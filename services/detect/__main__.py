@@ -9,7 +9,7 @@ from several cameras are taken oldest capture time first. Execution providers ar
 Detections are published in original-sensor pixels on `roadside/<site>/cam/<camera>/detections`.
 `detect.workers` frames are inferred at once, each with `detect.threads` ONNX Runtime threads (one session,
 run from a thread pool; the runtime releases the GIL): on a CPU two single-threaded inferences side by side
-take 27 % more frames per second than one two-threaded inference, at a higher latency per frame
+take 47 % more frames per second than one two-threaded inference, at a higher latency per frame
 (shared/settings.py). Detections of one camera may then be published slightly out of capture order.
 A frame decoded smaller than the model's input needs (`Frame.scale`: ingest's `decode_long_side` below the
 model's `input_long_side`) is enlarged back to the scale the model was trained at, with one warning per camera.
