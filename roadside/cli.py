@@ -69,13 +69,16 @@ def _add_demo(sub) -> None:
     p.add_argument("--landmarks", type=int, default=20, help="landmarks per camera for calibration")
     p.add_argument("--model", type=Path, help="detector ONNX (default: the shipped models/detector_fp32.onnx)")
     p.add_argument("--port-base", type=int, default=7451)
+    p.add_argument("--pace", default="max",
+                   help="playback: max (as fast as the pipeline takes frames, every frame processed: the default) or "
+                        "1 (real time, as at a cabinet: a detector slower than the cameras drops frames)")
 
 
 def _run_demo(args) -> int:
     from roadside.demo import DEFAULT_MODEL, DemoConfig, run_demo, summary_table
 
     cfg = DemoConfig(out=args.out, seconds=args.seconds, hz=args.hz, seed=args.seed, landmarks=args.landmarks,
-                     model=args.model or DEFAULT_MODEL, port_base=args.port_base)
+                     model=args.model or DEFAULT_MODEL, port_base=args.port_base, pace=args.pace)
     summary = run_demo(cfg, log=lambda s: print(f"[demo] {s}", file=sys.stderr))
     print(f"\nState/Ellsworth roundabout (simulated), {cfg.seconds:g} s at {cfg.hz:g} Hz, four fisheye cameras")
     print(summary_table(summary))

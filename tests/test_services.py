@@ -276,12 +276,38 @@ def test_detect_keeps_the_newest_frames_per_camera_oldest_first():
     assert newest_per_camera([], 2) == []
 
 
+def test_playback_keeps_no_more_frames_of_a_camera_in_flight_than_detect_keeps():
+    from services.ingest.__main__ import Acks
+    from shared.bus import Stopper
+
+    class Acknowledger:  # stands in for the detections subscriber: acknowledges NE 0 at its third poll
+        def __init__(self) -> None:
+            self.polls = 0
+
+        def poll(self) -> list[Detections]:
+            self.polls += 1
+            return [good_detections("s", 0, "NE")] if self.polls == 3 else []
+
+        def wait(self, timeout_s: float) -> None:
+            pass
+
+    rx = Acknowledger()
+    acks = Acks(rx, limit=2, stopper=Stopper(install_signals=False), per_camera=1)
+    acks.sent("NE", 0)
+    acks.wait_for_room("SW")  # another camera: room at once
+    assert rx.polls == 1
+    acks.sent("SW", 0)
+    acks.wait_for_room("NE")  # full, and NE has one in flight: waits for NE 0's detections
+    assert rx.polls == 3 and set(acks.pending) == {("SW", 0)}
+
+
 # --- b. bad input on the bus at every service -----------------------------------------------------------------------
 
 
 def test_detect_drops_bad_frames_and_keeps_running(site, site_name, small_recording, port_base, peer, launch):
     peer.subscribe("detections", camera_key(site_name, CAMERA, "detections"), Detections)
-    detect = launch("detect", site, *bus_sets(port_base))
+    # ring 2: the case sent without waiting for its log line (None below) must not be pushed out by the next one
+    detect = launch("detect", site, *bus_sets(port_base), "detect.ring=2")
     assert peer.wait_alive(alive_key(site_name, "detect", CAMERA), 1, WAIT_S), detect.log()
     key = camera_key(site_name, CAMERA, "frame")
     frame = good_frame(site_name, small_recording, 0)

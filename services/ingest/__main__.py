@@ -3,9 +3,9 @@
 `python -m services.ingest --site SITE [--set ingest.source=PATH] [--set ingest.pace=max]`
 
 Playback pace: `1` real time, `N` N x real time, `max` as fast as the pipeline takes it (at most
-`max_in_flight` frames published and not yet detected, by default as many as detect has workers; an
-acknowledgement that does not come within `ACK_TIMEOUT_S` is given up, so a detect restart does not
-stall playback). With `loop`, the source
+`max_in_flight` frames published and not yet detected, by default as many as detect has workers, and
+never more of one camera than detect's ring keeps; an acknowledgement that does not come within
+`ACK_TIMEOUT_S` is given up, so a detect restart does not stall playback). With `loop`, the source
 repeats with capture times shifted so event time keeps increasing. A frame that cannot be decoded
 (corrupt JPEG) is counted, logged and skipped. Exits 0 when the source ends.
 """
@@ -89,10 +89,12 @@ class Pacer:
 
 
 class Acks:
-    """Frames published and not yet detected (pace `max`): detections for (camera, seq) acknowledge."""
+    """Frames published and not yet detected (pace `max`): detections for (camera, seq) acknowledge. At most
+    `limit` in all and `per_camera` of one camera (detect's ring keeps that many per camera: a frame more
+    would push an unprocessed one out, and its acknowledgement would never come)."""
 
-    def __init__(self, receiver: Receiver, limit: int, stopper: Stopper) -> None:
-        self.receiver, self.limit, self.stopper = receiver, limit, stopper
+    def __init__(self, receiver: Receiver, limit: int, stopper: Stopper, per_camera: int = 1) -> None:
+        self.receiver, self.limit, self.stopper, self.per_camera = receiver, limit, stopper, per_camera
         self.pending: dict[tuple[str, int], float] = {}
         self.timeouts = 0
 
@@ -101,7 +103,7 @@ class Acks:
             assert isinstance(msg, Detections)
             self.pending.pop((msg.camera, msg.seq), None)
 
-    def wait_for_room(self) -> None:
+    def wait_for_room(self, camera: str) -> None:
         while True:
             self.drain()
             now = time.monotonic()
@@ -109,7 +111,8 @@ class Acks:
                 if now - t > ACK_TIMEOUT_S:
                     del self.pending[key]
                     self.timeouts += 1
-            if len(self.pending) < self.limit or self.stopper.is_set():
+            own = sum(1 for c, _ in self.pending if c == camera)
+            if (len(self.pending) < self.limit and own < self.per_camera) or self.stopper.is_set():
                 return
             self.receiver.wait(0.05)
 
@@ -132,7 +135,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
         acks = None
         if cfg.pace == "max":
             acks = Acks(Receiver(session, all_cameras_key(settings.site, "detections"), Detections, bad),
-                        cfg.max_in_flight or settings.detect.workers, stopper)
+                        cfg.max_in_flight or settings.detect.workers, stopper, per_camera=settings.detect.ring)
         tokens = declare_alive(session, settings.site, "ingest", list(cams))
         seen = wait_for_peers(session, all_alive_key(settings.site), len(cams) * 3 + 1, PIPELINE_WAIT_S)
         log.info("source %s, %d cameras, pace %s; %d liveliness tokens on the bus", cfg.source, len(cams),
@@ -164,7 +167,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
                     bad(str(exc), sf.camera)
                     continue
                 if acks is not None:
-                    acks.wait_for_room()
+                    acks.wait_for_room(sf.camera)
                 msg = Frame(site=settings.site, camera=sf.camera, seq=seq[sf.camera], t_capture_ns=t,
                             camera_kind=cams[sf.camera].kind, stamps=[("ingest", time.time_ns())], **fields)
                 pubs[sf.camera].put(encode(msg))
