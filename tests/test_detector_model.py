@@ -473,6 +473,9 @@ def test_bench_detector_smoke():
     assert report["input"] == [1, 1, 96, 64]
     assert report["macs"] == count_macs(Detector(), 96, 64)
     assert report["cpu_fp32"]["median_ms"] > 0
+    throughput = report["cpu_fp32_throughput"]  # one inference at a time against 2 workers side by side
+    one, side = throughput["one_at_a_time_2_threads_fps"], throughput["2_workers_1_thread_fps"]
+    assert one > 0 and side > 0 and throughput["ratio"] == pytest.approx(side / one, rel=0.01)
 
 
 def test_topk_share_counts_input_pixels_at_any_stride():
