@@ -66,12 +66,11 @@ class LookupMasks:
         v0, u0, _, _, inside = cells
         ok = inside & self.valid[v0, u0] & self.valid[v0, u0 + 1] & self.valid[v0 + 1, u0] & self.valid[v0 + 1, u0 + 1]
         xy = bilinear(self.xy, cells)
+        xy[~ok] = np.nan
         if not geodetic:
-            xy[~ok] = np.nan
             return np.full_like(xy, np.nan), xy, ok
         latlon = np.column_stack([bilinear(self.lat, cells)[:, 0], bilinear(self.lon, cells)[:, 0]])
         latlon[~ok] = np.nan
-        xy[~ok] = np.nan
         return latlon, xy, ok
 
     def save(self, path: str | Path) -> Path:

@@ -128,7 +128,8 @@ def list_frames(folder: str | Path, until: time | None = None) -> list[tuple[int
     return sorted(out)
 
 
-def _read(path: Path, size: tuple[int, int]) -> np.ndarray:
+def read_frame(path: Path, size: tuple[int, int]) -> np.ndarray:
+    """A frame (BGR) of the expected (width, height); ValueError naming the file otherwise."""
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
         raise ValueError(f"{path}: not a readable image")
@@ -375,7 +376,7 @@ def autolabel_camera(frames_dir: str | Path, masks_path: str | Path, out_dir: st
     ws, hs = view.valid.shape[1], view.valid.shape[0]
     frames = []
     for _, path in listed:
-        frames.append(cv2.resize(_read(path, view.size), (ws, hs), interpolation=cv2.INTER_AREA))
+        frames.append(cv2.resize(read_frame(path, view.size), (ws, hs), interpolation=cv2.INTER_AREA))
     times_s = np.array([(t - listed[0][0]) / 1e9 for t, _ in listed])
     bg = background(frames)
     counts = {"too_small": 0, "not_vehicle_size": 0, "merged": 0}

@@ -43,8 +43,8 @@ import cv2
 import numpy as np
 
 from calibration.masks import load_masks
-from training.autolabel import COCO_PIXEL_OFFSET, GroundView, _read, background, list_frames, teacher_regions
-from training.data import _recording_labels
+from training.autolabel import COCO_PIXEL_OFFSET, GroundView, background, list_frames, read_frame, teacher_regions
+from training.data import recording_labels
 from training.sample import VEHICLE_TYPES
 
 ORIGIN_TOL_DEG = 1e-7  # ~1 cm: the masks and the simulator site must share the site frame
@@ -158,7 +158,7 @@ def real_background(frames_dir: str | Path, size: tuple[int, int], until: time |
     """(H, W, 3) uint8 BGR median of at most `max_frames` frames (evenly spread) before `until`, frames used."""
     listed = list_frames(frames_dir, until)
     pick = np.unique(np.linspace(0, len(listed) - 1, min(max_frames, len(listed))).round().astype(int))
-    return background([_read(listed[i][1], size) for i in pick]), len(pick)
+    return background([read_frame(listed[i][1], size) for i in pick]), len(pick)
 
 
 def _check_same_frame(masks_meta: dict, site, masks_path: Path) -> None:
@@ -262,7 +262,7 @@ def composite_camera(frames_dir: str | Path, masks_path: str | Path, out_dir: st
             scene = history.state_at(float(t))
         res = renderer.render(scene, np.random.default_rng([cfg.seed, 29, i]))
         vehicles = frame_ground_truth(cam, scene, res, site.ground, site.geo)
-        labels, _, _ = _recording_labels(vehicles, f"{camera} composite frame {i}")
+        labels, _, _ = recording_labels(vehicles, f"{camera} composite frame {i}")
         grey = cv2.resize(cv2.cvtColor(res.image, cv2.COLOR_BGR2GRAY), (ws, hs), interpolation=cv2.INTER_AREA)
         shown = np.where(view.roi, grey, fill).astype(np.uint8)
         name = f"images/{camera}_{i:05d}.png"

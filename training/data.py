@@ -178,7 +178,9 @@ def vehicle_weight(vehicle: dict) -> float | None:
     return 0.0
 
 
-def _recording_labels(vehicles: list[dict], where: str) -> tuple[dict[str, np.ndarray], list[int], list[bool]]:
+def recording_labels(vehicles: list[dict], where: str) -> tuple[dict[str, np.ndarray], list[int], list[bool]]:
+    """A recording frame's ground-truth vehicles -> (Sample label arrays, track ids, parked flags), with the
+    label policy of the module docstring (box_visible, ignores); ValueError naming `where` and the vehicle."""
     labels = _empty_labels()
     ids, parked = [], []
     for v in vehicles:
@@ -241,7 +243,7 @@ def samples_from_recording(
                 raise ValueError(f"{where}: frame record has no {exc}") from None
             if not image_path.is_file():
                 raise ValueError(f"{where}: image file {image_path} is missing")
-            labels, ids, parked = _recording_labels(vehicles, where)
+            labels, ids, parked = recording_labels(vehicles, where)
             meta = {
                 "camera": name,
                 "kind": entry["kind"],
