@@ -151,7 +151,9 @@ BENCHMARKS = {"sim": "bench.sim_render", "calibration": "bench.calibration", "de
 
 def _add_train(sub) -> None:
     p = sub.add_parser("train", help="train the detector on recordings and/or COCO-style annotations (needs torch)")
-    p.add_argument("--recording", action="append", default=[], help="simulator recording folder (repeatable)")
+    p.add_argument("--recording", action="append", default=[],
+                   help="simulator recording folder (repeatable); PATH@fisheye, @thermal, @pinhole, @visible or "
+                        "@NE,NW: only those cameras")
     p.add_argument("--coco", action="append", default=[], help="COCO-style annotation JSON (repeatable)")
     p.add_argument("--out", required=True, help="output folder (model.pt, train_log.jsonl, train.json)")
     p.add_argument("--steps", type=int, help="number of steps (default 4000, or as many as --minutes allows)")

@@ -11,7 +11,7 @@ torch = pytest.importorskip("torch")
 
 from shared.inference import input_scale  # noqa: E402
 from training.model import DetectorConfig, load_detector  # noqa: E402
-from training.train import TrainConfig, train  # noqa: E402
+from training.train import TrainConfig, recording_spec, train, training_refs  # noqa: E402
 
 TINY = DetectorConfig(width_mult=0.25, decoder_channels=16, head_channels=8, stride=4, input_long_side=320)
 
@@ -62,3 +62,22 @@ def test_input_scale_shrinks_but_never_enlarges():
     assert input_scale(640, 512, 1280) == 1.0  # a thermal frame stays at its own resolution
     with pytest.raises(ValueError, match="input_long_side must be >= 32"):
         TrainConfig(recordings=("r",), out="o", input_long_side=8)
+
+
+def test_a_recording_can_lend_only_some_of_its_cameras(small_recording, tmp_path):
+    def cameras(*specs):
+        return sorted(r.meta["camera"] for r in training_refs(TrainConfig(recordings=specs, out="o")))
+
+    assert cameras(str(small_recording)) == ["NE", "NE", "T_SW", "T_SW"]
+    assert cameras(f"{small_recording}@fisheye") == ["NE", "NE"]
+    assert cameras(f"{small_recording}@thermal", f"{small_recording}@NE") == ["NE", "NE", "T_SW", "T_SW"]
+    assert cameras(f"{small_recording}@pinhole") == ["T_SW", "T_SW"]
+    with pytest.raises(ValueError, match=r"no camera 'SW' \(has: NE, T_SW\)"):
+        cameras(f"{small_recording}@NE,SW")
+    with pytest.raises(ValueError, match="nothing after '@'"):
+        recording_spec(f"{small_recording}@")
+    # a folder with an '@' of its own is a plain path
+    odd = tmp_path / "rec@2024"
+    odd.mkdir()
+    assert recording_spec(str(odd)) == (str(odd), None)
+    assert recording_spec("a/b@visible") == ("a/b", "visible")

@@ -69,12 +69,46 @@ class TrainConfig:
             raise ValueError(f"minutes must be > 0, got {self.minutes}")
 
 
+def recording_spec(spec: str) -> tuple[str, str | None]:
+    """'PATH' or 'PATH@SELECTION' -> (PATH, SELECTION or None). SELECTION: a camera kind (fisheye,
+    pinhole), a modality (thermal, visible) or a comma list of camera names. A folder whose own name has
+    an '@' is taken whole."""
+    path, at, which = spec.rpartition("@")
+    if not at or Path(spec).is_dir():
+        return spec, None
+    if not which.strip():
+        raise ValueError(f"recording {spec!r}: nothing after '@' (a camera kind, modality or comma list of names)")
+    return path, which.strip()
+
+
+def selected_cameras(rec: Recording, which: str | None) -> list[dict]:
+    """The recording.json camera entries that `which` selects (None: all)."""
+    entries = rec.meta["cameras"]
+    if which is None:
+        return list(entries)
+    if which in ("fisheye", "pinhole"):
+        chosen = [e for e in entries if e.get("kind") == which]
+    elif which in ("thermal", "visible"):
+        chosen = [e for e in entries if e.get("modality", "visible") == which]
+    else:
+        names = [n.strip() for n in which.split(",") if n.strip()]
+        by_name = {e["name"]: e for e in entries}
+        unknown = [n for n in names if n not in by_name]
+        if unknown:
+            raise ValueError(f"{rec.path}: no camera {', '.join(map(repr, unknown))} (has: {', '.join(by_name)})")
+        chosen = [by_name[n] for n in names]
+    if not chosen:
+        raise ValueError(f"{rec.path}: no camera matches {which!r} (has: {', '.join(e['name'] for e in entries)})")
+    return chosen
+
+
 def training_refs(cfg: TrainConfig) -> list[SampleRef]:
     """SampleRefs of all the training data, each at the network's input scale."""
     refs: list[SampleRef] = []
-    for path in cfg.recordings:
+    for spec in cfg.recordings:
+        path, which = recording_spec(spec)
         rec = Recording(path)
-        for entry in rec.meta["cameras"]:
+        for entry in selected_cameras(rec, which):
             scale = input_scale(entry["width"], entry["height"], cfg.model.input_long_side)
             refs += samples_from_recording(path, [entry["name"]], every=cfg.every, scale=scale)
     for path in cfg.coco:
