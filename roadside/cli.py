@@ -109,7 +109,7 @@ def _add_calibrate(sub) -> None:
     p.add_argument("--width", type=int, help="image width (default: from the landmark file)")
     p.add_argument("--height", type=int, help="image height (default: from the landmark file)")
     p.add_argument("--report", type=Path, help="report JSON (default: next to --out)")
-    p.add_argument("--segments", type=int, help="ground segments (default 1 pinhole, 4 fisheye)")
+    p.add_argument("--segments", type=int, help="ground segments (default 2 pinhole range bands, 4 fisheye sectors)")
     p.add_argument("--image-circle", type=_floats(3), help="fisheye image circle CX,CY,RADIUS in pixels")
     p.add_argument("--fov-deg", type=float, default=188.0, help="fisheye field of view at the image circle's edge")
     p.add_argument("--origin", type=_floats(3), help="site frame origin LAT,LON,ALT (default: the landmarks' median)")
