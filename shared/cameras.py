@@ -307,3 +307,24 @@ class Camera:
             )
         except KeyError as exc:
             raise ValueError(f"camera {d.get('name', '?')!r}: missing field {exc.args[0]!r}") from None
+
+
+def select_cameras(cameras: list[Camera], which: str, owner: str) -> list[Camera]:
+    """The cameras that `which` names: 'all', a kind ('fisheye', 'pinhole'), a modality ('thermal',
+    'visible') or a comma list of names (in that order). `owner` (a site or recording) heads the errors."""
+    if which == "all":
+        chosen = list(cameras)
+    elif which in ("fisheye", "pinhole"):
+        chosen = [c for c in cameras if c.kind == which]
+    elif which in ("thermal", "visible"):
+        chosen = [c for c in cameras if c.modality == which]
+    else:
+        names = [n.strip() for n in which.split(",") if n.strip()]
+        by_name = {c.name: c for c in cameras}
+        unknown = [n for n in names if n not in by_name]
+        if unknown:
+            raise ValueError(f"{owner}: unknown camera(s) {', '.join(unknown)} (has: {', '.join(by_name)})")
+        chosen = [by_name[n] for n in names]
+    if not chosen:
+        raise ValueError(f"{owner}: no camera matches {which!r} (has: {', '.join(c.name for c in cameras)})")
+    return chosen

@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from shared.cameras import Camera
+from shared.cameras import select_cameras as select_from
 from sim.groundtruth import frame_ground_truth
 from sim.landmarks import LandmarkNoise, pick_landmarks
 from sim.recording import FORMAT, META_FILE, VERSION
@@ -72,23 +73,7 @@ class ClipConfig:
 
 def select_cameras(site: SiteSpec, which: str) -> list[Camera]:
     """'all', 'fisheye', 'thermal', 'pinhole', 'visible', or a comma list of camera names."""
-    cams = site.build_cameras()
-    if which == "all":
-        chosen = cams
-    elif which in ("fisheye", "pinhole"):
-        chosen = [c for c in cams if c.kind == which]
-    elif which in ("thermal", "visible"):
-        chosen = [c for c in cams if c.modality == which]
-    else:
-        names = [n.strip() for n in which.split(",") if n.strip()]
-        by_name = {c.name: c for c in cams}
-        unknown = [n for n in names if n not in by_name]
-        if unknown:
-            raise ValueError(f"unknown camera(s) {', '.join(unknown)} for site {site.name} (has: {', '.join(by_name)})")
-        chosen = [by_name[n] for n in names]
-    if not chosen:
-        raise ValueError(f"no camera of site {site.name} matches {which!r}")
-    return chosen
+    return select_from(site.build_cameras(), which, f"site {site.name}")
 
 
 def capture_schedule(cameras: list[Camera], seconds: float, hz: float, seed: int) -> dict[str, np.ndarray]:

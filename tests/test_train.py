@@ -72,8 +72,10 @@ def test_a_recording_can_lend_only_some_of_its_cameras(small_recording, tmp_path
     assert cameras(f"{small_recording}@fisheye") == ["NE", "NE"]
     assert cameras(f"{small_recording}@thermal", f"{small_recording}@NE") == ["NE", "NE", "T_SW", "T_SW"]
     assert cameras(f"{small_recording}@pinhole") == ["T_SW", "T_SW"]
-    with pytest.raises(ValueError, match=r"no camera 'SW' \(has: NE, T_SW\)"):
+    with pytest.raises(ValueError, match=r"unknown camera\(s\) SW \(has: NE, T_SW\)"):
         cameras(f"{small_recording}@NE,SW")
+    with pytest.raises(ValueError, match="no camera matches ','"):
+        cameras(f"{small_recording}@,")
     with pytest.raises(ValueError, match="nothing after '@'"):
         recording_spec(f"{small_recording}@")
     # a folder with an '@' of its own is a plain path

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from shared.cameras import select_cameras
 from shared.inference import input_scale
 from sim.recording import Recording
 from training.augment import AugmentConfig, augment
@@ -81,36 +82,15 @@ def recording_spec(spec: str) -> tuple[str, str | None]:
     return path, which.strip()
 
 
-def selected_cameras(rec: Recording, which: str | None) -> list[dict]:
-    """The recording.json camera entries that `which` selects (None: all)."""
-    entries = rec.meta["cameras"]
-    if which is None:
-        return list(entries)
-    if which in ("fisheye", "pinhole"):
-        chosen = [e for e in entries if e.get("kind") == which]
-    elif which in ("thermal", "visible"):
-        chosen = [e for e in entries if e.get("modality", "visible") == which]
-    else:
-        names = [n.strip() for n in which.split(",") if n.strip()]
-        by_name = {e["name"]: e for e in entries}
-        unknown = [n for n in names if n not in by_name]
-        if unknown:
-            raise ValueError(f"{rec.path}: no camera {', '.join(map(repr, unknown))} (has: {', '.join(by_name)})")
-        chosen = [by_name[n] for n in names]
-    if not chosen:
-        raise ValueError(f"{rec.path}: no camera matches {which!r} (has: {', '.join(e['name'] for e in entries)})")
-    return chosen
-
-
 def training_refs(cfg: TrainConfig) -> list[SampleRef]:
     """SampleRefs of all the training data, each at the network's input scale."""
     refs: list[SampleRef] = []
     for spec in cfg.recordings:
         path, which = recording_spec(spec)
         rec = Recording(path)
-        for entry in selected_cameras(rec, which):
-            scale = input_scale(entry["width"], entry["height"], cfg.model.input_long_side)
-            refs += samples_from_recording(path, [entry["name"]], every=cfg.every, scale=scale)
+        for cam in select_cameras(list(rec.cameras.values()), which or "all", str(rec.path)):
+            scale = input_scale(cam.width, cam.height, cfg.model.input_long_side)
+            refs += samples_from_recording(path, [cam.name], every=cfg.every, scale=scale)
     for path in cfg.coco:
         for ref in samples_from_coco(path):
             h, w = ref.image_hw if ref.image_hw is not None else ref.load().shape
