@@ -151,6 +151,15 @@ def test_pinhole_range_bands_follow_a_ground_that_is_not_one_plane():
     assert err(3) < 0.9 * err(1)  # measured 0.50 m vs 0.58 m: a hump is not planar in any band either
 
 
+def test_a_pinhole_camera_gets_two_range_bands_by_default_and_one_plane_with_few_landmarks():
+    cam = _pinhole()
+    lm = _synthetic_landmarks(cam, 12, np.random.default_rng(7), 70.0)
+    cal = calibrate(lm, CalibConfig("pinhole", 640, 512), GEO)
+    assert len(cal.planes) == 2 and len(cal.band_edges_m) == 1 and not any("instead of" in w for w in cal.warnings)
+    cal = calibrate(lm.subset(np.arange(6)), CalibConfig("pinhole", 640, 512), GEO)
+    assert len(cal.planes) == 1 and any("1 ground segment(s) instead of 2" in w for w in cal.warnings)
+
+
 def test_too_few_landmarks_for_four_segments_falls_back_with_a_warning():
     cam = _fisheye()
     lm = _synthetic_landmarks(cam, 8, np.random.default_rng(3), 40.0)
