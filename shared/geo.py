@@ -1,15 +1,25 @@
 """WGS84 latitude/longitude/altitude <-> the local site frame.
 
 The site frame is East-North-Up (ENU) in metres around a site origin (a WGS84 point).
-Conversions are exact (pymap3d's ellipsoidal ENU), not a flat-earth approximation.
+Conversions are exact on the ellipsoid, not a flat-earth approximation: latitude/longitude -> ENU is
+pymap3d's; ENU -> latitude/longitude (on every Objects and Tracks message, so on the hot path) is this
+module's own closed form (a rotation to ECEF, then Bowring's latitude with one refinement step), which
+agrees with pymap3d to well under a millimetre and costs a tenth of its time on a few dozen points.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import pymap3d
+
+WGS84_A = 6378137.0  # semi-major axis (m)
+WGS84_F = 1 / 298.257223563
+WGS84_B = WGS84_A * (1 - WGS84_F)
+WGS84_E2 = WGS84_F * (2 - WGS84_F)  # first eccentricity squared
+WGS84_EP2 = WGS84_E2 / (1 - WGS84_E2)  # second eccentricity squared
 
 
 @dataclass(frozen=True)
@@ -49,8 +59,19 @@ class GeoFrame:
             p = np.concatenate([p, np.zeros((*p.shape[:-1], 1))], axis=-1)
         if p.shape[-1] != 3:
             raise ValueError(f"enu_m must have 2 or 3 columns, got shape {p.shape}")
-        lat, lon, alt = pymap3d.enu2geodetic(p[..., 0], p[..., 1], p[..., 2], self.lat0_deg, self.lon0_deg, self.alt0_m)
-        return np.stack([np.asarray(lat), np.asarray(lon), np.asarray(alt)], axis=-1)
+        rot, origin = self._enu_to_ecef
+        x, y, z = np.moveaxis(p @ rot.T + origin, -1, 0)
+        return np.stack(ecef_to_geodetic(x, y, z), axis=-1)
+
+    @cached_property
+    def _enu_to_ecef(self) -> tuple[np.ndarray, np.ndarray]:
+        """(3, 3) rotation with ENU axes as columns in ECEF, and the origin's ECEF position (m)."""
+        lat, lon = np.radians(self.lat0_deg), np.radians(self.lon0_deg)
+        sl, cl, so, co = np.sin(lat), np.cos(lat), np.sin(lon), np.cos(lon)
+        rot = np.array([[-so, -sl * co, cl * co], [co, -sl * so, cl * so], [0.0, cl, sl]])
+        n = WGS84_A / np.sqrt(1 - WGS84_E2 * sl * sl)
+        origin = np.array([(n + self.alt0_m) * cl * co, (n + self.alt0_m) * cl * so, (n * (1 - WGS84_E2) + self.alt0_m) * sl])
+        return rot, origin
 
     def to_dict(self) -> dict:
         return {"lat_deg": self.lat0_deg, "lon_deg": self.lon0_deg, "alt_m": self.alt0_m}
@@ -58,3 +79,25 @@ class GeoFrame:
     @classmethod
     def from_dict(cls, d: dict) -> GeoFrame:
         return cls(float(d["lat_deg"]), float(d["lon_deg"]), float(d.get("alt_m", 0.0)))
+
+
+def ecef_to_geodetic(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """WGS84 ECEF metres -> (latitude deg, longitude deg, ellipsoidal height m): Bowring's closed form (0.2 um
+    from the exact latitude within 50 km of the surface), then one refinement step (nanometres)."""
+    p = np.hypot(x, y)
+    theta = np.arctan2(z * WGS84_A, p * WGS84_B)
+    lat = np.arctan2(z + WGS84_EP2 * WGS84_B * np.sin(theta) ** 3, p - WGS84_E2 * WGS84_A * np.cos(theta) ** 3)
+    h = _height(lat, p, z)
+    lat = np.arctan2(z * (_prime_vertical(lat) + h), p * (_prime_vertical(lat) * (1 - WGS84_E2) + h))
+    return np.degrees(lat), np.degrees(np.arctan2(y, x)), _height(lat, p, z)
+
+
+def _prime_vertical(lat: np.ndarray) -> np.ndarray:
+    """The prime vertical radius of curvature N (m) at geodetic latitude `lat` (rad)."""
+    return WGS84_A / np.sqrt(1 - WGS84_E2 * np.sin(lat) ** 2)
+
+
+def _height(lat: np.ndarray, p: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Ellipsoidal height (m) of the ECEF point (distance p from the axis, z) at geodetic latitude `lat`
+    (rad); this form holds at every latitude, the poles included."""
+    return p * np.cos(lat) + z * np.sin(lat) - WGS84_A * WGS84_A / _prime_vertical(lat)

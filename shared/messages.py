@@ -244,21 +244,18 @@ class Tracks(Message):
 
     def rows(self) -> list[dict]:
         """One plain dict per track (JSON-friendly), as the recorder writes and clients print."""
-        out = []
-        names = {i: n for i, n in enumerate(VEHICLE_TYPES)}
-        for i in range(len(self)):
-            out.append({
-                "id": int(self.id[i]), "x": round(float(self.xy[i, 0]), 3), "y": round(float(self.xy[i, 1]), 3),
-                "lat": float(self.latlon[i, 0]), "lon": float(self.latlon[i, 1]),
-                "vx": round(float(self.velocity[i, 0]), 3), "vy": round(float(self.velocity[i, 1]), 3),
-                "yaw": round(float(self.yaw[i]), 4),
-                "length": round(float(self.size_lwh[i, 0]), 3), "width": round(float(self.size_lwh[i, 1]), 3),
-                "height": round(float(self.size_lwh[i, 2]), 3),
-                "type": names.get(int(self.vtype[i]), "unknown"),
-                "score": round(float(self.score[i]), 3), "age": int(self.age[i]), "hits": int(self.hits[i]),
-                "cameras": list(self.cameras[i]),
-            })
-        return out
+        # whole columns to Python lists first: one conversion per column, not one per value
+        xy, vel = np.round(self.xy.astype(np.float64), 3).tolist(), np.round(self.velocity.astype(np.float64), 3).tolist()
+        size = np.round(self.size_lwh.astype(np.float64), 3).tolist()
+        yaw, score = np.round(self.yaw.astype(np.float64), 4).tolist(), np.round(self.score.astype(np.float64), 3).tolist()
+        latlon = self.latlon.astype(np.float64).tolist()
+        names = [VEHICLE_TYPES[t] if 0 <= t < len(VEHICLE_TYPES) else "unknown" for t in self.vtype.tolist()]
+        return [{"id": i, "x": p[0], "y": p[1], "lat": ll[0], "lon": ll[1], "vx": v[0], "vy": v[1], "yaw": a,
+                 "length": s[0], "width": s[1], "height": s[2], "type": t, "score": sc, "age": age, "hits": hits,
+                 "cameras": list(cams)}
+                for i, p, ll, v, a, s, t, sc, age, hits, cams in zip(
+                    self.id.tolist(), xy, latlon, vel, yaw, size, names, score, self.age.tolist(), self.hits.tolist(),
+                    self.cameras)]
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {m.kind: m for m in (Frame, Detections, Objects, Tracks)}

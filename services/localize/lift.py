@@ -75,8 +75,8 @@ def lift(masks: GroundLookup | LookupMasks, uv: np.ndarray, heading_uv: np.ndarr
     if n == 0:
         return Lifted(np.zeros(0, bool), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0))
     latlon, xy, ok = masks.lookup(uv)
-    _, fwd, ok_f = masks.lookup(uv + step_px * heading, geodetic=False)
-    _, back, ok_b = masks.lookup(uv - step_px * heading, geodetic=False)
+    _, ends, ok_ends = masks.lookup(np.concatenate([uv + step_px * heading, uv - step_px * heading]), geodetic=False)
+    fwd, back, ok_f, ok_b = ends[:n], ends[n:], ok_ends[:n], ok_ends[n:]
     d = np.where(ok_f[:, None], fwd - xy, xy - back)
     yaw = np.arctan2(d[:, 1], d[:, 0])
     valid = ok & (ok_f | ok_b) & (np.hypot(d[:, 0], d[:, 1]) > 1e-6)
