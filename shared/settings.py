@@ -126,6 +126,9 @@ class FuseTrackSettings(Strict):
     gate_m: float = Field(3.0, gt=0)  # largest track-to-measurement distance
     max_age_ticks: int = Field(3, ge=1)
     min_hits: int = Field(3, ge=1)
+    # objects scoring at least this start tracks; lower ones (down to detect.score_thr) only extend confirmed
+    # tracks left unmatched (ByteTrack's second round; services/fuse_track/tracker.py). 0: every object alike
+    high_score: float = Field(0.0, ge=0, le=1)
     record: Path | None = None  # append every Tracks message to this JSON-lines file
 
 

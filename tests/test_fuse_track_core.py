@@ -119,6 +119,50 @@ def test_vehicle_keeps_its_id_from_one_camera_region_to_the_next():
     assert all(len(fused) <= 1 for _, fused in log)
 
 
+def test_low_score_objects_extend_confirmed_tracks_but_never_start_one():
+    """ByteTrack's second round (high_score): a vehicle whose score dips below high_score for a few ticks keeps
+    its track and id (one round drops the track and starts a new id); a low-score object alone, with no track
+    to extend, never starts one; a low-score object never takes a track from a high-score one."""
+    def run(high_score: float) -> tuple[list[set[int]], Tracker]:
+        tracker = Tracker(TrackerConfig(high_score=high_score, max_age_ticks=1, report_coasting_ticks=0))
+        ids = []
+        for k in range(20):
+            t_ns = k * 100 * MS
+            x = 10.0 * k * 0.1
+            score = 0.3 if 6 <= k < 12 else 0.9  # the vehicle's score dips for 6 ticks
+            objs = [frame("A", t_ns, [[x, 0.0]], score=score),
+                    frame("A", t_ns, [[x, 40.0]], score=0.3),  # a low-score object alone, every tick
+                    frame("A", t_ns, [[x + 0.4, 0.3]], score=0.35)]  # a weaker duplicate of the vehicle
+            ids.append(set(tracker.update(ObjectBatch.concat(objs), t_ns).id.tolist()))
+        return ids, tracker
+
+    two_rounds, _ = run(0.5)
+    assert set().union(*two_rounds[2:]) == {1} and all(two_rounds[k] == {1} for k in range(2, 20))
+    one_round, _ = run(0.0)  # every object alike: the lone object and the duplicate start tracks of their own
+    assert len(set().union(*one_round)) > 1
+    # with one round and only the vehicle above the threshold (what a detector threshold of 0.5 gives): the
+    # dip breaks the track and the vehicle comes back under a new id
+    tracker = Tracker(TrackerConfig(max_age_ticks=1, report_coasting_ticks=0))
+    ids = []
+    for k in range(20):
+        objs = frame("A", k * 100 * MS, [[1.0 * k, 0.0]], score=0.9) if not 6 <= k < 12 else ObjectBatch.empty()
+        ids.append(set(tracker.update(objs, k * 100 * MS).id.tolist()))
+    assert ids[2] == {1} and ids[19] == {2}
+
+
+def test_fusion_split_score_keeps_low_and_high_score_objects_apart():
+    """With split_score, a low-score object inside its camera's region no longer lets a high-score object from
+    outside that region join it (the paper's rule drops the outsider, as without the low one)."""
+    regions = [CameraRegion("A", (-20.0, 0.0)), CameraRegion("B", (20.0, 0.0))]
+    objects = ObjectBatch.concat([frame("A", 0, [[-15.0, 0.0]], score=0.3), frame("B", 0, [[-14.5, 0.0]], score=0.8)])
+    pooled = Fusion(regions, FusionConfig(merge_gate_m=2.5)).fuse(objects, 0)
+    assert len(pooled) == 1 and pooled.score[0] == pytest.approx(0.8)  # the outsider rode on the low object
+    split = Fusion(regions, FusionConfig(merge_gate_m=2.5, split_score=0.5)).fuse(objects, 0)
+    assert len(split) == 1 and split.score[0] == pytest.approx(0.3) and split.sources_of(0) == ["A"]
+    high_only = Fusion(regions, FusionConfig(merge_gate_m=2.5)).fuse(objects.select(np.array([1])), 0)
+    assert len(high_only) == 0
+
+
 def test_empty_ticks_age_tracks_out_after_max_age():
     """A vehicle seen for 10 ticks, then only empty batches: reported while it coasts one tick, dropped
     after max_age_ticks empty ticks; empty ticks are emitted across a gap in the stream too."""
@@ -395,6 +439,7 @@ def test_bad_configs_and_calls_raise_value_errors_naming_the_parameter():
         (lambda: TrackerConfig(gate_m=-1.0), "gate_m"),
         (lambda: TrackerConfig(max_age_ticks=1.5), "max_age_ticks"),
         (lambda: TrackerConfig(min_hits=0), "min_hits"),
+        (lambda: TrackerConfig(high_score=1.5), "high_score"),
         (lambda: TrackerConfig(accel_std_mps2=math.nan), "accel_std_mps2"),
         (lambda: TrackerConfig(report_coasting_ticks=5), "report_coasting_ticks"),
         (lambda: TrackerConfig(yaw_gain=0.0), "yaw_gain"),
@@ -403,6 +448,7 @@ def test_bad_configs_and_calls_raise_value_errors_naming_the_parameter():
         (lambda: TickConfig(max_empty_ticks=0), "max_empty_ticks"),
         (lambda: FusionConfig(merge_gate_m=0), "merge_gate_m"),
         (lambda: FusionConfig(out_of_region_weight=2), "out_of_region_weight"),
+        (lambda: FusionConfig(split_score=-0.1), "split_score"),
         (lambda: CameraRegion("A", (0.0, math.inf)), "position_xy"),
         (lambda: CameraRegion("A", (0.0, 0.0), polygon_xy=np.zeros((2, 2))), "polygon_xy"),
         (lambda: Fusion([CameraRegion("A", (0.0, 0.0)), CameraRegion("A", (1.0, 0.0))]), "regions"),

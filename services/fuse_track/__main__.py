@@ -118,8 +118,10 @@ def main(settings: Settings, stopper: Stopper) -> int:
     positions, geo = camera_positions(settings)
     regions = [CameraRegion(c.name, positions[c.name], np.asarray(c.region_m) if c.region_m else None)
                for c in settings.cameras]
-    fusion = Fusion(regions, FusionConfig(merge_gate_m=cfg.merge_gate_m, occlusion_fallback=cfg.occlusion_fallback))
-    tracker = Tracker(TrackerConfig(gate_m=cfg.gate_m, max_age_ticks=cfg.max_age_ticks, min_hits=cfg.min_hits))
+    fusion = Fusion(regions, FusionConfig(merge_gate_m=cfg.merge_gate_m, occlusion_fallback=cfg.occlusion_fallback,
+                                          split_score=cfg.high_score))
+    tracker = Tracker(TrackerConfig(gate_m=cfg.gate_m, max_age_ticks=cfg.max_age_ticks, min_hits=cfg.min_hits,
+                                    high_score=cfg.high_score))
     ticks: TickBuffer = TickBuffer(positions, TickConfig(tick_ms=cfg.tick_ms, watermark_ms=cfg.watermark_ms,
                                                          max_wait_ms=cfg.max_wait_ms,
                                                          camera_timeout_ms=cfg.camera_timeout_ms))

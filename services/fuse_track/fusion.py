@@ -195,20 +195,25 @@ class FusionConfig:
     one vehicle; out_of_region_weight: weight of an object outside its camera's region relative to
     one inside (~ the variance ratio of in- and out-of-region localization, (0.22 / 0.49)^2 in the
     paper); min_score: objects below it are ignored (the paper fuses high-certainty detections only);
-    occlusion_fallback: keep an object outside its camera's region that no region owner saw (module doc, 3)."""
+    occlusion_fallback: keep an object outside its camera's region that no region owner saw (module doc, 3);
+    split_score: objects below it are fused only with each other, those at or above it only with each other
+    (for the tracker's two rounds, `TrackerConfig.high_score`: a low-score object inside its camera's region
+    would otherwise let a high-score one from outside it join its group and start a track; 0 = one pool)."""
 
     merge_gate_m: float = 3.0
     out_of_region_weight: float = 0.2
     min_score: float = 0.0
     occlusion_fallback: bool = False
+    split_score: float = 0.0
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.merge_gate_m) and self.merge_gate_m > 0):
             raise ValueError(f"merge_gate_m must be > 0, got {self.merge_gate_m}")
         if not 0 < self.out_of_region_weight <= 1:
             raise ValueError(f"out_of_region_weight must be within (0, 1], got {self.out_of_region_weight}")
-        if not 0 <= self.min_score <= 1:
-            raise ValueError(f"min_score must be within [0, 1], got {self.min_score}")
+        for name in ("min_score", "split_score"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(f"{name} must be within [0, 1], got {getattr(self, name)}")
 
 
 def points_in_polygon(xy: np.ndarray, polygon: np.ndarray) -> np.ndarray:
@@ -272,6 +277,13 @@ class Fusion:
             n = len(objects)
         if n == 0:
             return ObjectBatch.empty()
+        high = objects.score >= self.config.split_score
+        if not high.all() and high.any():
+            return ObjectBatch.concat([self._fuse(objects.select(k), t_ref_ns, vel[k]) for k in (high, ~high)])
+        return self._fuse(objects, t_ref_ns, vel)
+
+    def _fuse(self, objects: ObjectBatch, t_ref_ns: int, vel: np.ndarray) -> ObjectBatch:
+        n = len(objects)
         dt_s = (int(t_ref_ns) - objects.t_ns) / NS_PER_S
         p_ref = objects.xy + vel * dt_s[:, None]  # positions at the reference time
         cam_idx = np.array([self._index.get(c, -1) for c in objects.camera.tolist()])

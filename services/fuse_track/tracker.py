@@ -1,6 +1,10 @@
 """SORT in site metres (no transport here): a Kalman filter per track, Hungarian assignment on
 ground distance, tracks confirmed after `min_hits` consecutive hits and dropped once they have gone
 more than `max_age_ticks` ticks without one (SORT's max_age; empty ticks count, so pass them in).
+With `high_score` the assignment has ByteTrack's two rounds: objects scoring at least `high_score` first,
+then the lower-scoring ones against the confirmed tracks still unmatched; only high-score objects start
+tracks (on the validation recording, seed 77: id switches 38 -> 24, IDF1 0.639 -> 0.665, MOTA 0.518 ->
+0.520 for detections down to 0.35 with high_score 0.42, against one round at 0.42).
 
 State (the paper's): x = [x, y, s, r, vx, vy, vs, vr]; x, y the bottom centre in metres (site ENU
 frame), s = l * w the footprint area (m^2), r = l / w the aspect ratio, v* their rates per second.
@@ -49,7 +53,10 @@ class TrackerConfig:
     measurement (1 sigma; s and r noise follow from the measured size); accel_std_mps2 the
     acceleration noise of x and y, area_accel_std_m2ps2 of s, aspect_accel_std_ps2 of r;
     init_speed_std_mps the velocity uncertainty of a new track. Yaw: yaw_gain the weight of a new
-    yaw measurement, yaw_from_motion_mps the speed above which motion sets the heading's sign."""
+    yaw measurement, yaw_from_motion_mps the speed above which motion sets the heading's sign.
+    high_score: objects scoring at least this are associated first and may start tracks; the others only
+    extend confirmed tracks that the first round left unmatched (ByteTrack's second round: a vehicle the
+    detector is unsure of in one frame keeps its track and id instead of breaking it); 0 = one round."""
 
     gate_m: float = 3.0
     max_age_ticks: int = 3
@@ -65,6 +72,7 @@ class TrackerConfig:
     init_speed_std_mps: float = 10.0
     yaw_gain: float = 0.4
     yaw_from_motion_mps: float = 1.5
+    high_score: float = 0.0
 
     def __post_init__(self) -> None:
         positive = ("gate_m", "max_coast_s", "position_std_m", "size_std_m", "accel_std_mps2", "area_accel_std_m2ps2",
@@ -84,6 +92,8 @@ class TrackerConfig:
             raise ValueError(f"birth_separation_m must be >= 0, got {self.birth_separation_m!r}")
         if not 0 < self.yaw_gain <= 1:
             raise ValueError(f"yaw_gain must be within (0, 1], got {self.yaw_gain!r}")
+        if not (isinstance(self.high_score, int | float) and 0 <= self.high_score <= 1):
+            raise ValueError(f"high_score must be within [0, 1], got {self.high_score!r}")
         if not (math.isfinite(self.yaw_from_motion_mps) and self.yaw_from_motion_mps >= 0):
             raise ValueError(f"yaw_from_motion_mps must be >= 0, got {self.yaw_from_motion_mps!r}")
 
@@ -233,13 +243,19 @@ class Tracker:
             self._age += 1
             self._since_hit += 1
         self._cameras = [[] for _ in range(len(self._ids))]
-        rows, tracks = self._associate(objects)
+        high = objects.score >= self.config.high_score
+        rows, tracks = self._associate(objects, np.flatnonzero(high), np.arange(len(self._ids)))
+        if not high.all():  # second round: the low-score objects may only extend tracks the first left unmatched
+            free = np.ones(len(self._ids), bool)
+            free[tracks] = False
+            rows2, tracks2 = self._associate(objects, np.flatnonzero(~high), np.flatnonzero(free & self._confirmed))
+            rows, tracks = np.concatenate([rows, rows2]), np.concatenate([tracks, tracks2])
         self._correct(objects, rows, tracks)
         missed = np.ones(len(self._ids), bool)
         missed[tracks] = False
         self._streak[missed] = 0
         self._drop(t_ns)
-        unmatched = np.ones(len(objects), bool)
+        unmatched = high.copy()
         unmatched[rows] = False
         self._birth(objects, np.flatnonzero(unmatched))
         self._confirmed |= self._streak >= self.config.min_hits
@@ -253,16 +269,17 @@ class Tracker:
         at = x[None, :, :2] + x[None, :, 4:6] * d_s[:, None, None]
         return np.linalg.norm(objects.xy[:, None, :] - at, axis=2)
 
-    def _associate(self, objects: ObjectBatch) -> tuple[np.ndarray, np.ndarray]:
-        """Hungarian assignment on ground distance with the gate -> (object rows, track rows)."""
+    def _associate(self, objects: ObjectBatch, rows: np.ndarray, tracks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Hungarian assignment of the objects at `rows` to the tracks at `tracks` on ground distance with the
+        gate -> (object rows, track rows), both indices into the whole batch and track list."""
         empty = np.zeros(0, np.int64)
-        if len(objects) == 0 or len(self._ids) == 0:
+        if len(rows) == 0 or len(tracks) == 0:
             return empty, empty
-        d = self._distances(objects, np.arange(len(self._ids)))
+        d = self._distances(objects.select(rows) if len(rows) < len(objects) else objects, tracks)
         cost = np.where(d <= self.config.gate_m, d, 1e6)
-        rows, tracks = linear_sum_assignment(cost)
-        ok = cost[rows, tracks] <= self.config.gate_m
-        return rows[ok], tracks[ok]
+        r, t = linear_sum_assignment(cost)
+        ok = cost[r, t] <= self.config.gate_m
+        return rows[r[ok]], tracks[t[ok]]
 
     def _measurement(self, objects: ObjectBatch, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """z (M, 4) = [x, y, s, r] and R (M, 4, 4) of the objects at `rows`."""
