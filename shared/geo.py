@@ -70,7 +70,8 @@ class GeoFrame:
         sl, cl, so, co = np.sin(lat), np.cos(lat), np.sin(lon), np.cos(lon)
         rot = np.array([[-so, -sl * co, cl * co], [co, -sl * so, cl * so], [0.0, cl, sl]])
         n = WGS84_A / np.sqrt(1 - WGS84_E2 * sl * sl)
-        origin = np.array([(n + self.alt0_m) * cl * co, (n + self.alt0_m) * cl * so, (n * (1 - WGS84_E2) + self.alt0_m) * sl])
+        h = self.alt0_m
+        origin = np.array([(n + h) * cl * co, (n + h) * cl * so, (n * (1 - WGS84_E2) + h) * sl])
         return rot, origin
 
     def to_dict(self) -> dict:

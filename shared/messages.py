@@ -245,9 +245,11 @@ class Tracks(Message):
     def rows(self) -> list[dict]:
         """One plain dict per track (JSON-friendly), as the recorder writes and clients print."""
         # whole columns to Python lists first: one conversion per column, not one per value
-        xy, vel = np.round(self.xy.astype(np.float64), 3).tolist(), np.round(self.velocity.astype(np.float64), 3).tolist()
-        size = np.round(self.size_lwh.astype(np.float64), 3).tolist()
-        yaw, score = np.round(self.yaw.astype(np.float64), 4).tolist(), np.round(self.score.astype(np.float64), 3).tolist()
+        def rounded(a: np.ndarray, digits: int) -> list:
+            return np.round(a.astype(np.float64), digits).tolist()
+
+        xy, vel, size = rounded(self.xy, 3), rounded(self.velocity, 3), rounded(self.size_lwh, 3)
+        yaw, score = rounded(self.yaw, 4), rounded(self.score, 3)
         latlon = self.latlon.astype(np.float64).tolist()
         names = [VEHICLE_TYPES[t] if 0 <= t < len(VEHICLE_TYPES) else "unknown" for t in self.vtype.tolist()]
         return [{"id": i, "x": p[0], "y": p[1], "lat": ll[0], "lon": ll[1], "vx": v[0], "vy": v[1], "yaw": a,
@@ -255,7 +257,7 @@ class Tracks(Message):
                  "cameras": list(cams)}
                 for i, p, ll, v, a, s, t, sc, age, hits, cams in zip(
                     self.id.tolist(), xy, latlon, vel, yaw, size, names, score, self.age.tolist(), self.hits.tolist(),
-                    self.cameras)]
+                    self.cameras, strict=True)]
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {m.kind: m for m in (Frame, Detections, Objects, Tracks)}
