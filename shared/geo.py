@@ -4,7 +4,7 @@ The site frame is East-North-Up (ENU) in metres around a site origin (a WGS84 po
 Conversions are exact on the ellipsoid, not a flat-earth approximation: latitude/longitude -> ENU is
 pymap3d's; ENU -> latitude/longitude (on every Objects and Tracks message, so on the hot path) is this
 module's own closed form (a rotation to ECEF, then Bowring's latitude with one refinement step), which
-agrees with pymap3d to well under a millimetre and costs a tenth of its time on a few dozen points.
+agrees with pymap3d to nanometres at a fifth of its time on a few dozen points (0.07 against 0.33 ms).
 """
 
 from __future__ import annotations
