@@ -26,6 +26,7 @@ from scipy.optimize import linear_sum_assignment
 from calibration.masks import LookupMasks, load_masks
 from services.ingest.sources import capture_time_from_name
 from shared.decode import Detections
+from shared.geo import GeoFrame
 
 ROI_M = 25.0
 LABEL_RADIUS_M = 30.0
@@ -115,6 +116,14 @@ def _grid_every(out: np.ndarray, x0: int, y0: int, zoom: int, step: int) -> None
                     (255, 255, 0), 1, cv2.LINE_AA)
 
 
+def _label_ground(masks: LookupMasks, labels: np.ndarray, where: object) -> np.ndarray:
+    """Labels (N, 2) px -> (N, 2) ground metres in the masks' frame; ValueError for one outside the masks."""
+    _, l_xy, l_ok = masks.lookup(labels)
+    if not l_ok.all():
+        raise ValueError(f"{where}: label {int(np.argmin(l_ok))} is outside the calibrated area")
+    return l_xy
+
+
 def score_camera(frames: dict[str, np.ndarray], footage: Path, masks: LookupMasks,
                  detect: Callable[[np.ndarray], Detections], thresholds: tuple[float, ...] = (0.0,)) -> list[dict]:
     """Counts for one camera at each score threshold (detections below it left out): tp, detections
@@ -127,36 +136,38 @@ def score_camera(frames: dict[str, np.ndarray], footage: Path, masks: LookupMask
         if grey is None:
             raise ValueError(f"{path}: labelled frame is missing or unreadable")
         det = detect(grey)
-        _, l_xy, l_ok = masks.lookup(labels)
-        if not l_ok.all():
-            raise ValueError(f"{path}: label {int(np.argmin(l_ok))} is outside the calibrated area")
-        l_in = np.hypot(*(l_xy - foot).T) <= ROI_M
+        l_xy = _label_ground(masks, labels, path)
         _, d_xy_all, d_ok_all = masks.lookup(det.uv)
         for a, thr in zip(acc, thresholds, strict=True):
-            keep = d_ok_all & (np.asarray(det.score) >= thr)
-            d_xy = d_xy_all[keep]
-            d_in = np.hypot(*(d_xy - foot).T) <= ROI_M
-            a["n_det"] += int(d_in.sum())
-            a["n_lab"] += int(l_in.sum())
-            if len(d_xy) and len(l_xy):
-                cost = np.linalg.norm(d_xy[:, None] - l_xy[None], axis=2)
-                rows, cols = linear_sum_assignment(np.where(cost <= MATCH_M, cost, 1e6))
-                for r, c in zip(rows, cols, strict=True):
-                    if cost[r, c] > MATCH_M:
-                        continue
-                    if l_in[c]:
-                        a["tp"] += 1
-                        a["errors"].append(cost[r, c])
-                    elif d_in[r]:
-                        a["n_det"] -= 1  # a hit on a vehicle just outside the ROI is not a false alarm
-    out = []
-    for a in acc:
-        tp, n_det, n_lab, errors = a["tp"], a["n_det"], a["n_lab"], a["errors"]
-        out.append({"frames": len(frames), "labels": n_lab, "detections": n_det, "true_positives": tp,
-                    "precision": round(tp / n_det, 4) if n_det else None,
-                    "recall": round(tp / n_lab, 4) if n_lab else None,
-                    "loc_err_median_m": round(float(np.median(errors)), 3) if errors else None})
-    return out
+            _count(a, d_xy_all[d_ok_all & (np.asarray(det.score) >= thr)], l_xy, foot)
+    return [_scores(a, len(frames)) for a in acc]
+
+
+def _count(acc: dict, d_xy: np.ndarray, l_xy: np.ndarray, foot: np.ndarray) -> None:
+    """Add one frame's counts to `acc` (tp, n_det, n_lab, errors): detections d_xy and labels l_xy in site
+    metres, matched one to one within MATCH_M; only those within ROI_M of the camera's foot count."""
+    l_in = np.hypot(*(l_xy - foot).T) <= ROI_M
+    d_in = np.hypot(*(d_xy - foot).T) <= ROI_M
+    acc["n_det"] += int(d_in.sum())
+    acc["n_lab"] += int(l_in.sum())
+    if len(d_xy) and len(l_xy):
+        cost = np.linalg.norm(d_xy[:, None] - l_xy[None], axis=2)
+        rows, cols = linear_sum_assignment(np.where(cost <= MATCH_M, cost, 1e6))
+        for r, c in zip(rows, cols, strict=True):
+            if cost[r, c] > MATCH_M:
+                continue
+            if l_in[c]:
+                acc["tp"] += 1
+                acc["errors"].append(cost[r, c])
+            elif d_in[r]:
+                acc["n_det"] -= 1  # a hit on a vehicle just outside the ROI is not a false alarm
+
+
+def _scores(acc: dict, frames: int) -> dict:
+    tp, n_det, n_lab, errors = acc["tp"], acc["n_det"], acc["n_lab"], acc["errors"]
+    return {"frames": frames, "labels": n_lab, "detections": n_det, "true_positives": tp,
+            "precision": round(tp / n_det, 4) if n_det else None, "recall": round(tp / n_lab, 4) if n_lab else None,
+            "loc_err_median_m": round(float(np.median(errors)), 3) if errors else None}
 
 
 def _overall(per: dict[str, dict]) -> dict:
@@ -194,3 +205,67 @@ def evaluate_real(labels_dir: str | Path, footage: str | Path, masks_dir: str | 
         out["curve"] = [{"score_thr": t, **{k: v for k, v in _overall(p).items() if k != "frames"}}
                         for t, p in zip(curve, per_thr[1:], strict=True)]
     return out
+
+
+def tracks_at(lines: list, t_ns: int, max_gap_ns: int) -> np.ndarray | None:
+    """Track positions (M, 2) at capture time t_ns from tracks lines sorted by time (eval.tracking.TrackLine):
+    interpolated between the two lines around t_ns, a track in only one of them taken from it when it is the
+    nearer one; None when no line lies within max_gap_ns of t_ns."""
+    times = [ln.t_ns for ln in lines]
+    i = int(np.searchsorted(times, t_ns))
+    near = [lines[j] for j in (i - 1, i) if 0 <= j < len(lines) and abs(times[j] - t_ns) <= max_gap_ns]
+    if not near:
+        return None
+    if len(near) == 1 or near[1].t_ns == near[0].t_ns:
+        return near[0].xy.reshape(-1, 2)
+    a, b = near
+    w = (t_ns - a.t_ns) / (b.t_ns - a.t_ns)
+    pa, pb = dict(zip(a.keys(), a.xy, strict=True)), dict(zip(b.keys(), b.xy, strict=True))
+    out = [(1 - w) * pa[k] + w * pb[k] if k in pb else pa[k] for k in pa if k in pb or w <= 0.5]
+    out += [pb[k] for k in pb if k not in pa and w > 0.5]
+    return np.array(out, np.float64).reshape(-1, 2)
+
+
+def _reframe(xy: np.ndarray, src: GeoFrame, dst: GeoFrame) -> np.ndarray:
+    """(N, 2) ground metres in frame `src` -> the same points in frame `dst`."""
+    ll = src.to_geodetic(xy)
+    return dst.to_enu(ll[:, 0], ll[:, 1], dst.alt0_m)[:, :2]
+
+
+def evaluate_tracks_real(labels_dir: str | Path, tracks: str | Path, masks_dir: str | Path,
+                         site_geo: GeoFrame | None = None, held_out_from: time | None = time(11, 0, 40),
+                         max_gap_ms: float = 250.0) -> dict:
+    """The pipeline's tracks (a tracks file of the recorded footage played through it) scored against the hand
+    labels like detections (`evaluate_real`): at each labelled frame's capture time the tracks, interpolated
+    between the ticks around it, are matched to that camera's labels within MATCH_M, within ROI_M of its
+    foot. Frames with no tracks line within `max_gap_ms` are counted apart (`frames_without_tracks`), not
+    scored. `site_geo`: the tracks' site frame when it differs from the masks' own."""
+    from eval.tracking import load_tracks
+
+    labels_dir, masks_dir = Path(labels_dir), Path(masks_dir)
+    files = sorted(labels_dir.glob("*.json"))
+    if not files:
+        raise ValueError(f"no label files in {labels_dir}")
+    lines = sorted(load_tracks(tracks), key=lambda ln: ln.t_ns)
+    if not lines:
+        raise ValueError(f"{tracks}: no tracks lines")
+    per, missing = {}, 0
+    for f in files:
+        masks = load_masks(masks_dir / f"{f.stem}.npz")
+        to_site = site_geo is not None and site_geo != masks.geo
+        foot = _reframe(camera_foot(masks)[None], masks.geo, site_geo)[0] if to_site else camera_foot(masks)
+        acc = {"tp": 0, "n_det": 0, "n_lab": 0, "errors": []}
+        frames = load_labels(f, masks.shape[1], masks.shape[0], held_out_from)
+        scored = 0
+        for name, labels in sorted(frames.items()):
+            xy = tracks_at(lines, capture_time_from_name(name), round(max_gap_ms * 1e6))
+            if xy is None:
+                missing += 1
+                continue
+            l_xy = _label_ground(masks, labels, f"{f}: {name}")
+            l_xy = _reframe(l_xy, masks.geo, site_geo) if to_site else l_xy
+            _count(acc, xy, l_xy, foot)
+            scored += 1
+        per[f.stem] = _scores(acc, scored)
+    return {"roi_m": ROI_M, "match_m": MATCH_M, "tracks_file": str(tracks), "frames_without_tracks": missing,
+            "overall": _overall(per), "per_camera": per}

@@ -232,7 +232,8 @@ def _add_eval(sub) -> None:
                    help="detector: against a recording's ground truth; real: against hand labels (eval/real.py); "
                         "handoff: camera-region crossings kept under one id in a tracks file (no ground truth)")
     p.add_argument("--model", type=Path, help="exported ONNX detector (detector, real)")
-    p.add_argument("--tracks", type=Path, help="tracks file written by fuse_track (handoff)")
+    p.add_argument("--tracks", type=Path, help="tracks file written by fuse_track (handoff; real: score the tracks "
+                   "of the footage played through the pipeline instead of a model's detections)")
     p.add_argument("--recording", type=Path, help="simulator recording (detector)")
     p.add_argument("--every", type=int, default=1, help="use every n-th frame (detector)")
     p.add_argument("--score-thr", type=float, help="lowest score kept (default: 0.05 for detector, as AP needs "
@@ -258,6 +259,17 @@ def _run_eval(args) -> int:
         positions, _ = camera_positions(load_settings(args.site))
         print(json.dumps({"tracks_file": str(args.tracks), **handoff_without_truth(args.tracks, positions)}, indent=1))
         return 0
+    if args.what == "real" and args.tracks is not None:
+        from eval.real import evaluate_tracks_real
+        from shared.geo import GeoFrame
+        from shared.settings import load_settings
+
+        origin = load_settings(args.site).origin
+        result = evaluate_tracks_real(args.site / "labels", args.tracks, args.site / "masks",
+                                      GeoFrame.from_dict(origin) if origin else None)
+        line = ("{name:8s} tracks: precision {precision} recall {recall} ({labels} labels, {detections} tracks "
+                f"within {result['roi_m']:g} m, {{frames}} frames)")
+        return _print_eval(args, result, "per_camera", line)
     if args.model is None:
         raise ValueError(f"eval {args.what} needs --model")
     if args.what == "real":
@@ -285,7 +297,8 @@ def _run_eval(args) -> int:
 
 def _print_eval(args, result: dict, per_key: str, line: str) -> int:
     """The JSON document on stdout, and unless --json a line per group (`line` formatted with its figures)."""
-    result["model"] = str(args.model)
+    if "tracks_file" not in result:
+        result["model"] = str(args.model)
     if not args.json:
         for name, r in {"overall": result["overall"], **result[per_key]}.items():
             print(line.format(name=name, **r), file=sys.stderr)

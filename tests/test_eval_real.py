@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from calibration.masks import LookupMasks
-from eval.real import evaluate_real, label_sheet, load_labels
+from eval.real import evaluate_real, evaluate_tracks_real, label_sheet, load_labels
 from roadside.cli import main
 from shared.decode import Detections
 
@@ -96,6 +96,49 @@ def test_perfect_detections_score_one(tmp_path):
     _labels(site, frames)
     r = evaluate_real(site / "labels", footage, site / "masks", _detector([frames[k] for k in sorted(frames)]))
     assert r["overall"]["precision"] == 1.0 and r["overall"]["recall"] == 1.0
+
+
+def _tracks_file(path: Path, lines: list[tuple[int, list[tuple[int, float, float]]]]) -> Path:
+    path.write_text("".join(json.dumps({"t_ns": t, "tracker": "t1", "tracks": [{"id": i, "x": x, "y": y}
+                                                                               for i, x, y in tracks]}) + "\n"
+                            for t, tracks in lines))
+    return path
+
+
+def test_tracks_are_interpolated_to_each_labelled_frame_and_scored_like_detections(tmp_path):
+    from services.ingest.sources import capture_time_from_name
+
+    site, _ = _site(tmp_path)
+    _labels(site, {"2023-12-19 11-00-41-000000.jpg": [[200, 120]], "2023-12-19 11-00-43-000000.jpg": [[160, 140]]})
+    t1 = capture_time_from_name("2023-12-19 11-00-41-000000.jpg")
+    ms = 1_000_000
+    tracks = _tracks_file(tmp_path / "tracks.jsonl", [
+        # around frame 1 (ticks 50 ms before and 150 ms after it): track 1 drives from 9 to 13 m east, so it is at
+        # 10 m at the frame (the label); track 2 is only in the earlier, nearer tick (a false alarm 10 m west);
+        # track 3 only in the later, farther one (not there yet: left out)
+        (t1 - 50 * ms, [(1, 9.0, 0.0), (2, -10.0, 0.0)]),
+        (t1 + 150 * ms, [(1, 13.0, 0.0), (3, 0.0, 10.0)]),
+        # frame 2 (2 s later) has no tick within 250 ms: not scored
+        (t1 + 1500 * ms, [(1, 0.0, -5.0)]),
+    ])
+    r = evaluate_tracks_real(site / "labels", tracks, site / "masks")
+    c = r["per_camera"]["C1"]
+    assert r["frames_without_tracks"] == 1 and c["frames"] == 1
+    assert (c["labels"], c["detections"], c["true_positives"]) == (1, 2, 1)
+    assert c["loc_err_median_m"] == pytest.approx(0.0, abs=1e-3)
+    assert r["overall"]["precision"] == 0.5 and r["overall"]["recall"] == 1.0
+    # the same tracks in a site frame 100 m west of the masks' origin: every x is 100 m larger
+    from shared.geo import GeoFrame
+
+    masks_geo = GeoFrame(42.0, -83.0, 0.0)
+    ll = masks_geo.to_geodetic(np.array([[-100.0, 0.0]]))[0]
+    shifted = _tracks_file(tmp_path / "shifted.jsonl", [
+        (t1 - 50 * ms, [(1, 109.0, 0.0), (2, 90.0, 0.0)]), (t1 + 150 * ms, [(1, 113.0, 0.0), (3, 100.0, 10.0)])])
+    r2 = evaluate_tracks_real(site / "labels", shifted, site / "masks", GeoFrame(ll[0], ll[1], 0.0))
+    assert (r2["overall"]["true_positives"], r2["overall"]["detections"]) == (1, 2)
+    with pytest.raises(ValueError, match=r"tracks\.jsonl: line 1: missing key 'tracks'"):
+        (tmp_path / "tracks.jsonl").write_text(json.dumps({"t_ns": 1, "tracker": "t"}) + "\n")
+        evaluate_tracks_real(site / "labels", tmp_path / "tracks.jsonl", site / "masks")
 
 
 def test_bad_labels_name_the_problem(tmp_path):
