@@ -226,12 +226,6 @@ def tracks_at(lines: list, t_ns: int, max_gap_ns: int) -> np.ndarray | None:
     return np.array(out, np.float64).reshape(-1, 2)
 
 
-def _reframe(xy: np.ndarray, src: GeoFrame, dst: GeoFrame) -> np.ndarray:
-    """(N, 2) ground metres in frame `src` -> the same points in frame `dst`."""
-    ll = src.to_geodetic(xy)
-    return dst.to_enu(ll[:, 0], ll[:, 1], dst.alt0_m)[:, :2]
-
-
 def evaluate_tracks_real(labels_dir: str | Path, tracks: str | Path, masks_dir: str | Path,
                          site_geo: GeoFrame | None = None, held_out_from: time | None = time(11, 0, 40),
                          max_gap_ms: float = 250.0) -> dict:
@@ -253,7 +247,7 @@ def evaluate_tracks_real(labels_dir: str | Path, tracks: str | Path, masks_dir: 
     for f in files:
         masks = load_masks(masks_dir / f"{f.stem}.npz")
         to_site = site_geo is not None and site_geo != masks.geo
-        foot = _reframe(camera_foot(masks)[None], masks.geo, site_geo)[0] if to_site else camera_foot(masks)
+        foot = masks.geo.reframe(camera_foot(masks), site_geo)[0] if to_site else camera_foot(masks)
         acc = {"tp": 0, "n_det": 0, "n_lab": 0, "errors": []}
         frames = load_labels(f, masks.shape[1], masks.shape[0], held_out_from)
         scored = 0
@@ -263,7 +257,7 @@ def evaluate_tracks_real(labels_dir: str | Path, tracks: str | Path, masks_dir: 
                 missing += 1
                 continue
             l_xy = _label_ground(masks, labels, f"{f}: {name}")
-            l_xy = _reframe(l_xy, masks.geo, site_geo) if to_site else l_xy
+            l_xy = masks.geo.reframe(l_xy, site_geo) if to_site else l_xy
             _count(acc, xy, l_xy, foot)
             scored += 1
         per[f.stem] = _scores(acc, scored)

@@ -260,6 +260,9 @@ def _run_eval(args) -> int:
         print(json.dumps({"tracks_file": str(args.tracks), **handoff_without_truth(args.tracks, positions)}, indent=1))
         return 0
     if args.what == "real" and args.tracks is not None:
+        if args.model is not None:
+            raise ValueError("eval real scores either a model's detections (--model) or a tracks file (--tracks), "
+                             "not both")
         from eval.real import evaluate_tracks_real
         from shared.geo import GeoFrame
         from shared.settings import load_settings
@@ -297,7 +300,7 @@ def _run_eval(args) -> int:
 
 def _print_eval(args, result: dict, per_key: str, line: str) -> int:
     """The JSON document on stdout, and unless --json a line per group (`line` formatted with its figures)."""
-    if "tracks_file" not in result:
+    if args.model is not None:
         result["model"] = str(args.model)
     if not args.json:
         for name, r in {"overall": result["overall"], **result[per_key]}.items():

@@ -74,6 +74,12 @@ class GeoFrame:
         origin = np.array([(n + h) * cl * co, (n + h) * cl * so, (n * (1 - WGS84_E2) + h) * sl])
         return rot, origin
 
+    def reframe(self, xy_m: np.ndarray, other: GeoFrame) -> np.ndarray:
+        """(N, 2) ground points in metres of this frame -> the same points in metres of `other` (through
+        latitude/longitude, at `other`'s origin height): for masks or tracks made with another origin."""
+        ll = self.to_geodetic(np.asarray(xy_m, np.float64).reshape(-1, 2))
+        return other.to_enu(ll[:, 0], ll[:, 1], other.alt0_m)[:, :2]
+
     def to_dict(self) -> dict:
         return {"lat_deg": self.lat0_deg, "lon_deg": self.lon0_deg, "alt_m": self.alt0_m}
 

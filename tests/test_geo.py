@@ -135,3 +135,12 @@ def test_to_geodetic_matches_pymap3d_everywhere(origin: tuple[float, float, floa
     assert np.max(np.abs(got[:, 0] - want[:, 0])) * 111_000 < 1e-6
     assert np.max(dlon * 111_000 * np.cos(np.radians(want[:, 0]))) < 1e-6
     assert np.max(np.abs(got[:, 2] - want[:, 2])) < 1e-6
+
+
+def test_reframe_moves_ground_points_between_site_frames(frame: GeoFrame) -> None:
+    ll = frame.to_geodetic(np.array([[100.0, -40.0]]))[0]
+    other = GeoFrame(ll[0], ll[1], ALT0)  # origin 100 m east, 40 m south of `frame`'s
+    np.testing.assert_allclose(frame.reframe(np.array([[100.0, -40.0], [0.0, 0.0]]), other),
+                               [[0.0, 0.0], [-100.0, 40.0]], atol=0.01)
+    pts = np.random.default_rng(4).uniform(-300, 300, (50, 2))
+    np.testing.assert_allclose(other.reframe(frame.reframe(pts, other), frame), pts, atol=1e-6)

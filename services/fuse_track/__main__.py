@@ -69,8 +69,7 @@ def camera_positions(settings: Settings) -> tuple[dict[str, tuple[float, float]]
             raise ValueError(f"{path}: not a lookup masks file ({type(exc).__name__}: {exc})") from None
         site_geo = site_geo or masks_geo
         if masks_geo != site_geo:
-            ll = masks_geo.to_geodetic(pos[None, :2])[0]
-            pos = site_geo.to_enu(ll[:1], ll[1:2], site_geo.alt0_m)[0]
+            pos = masks_geo.reframe(pos[:2], site_geo)[0]
         positions[cam.name] = (float(pos[0]), float(pos[1]))
         geo = site_geo
     return positions, geo
