@@ -181,6 +181,9 @@ def _add_train(sub) -> None:
     p.add_argument("--input-long-side", type=int,
                    help="network input: images shrunk so their longer side is at most this (default 640, or the "
                         "--init model's); with --init, the starting weights are kept")
+    p.add_argument("--train-only", default="",
+                   help="with --init: train only these heads (comma-separated: heat, size, heading, vtype, offset, "
+                        "axis), the rest frozen; e.g. offset sharpens localization and leaves detection as it is")
 
 
 UNLIMITED_STEPS = 10**9  # with --minutes alone the clock ends the run
@@ -200,6 +203,7 @@ def _run_train(args) -> int:
                       minutes=args.minutes, batch_size=args.batch_size, crop=args.crop, lr=args.lr, every=args.every,
                       center=args.center, seed=args.seed, init=args.init, add_axis_head=args.axis_head,
                       input_long_side=args.input_long_side,
+                      train_only=tuple(h.strip() for h in args.train_only.split(",") if h.strip()),
                       augment=AugmentConfig(fisheye_rotation=args.fisheye_rotation),
                       model=DetectorConfig(stride=args.stride, axis_head=args.axis_head),
                       loss=LossConfig(topk_fraction=None if args.no_topk else 0.01, beta_box=args.beta_box,

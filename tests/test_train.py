@@ -49,6 +49,21 @@ def test_train_writes_the_model_and_log_then_fine_tunes_from_it(small_recording,
         resized = load_detector(tmp_path / "e" / "model.pt")
         assert resized.config == replace(TINY, input_long_side=1280)
         assert "input size 320 -> 1280 px" in " ".join(messages)
+        # only the offset head trained: every other weight and batch-norm statistic is the starting model's
+        train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "f"), steps=3, batch_size=2,
+                          crop=64, threads=1, init=str(tmp_path / "a" / "model.pt"), train_only=("offset",),
+                          lr=1e-2), log=messages.append)
+        before = load_detector(tmp_path / "a" / "model.pt").state_dict()
+        after = load_detector(tmp_path / "f" / "model.pt").state_dict()
+        changed = {k for k in before if not torch.equal(before[k], after[k])}
+        assert changed and all(k.startswith("heads.offset.") for k in changed)
+        assert "training only the offset head" in " ".join(messages)
+        with pytest.raises(ValueError, match=r"no head \['wheels'\]"):
+            train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "g"), steps=1, batch_size=2,
+                              crop=64, threads=1, init=str(tmp_path / "a" / "model.pt"), train_only=("wheels",)),
+                  log=lambda _m: None)
+        with pytest.raises(ValueError, match="train_only needs a trained model"):
+            TrainConfig(recordings=(str(small_recording),), train_only=("offset",))
         with pytest.raises(FileNotFoundError, match=r"init model not found: .*nope\.pt"):
             train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "c"), steps=1,
                               init=str(tmp_path / "nope.pt")), log=lambda _m: None)

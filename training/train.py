@@ -52,6 +52,9 @@ class TrainConfig:
     input_long_side: int | None = None  # network input size (longer side); with `init`, replaces its (weights kept)
     threads: int = 2
     log_every: int = 25
+    # heads to train, the rest frozen (weights and batch-norm statistics): e.g. ("offset",) sharpens the
+    # localization of a trained model without touching what it detects; () trains everything
+    train_only: tuple[str, ...] = ()
     model: DetectorConfig = field(default_factory=DetectorConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     augment: AugmentConfig = field(default_factory=AugmentConfig)
@@ -68,6 +71,9 @@ class TrainConfig:
             raise ValueError(f"input_long_side must be >= 32, got {self.input_long_side}")
         if self.minutes is not None and not self.minutes > 0:
             raise ValueError(f"minutes must be > 0, got {self.minutes}")
+        if self.train_only and self.init is None:
+            raise ValueError("train_only needs a trained model to start from (init): the frozen parts would stay "
+                             "random")
 
 
 def recording_spec(spec: str) -> tuple[str, str | None]:
@@ -122,6 +128,30 @@ def _lr_at(frac: float, peak: float) -> float:
     return peak * 0.5 * (1 + math.cos(math.pi * min(1.0, (frac - warm) / (1 - warm))))
 
 
+def trainable(model: Detector, heads: tuple[str, ...], log=print) -> list[torch.nn.Parameter]:
+    """Put the model in training mode and return the parameters to optimise: all of them, or with `heads` only
+    those heads' (the rest keep their weights and, in eval mode, their batch-norm statistics, so what they
+    output is unchanged). ValueError naming an unknown head."""
+    if not heads:
+        model.train()
+        return list(model.parameters())
+    unknown = sorted(set(heads) - set(model.heads))
+    if unknown:
+        raise ValueError(f"train_only: no head {unknown} in this model (heads: {', '.join(model.heads)})")
+    model.eval()
+    for p in model.parameters():
+        p.requires_grad_(False)
+    params = []
+    for name in heads:
+        model.heads[name].train()
+        for p in model.heads[name].parameters():
+            p.requires_grad_(True)
+            params.append(p)
+    log(f"[train] training only the {', '.join(heads)} head(s): {sum(p.numel() for p in params)} parameters, "
+        "the rest frozen")
+    return params
+
+
 def train(cfg: TrainConfig, log=print) -> dict:
     """Run one training; returns the summary also written to `out/train.json`."""
     out = Path(cfg.out)
@@ -155,8 +185,8 @@ def train(cfg: TrainConfig, log=print) -> dict:
     log(f"[train] {len(refs)} images, {n_pos} vehicles to detect")
     aug = partial(augment, out_hw=(cfg.crop, cfg.crop), config=cfg.augment)
     batcher = Batcher(refs, aug, cfg.batch_size, rng)
-    model.train()
-    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    params = trainable(model, cfg.train_only, log)
+    opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
     total = cfg.steps
     budget_s = None if cfg.minutes is None else cfg.minutes * 60
     step, t_start = 0, time.perf_counter()
@@ -183,7 +213,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
                     raise FloatingPointError(f"loss became {loss.item()} at step {step}: lower the learning rate")
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
-                torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
+                torch.nn.utils.clip_grad_norm_(params, 5.0)
                 opt.step()
                 step += 1
                 if step == WARMUP_STEPS:
