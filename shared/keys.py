@@ -38,6 +38,12 @@ def alive_key(site: str, service: str, instance: str) -> str:
     return f"roadside/{check_name('site', site)}/alive/{service}/{check_name('instance', instance)}"
 
 
+def observer_alive_key(site: str, name: str) -> str:
+    """Liveliness token `roadside/<site>/alive/observer/<name>` of a process that is not one of the services but that
+    ingest may be told to wait for (`ingest.wait_extra_peers`), e.g. a recorder that must see the first frame."""
+    return f"roadside/{check_name('site', site)}/alive/observer/{check_name('name', name)}"
+
+
 def all_alive_key(site: str) -> str:
     return f"roadside/{check_name('site', site)}/alive/**"
 

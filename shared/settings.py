@@ -76,6 +76,9 @@ class IngestSettings(Strict):
     max_frames: int | None = Field(None, gt=0)  # stop after this many frames per camera
     # pace "max": frames published but not yet detected (default: detect.workers, so that no worker idles)
     max_in_flight: int | None = Field(None, ge=1)
+    # liveliness tokens beyond the four services' that ingest waits for before it plays (up to 60 s), e.g. 1 for
+    # a recorder that must see the first frame (the demo's collector declares one once it is linked to all four)
+    wait_extra_peers: int = Field(0, ge=0)
 
     @field_validator("pace", mode="before")  # before: YAML and --set give `pace: 2` as a number
     @classmethod

@@ -28,6 +28,7 @@ from shared.keys import (
     camera_key,
     camera_of,
     latest_tracks_key,
+    observer_alive_key,
     tracks_key,
 )
 from shared.messages import (
@@ -374,6 +375,7 @@ def test_keys_are_the_documented_ones() -> None:
     assert latest_tracks_key("s1") == "roadside/s1/tracks/latest"
     assert alive_key("s1", "detect", "NE") == "roadside/s1/alive/detect/NE"
     assert all_alive_key("s1") == "roadside/s1/alive/**"
+    assert observer_alive_key("s1", "demo-collector") == "roadside/s1/alive/observer/demo-collector"
     assert camera_of("roadside/s1/cam/T_SW/objects") == "T_SW"
 
 
@@ -392,7 +394,8 @@ def test_alive_key_refuses_bad_services(service: str) -> None:
 
 
 @pytest.mark.parametrize("call", [lambda: camera_key("s/1", "NE", "frame"), lambda: camera_key("s1", "*", "frame"),
-                                  lambda: tracks_key("**"), lambda: alive_key("s1", "detect", "a/b")])
+                                  lambda: tracks_key("**"), lambda: alive_key("s1", "detect", "a/b"),
+                                  lambda: observer_alive_key("s1", "x/y")])
 def test_keys_refuse_bad_names(call) -> None:
     with pytest.raises(ValueError, match="name must be"):
         call()

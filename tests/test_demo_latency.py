@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 from test_contract import T0, make_objects, make_tracks
 
-from roadside.demo import HOPS, latency
+from roadside.demo import HOPS, latency, pooled
 
 MS = 1_000_000
 
@@ -30,3 +30,17 @@ def test_no_matching_frames_gives_none():
     r = latency([make_objects(stamps=[("ingest", T0), ("detect_in", T0), ("detect", T0), ("localize", T0)])],
                 [make_tracks(frames=[("NW", 1, T0, T0)])])
     assert r["frames"] == 0 and r["overhead_p50"] is None and r["hops_p50"]["tick_wait"] is None
+
+
+def test_detector_alone_passes_pool_as_one_long_pass():
+    # a slow pass (4 frames in 0.2 s) and a fast one (4 in 0.1 s): 8 frames in 0.3 s, not the mean of 20 and 40
+    slow = {"frames": 4, "workers": 2, "threads": 1, "wall_s": 0.2, "cpu_s": 0.36, "times": [40.0, 40.0, 50.0, 50.0],
+            "with_decode_wall_s": 0.4, "with_decode_cpu_s": 0.6, "with_decode_times": [80.0] * 4}
+    fast = {"frames": 4, "workers": 2, "threads": 1, "wall_s": 0.1, "cpu_s": 0.2, "times": [20.0, 20.0, 25.0, 25.0],
+            "with_decode_wall_s": 0.2, "with_decode_cpu_s": 0.2, "with_decode_times": [40.0] * 4}
+    p = pooled([slow, fast])
+    assert p["frames"] == 8 and p["workers"] == 2 and p["threads"] == 1
+    assert p["fps"] == pytest.approx(8 / 0.3) and p["with_decode_fps"] == pytest.approx(8 / 0.6)
+    assert p["ms_p50"] == pytest.approx(32.5) and p["with_decode_ms_p50"] == pytest.approx(60.0)
+    assert p["cpu_ms_per_frame"] == pytest.approx(70.0) and p["with_decode_cpu_ms_per_frame"] == pytest.approx(100.0)
+    assert p["passes"] == [{"fps": 20.0, "with_decode_fps": 10.0}, {"fps": 40.0, "with_decode_fps": 20.0}]

@@ -137,7 +137,8 @@ def main(settings: Settings, stopper: Stopper) -> int:
             acks = Acks(Receiver(session, all_cameras_key(settings.site, "detections"), Detections, bad),
                         cfg.max_in_flight or settings.detect.workers, stopper, per_camera=settings.detect.ring)
         tokens = declare_alive(session, settings.site, "ingest", list(cams))
-        seen = wait_for_peers(session, all_alive_key(settings.site), len(cams) * 3 + 1, PIPELINE_WAIT_S)
+        seen = wait_for_peers(session, all_alive_key(settings.site), len(cams) * 3 + 1 + cfg.wait_extra_peers,
+                              PIPELINE_WAIT_S)
         log.info("source %s, %d cameras, pace %s; %d liveliness tokens on the bus", cfg.source, len(cams),
                  cfg.pace, seen)
         scales = {c: decode_scale_for(cam.width, cam.height, cfg.decode_long_side) for c, cam in cams.items()}
