@@ -14,6 +14,7 @@ listens on its own port (`port_base` + its index in SERVICES; clients such as `r
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 from typing import Literal
@@ -50,6 +51,9 @@ class CameraSettings(Strict):
     masks: Path | None = None  # lookup masks file (roadside calibrate)
     source: str | None = None  # this camera's own source (folder, video, URL) when not the site source
     region_m: list[tuple[float, float]] | None = None  # fusion region polygon, site metres; default: nearest camera
+    # pixel polygons where localize drops detections: things the detector keeps mistaking for a vehicle (a painted
+    # word, a lamp head), marked by the installer on the camera's image (deploy/sites/README.md)
+    exclude_px: list[list[tuple[float, float]]] = []
 
     @field_validator("name")
     @classmethod
@@ -61,6 +65,16 @@ class CameraSettings(Strict):
     def _region(cls, v):
         if v is not None and len(v) < 3:
             raise ValueError(f"region_m needs at least 3 points, got {len(v)}")
+        return v
+
+    @field_validator("exclude_px")
+    @classmethod
+    def _exclude(cls, v):
+        for i, poly in enumerate(v):
+            if len(poly) < 3:
+                raise ValueError(f"exclude_px[{i}] needs at least 3 points, got {len(poly)}")
+            if not all(math.isfinite(c) for pt in poly for c in pt):
+                raise ValueError(f"exclude_px[{i}] has a coordinate that is not a finite number")
         return v
 
 

@@ -489,6 +489,19 @@ def test_no_cameras_and_bad_camera_names_are_refused(tmp_path) -> None:
         load_settings(write_site(tmp_path, {**SITE_YAML, "cameras": [{**SITE_YAML["cameras"][0], "name": "N/E"}]}))
 
 
+def test_exclusion_polygons_are_checked(tmp_path) -> None:
+    cam = SITE_YAML["cameras"][0]
+    triangle = [[1, 2], [5, 2], [5, 6]]
+    ok = load_settings(write_site(tmp_path, {**SITE_YAML, "cameras": [{**cam, "exclude_px": [triangle]}]}))
+    assert ok.cameras[0].exclude_px == [[(1, 2), (5, 2), (5, 6)]]
+    assert load_settings(write_site(tmp_path, SITE_YAML)).cameras[0].exclude_px == []
+    with pytest.raises(ValueError, match=r"exclude_px\[0\] needs at least 3 points, got 2"):
+        load_settings(write_site(tmp_path, {**SITE_YAML, "cameras": [{**cam, "exclude_px": [[[1, 2], [5, 2]]]}]}))
+    with pytest.raises(ValueError, match=r"exclude_px\[1\] has a coordinate that is not a finite number"):
+        load_settings(write_site(tmp_path, {**SITE_YAML, "cameras": [
+            {**cam, "exclude_px": [[[1, 2], [5, 2], [5, 6]], [[1, 2], [5, float("nan")], [5, 6]]]}]}))
+
+
 def test_unknown_field_is_named(tmp_path) -> None:
     with pytest.raises(ValueError, match=r"site.yaml: detect.treads: Extra inputs are not permitted"):
         load_settings(write_site(tmp_path, {**SITE_YAML, "detect": {"treads": 2}}))

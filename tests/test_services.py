@@ -595,3 +595,15 @@ def test_roadside_up_stops_cleanly_on_sigterm(site, small_recording, port_base, 
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+def test_exclusion_polygons_take_their_pixels_out_of_the_calibrated_area():
+    from services.localize.__main__ import excluded
+
+    valid = np.ones((10, 12), bool)
+    valid[0, 0] = False
+    out = excluded(valid, [[(2, 2), (5, 2), (5, 5), (2, 5)], [(9.6, 8.6), (11.4, 8.6), (11.4, 9.4)]])
+    assert valid[2:6, 2:6].all() and valid.sum() == 119  # the input is not changed
+    assert not out[2:6, 2:6].any() and out[2:6, 6].all() and out[1, 2:6].all()  # a 4x4 square of pixels out
+    assert not out[0, 0] and (~out).sum() == 1 + 16 + int((~out[8:, 10:]).sum())
+    assert not out[9, 11] and out[8, 10]  # the small triangle takes the pixel it covers, not its neighbours

@@ -29,6 +29,17 @@ log = logging.getLogger("roadside.localize")
 IDLE_WAIT_S = 0.1
 
 
+def excluded(valid: np.ndarray, polygons: list) -> np.ndarray:
+    """A copy of a validity mask (H, W) with the pixels inside the polygons (pixel coordinates, pixel centres on
+    integers) set invalid, so that a detection there is dropped like one outside the calibrated area."""
+    import cv2
+
+    inside = np.zeros(valid.shape, np.uint8)
+    # fillPoly takes fixed-point vertices: 4 fractional bits keep a quarter of a pixel
+    cv2.fillPoly(inside, [np.round(np.asarray(p, np.float64) * 16).astype(np.int32) for p in polygons], 1, shift=4)
+    return valid & (inside == 0)
+
+
 def load_all_masks(settings: Settings) -> dict[str, GroundLookup]:
     site_geo = GeoFrame.from_dict(settings.origin) if settings.origin else None
     out = {}
@@ -39,6 +50,11 @@ def load_all_masks(settings: Settings) -> dict[str, GroundLookup]:
         if masks.shape != (cam.height, cam.width):
             raise ValueError(f"camera {cam.name}: masks {settings.path(cam.masks)} are {masks.shape[1]}x"
                              f"{masks.shape[0]}, the camera is {cam.width}x{cam.height}")
+        if cam.exclude_px:
+            before = int(masks.valid.sum())
+            masks.valid = excluded(masks.valid, cam.exclude_px)
+            log.info("camera %s: %d exclusion polygon(s) take %d calibrated pixels out", cam.name,
+                     len(cam.exclude_px), before - int(masks.valid.sum()))
         out[cam.name] = GroundLookup(masks, site_geo)
         del masks
     return out
