@@ -195,3 +195,14 @@ def angular_coverage_deg(xy: np.ndarray, centre: np.ndarray) -> float:
     ang = np.sort(np.degrees(np.arctan2(xy[:, 1] - centre[1], xy[:, 0] - centre[0])))
     gaps = np.diff(np.concatenate([ang, [ang[0] + 360.0]]))
     return float(gaps.max()) if len(ang) > 1 else 360.0
+
+
+def excluded(valid: np.ndarray, polygons: list) -> np.ndarray:
+    """A copy of a validity mask (H, W) with the pixels inside the polygons (pixel coordinates, pixel centres on
+    integers) set invalid, so that a detection there is dropped like one outside the calibrated area."""
+    import cv2  # only here: the masks load without OpenCV
+
+    inside = np.zeros(valid.shape, np.uint8)
+    # fillPoly takes fixed-point vertices: 4 fractional bits keep a quarter of a pixel
+    cv2.fillPoly(inside, [np.round(np.asarray(p, np.float64) * 16).astype(np.int32) for p in polygons], 1, shift=4)
+    return valid & (inside == 0)

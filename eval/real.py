@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from calibration.masks import LookupMasks, load_masks
+from calibration.masks import LookupMasks, excluded, load_masks
 from services.ingest.sources import capture_time_from_name
 from shared.decode import Detections
 from shared.geo import GeoFrame
@@ -179,10 +179,12 @@ def _overall(per: dict[str, dict]) -> dict:
 def evaluate_real(labels_dir: str | Path, footage: str | Path, masks_dir: str | Path,
                   detect: Callable[[np.ndarray], Detections], held_out_from: time | None = time(11, 0, 40),
                   folder_pattern: str = "gs_State_Ellsworth_{camera}", score_thr: float = 0.0,
-                  curve: tuple[float, ...] = ()) -> dict:
+                  curve: tuple[float, ...] = (), exclude_px: dict[str, list] | None = None) -> dict:
     """Per camera and overall precision / recall within ROI_M for every `labels_dir`/*.json, for the
     detections scoring at least `score_thr`; `curve`: overall precision / recall at these thresholds too
-    (a model's whole trade-off, from the same detector pass; `detect` must keep scores that low)."""
+    (a model's whole trade-off, from the same detector pass; `detect` must keep scores that low).
+    `exclude_px`: per camera, the site's exclusion polygons (`cameras[].exclude_px`): detections there are
+    dropped as localize drops them."""
     labels_dir, footage, masks_dir = Path(labels_dir), Path(footage), Path(masks_dir)
     files = sorted(labels_dir.glob("*.json"))
     if not files:
@@ -194,6 +196,8 @@ def evaluate_real(labels_dir: str | Path, footage: str | Path, masks_dir: str | 
     for f in files:
         camera = f.stem
         masks = load_masks(masks_dir / f"{camera}.npz")
+        if exclude_px and exclude_px.get(camera):
+            masks.valid = excluded(masks.valid, exclude_px[camera])
         h, w = masks.shape
         frames = load_labels(f, w, h, held_out_from)
         rows = score_camera(frames, footage / folder_pattern.format(camera=camera), masks, detect, thresholds)

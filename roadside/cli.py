@@ -281,12 +281,17 @@ def _run_eval(args) -> int:
         raise ValueError(f"eval {args.what} needs --model")
     if args.what == "real":
         from eval.real import evaluate_real
+        from shared.settings import load_settings
 
         thr = 0.3 if args.score_thr is None else args.score_thr
         curve = tuple(round(0.05 * k, 2) for k in range(1, 13))  # 0.05 ... 0.6
         det = OnnxDetector(args.model, threads=args.threads, score_thr=min(thr, *curve))
+        has_settings = args.site.is_file() or (args.site / "site.yaml").is_file()  # a bare labels + masks folder too
+        cams = load_settings(args.site).cameras if has_settings else []
+        exclude = {c.name: c.exclude_px for c in cams if c.exclude_px}
         result = evaluate_real(args.site / "labels", args.footage, args.site / "masks", det.detect, score_thr=thr,
-                               curve=curve)
+                               curve=curve, exclude_px=exclude)
+        result["excluded_cameras"] = sorted(exclude)  # cameras whose exclusion zones (site.yaml) were applied
         line = ("{name:8s} precision {precision} recall {recall} ({labels} labels, {detections} detections within "
                 f"{result['roi_m']:g} m)")
         return _print_eval(args, result, "per_camera", line)

@@ -90,6 +90,20 @@ def test_the_curve_scores_every_threshold_from_one_detector_pass(tmp_path):
     assert r["curve"][1]["precision"] == 1.0 and r["curve"][1]["recall"] == 1.0 and r["curve"][2]["recall"] == 0.0
 
 
+def test_exclusion_zones_drop_the_detections_in_them_as_localize_does(tmp_path):
+    site, footage = _site(tmp_path)
+    _labels(site, {"2023-12-19 11-00-41-000000.jpg": [[200, 120]]})
+    def detect():  # a hit and a false alarm at (120, 120)
+        return _detector([[[200, 121], [120, 120]]], [[0.5, 0.5]])
+
+    plain = evaluate_real(site / "labels", footage, site / "masks", detect())
+    assert (plain["overall"]["true_positives"], plain["overall"]["detections"]) == (1, 2)
+    zone = [[(114, 114), (126, 114), (126, 126), (114, 126)]]
+    r = evaluate_real(site / "labels", footage, site / "masks", detect(), exclude_px={"C1": zone, "C9": zone})
+    assert (r["overall"]["true_positives"], r["overall"]["detections"]) == (1, 1)
+    assert r["overall"]["precision"] == 1.0
+
+
 def test_perfect_detections_score_one(tmp_path):
     site, footage = _site(tmp_path)
     frames = {"2023-12-19 11-00-41-000000.jpg": [[150, 100], [180, 130]], "2023-12-19 11-00-43-000000.jpg": []}

@@ -598,7 +598,7 @@ def test_roadside_up_stops_cleanly_on_sigterm(site, small_recording, port_base, 
 
 
 def test_exclusion_polygons_take_their_pixels_out_of_the_calibrated_area():
-    from services.localize.__main__ import excluded
+    from calibration.masks import excluded
 
     valid = np.ones((10, 12), bool)
     valid[0, 0] = False

@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from calibration.masks import load_masks
+from calibration.masks import excluded, load_masks
 from services.localize.lift import GroundLookup, lift
 from shared.bus import BadInput, Receiver, Stopper, declare_alive, open_session
 from shared.codec import encode
@@ -27,17 +27,6 @@ from shared.settings import Settings
 
 log = logging.getLogger("roadside.localize")
 IDLE_WAIT_S = 0.1
-
-
-def excluded(valid: np.ndarray, polygons: list) -> np.ndarray:
-    """A copy of a validity mask (H, W) with the pixels inside the polygons (pixel coordinates, pixel centres on
-    integers) set invalid, so that a detection there is dropped like one outside the calibrated area."""
-    import cv2
-
-    inside = np.zeros(valid.shape, np.uint8)
-    # fillPoly takes fixed-point vertices: 4 fractional bits keep a quarter of a pixel
-    cv2.fillPoly(inside, [np.round(np.asarray(p, np.float64) * 16).astype(np.int32) for p in polygons], 1, shift=4)
-    return valid & (inside == 0)
 
 
 def load_all_masks(settings: Settings) -> dict[str, GroundLookup]:
