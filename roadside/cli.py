@@ -334,6 +334,47 @@ def _add_autolabel(sub) -> None:
                    help="foreground regions too small for a vehicle become ignore regions instead of being dropped")
 
 
+def _add_static(sub) -> None:
+    p = sub.add_parser("static", help="detections that stay at one pixel in a camera's frames: candidates for "
+                                      "its exclusion zones (cameras[].exclude_px)")
+    p.add_argument("--model", type=Path, required=True, help="the detector ONNX model the site runs")
+    p.add_argument("--frames", type=Path, required=True, help="one camera's frames (capture time in the names)")
+    p.add_argument("--until", help="only frames before this time of day HH:MM:SS (leave a held-out slice alone)")
+    p.add_argument("--every", type=int, default=4, help="use every n-th frame (default 4)")
+    p.add_argument("--score-thr", type=float, default=0.3, help="detections at least this confident (detect's)")
+    p.add_argument("--min-fraction", type=float, default=0.5, help="report places detected in this share of frames")
+    p.add_argument("--crops", type=Path, help="folder: write the image around each place (spot_<k>.png) to look at")
+
+
+def _run_static(args) -> int:
+    import cv2
+
+    from eval.static import crop, static_detections
+    from shared.inference import OnnxDetector
+    from training.autolabel import list_frames
+
+    if args.every < 1:
+        raise ValueError(f"--every must be >= 1, got {args.every}")
+    paths = [p for _, p in list_frames(args.frames, _time_of_day(args.until))][:: args.every]
+    det = OnnxDetector(args.model, score_thr=args.score_thr, spin=False)
+
+    def images():
+        for p in paths:
+            grey = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+            if grey is None:
+                raise ValueError(f"{p}: not a readable image")
+            yield grey
+
+    result = static_detections(images(), det.detect, min_fraction=args.min_fraction)
+    if args.crops is not None:
+        args.crops.mkdir(parents=True, exist_ok=True)
+        last = cv2.imread(str(paths[-1]), cv2.IMREAD_GRAYSCALE)
+        for k, spot in enumerate(result["spots"]):
+            cv2.imwrite(str(args.crops / f"spot_{k}.png"), crop(last, spot["uv"]))
+    print(json.dumps({"frames_folder": str(args.frames), "until": args.until, **result}, indent=1))
+    return 0
+
+
 def _time_of_day(text: str | None):
     from datetime import time
 
@@ -599,6 +640,7 @@ def main(argv: list[str] | None = None) -> int:
     _add_bench(sub)
     _add_train(sub)
     _add_autolabel(sub)
+    _add_static(sub)
     _add_composite(sub)
     _add_export(sub)
     _add_eval(sub)
@@ -608,7 +650,8 @@ def main(argv: list[str] | None = None) -> int:
     _add_viz(sub)
     args = parser.parse_args(argv)
     runners = {"sim": _run_sim, "demo": _run_demo, "calibrate": _run_calibrate, "bench": _run_bench,
-               "train": _run_train, "autolabel": _run_autolabel, "composite": _run_composite, "export": _run_export,
+               "train": _run_train, "autolabel": _run_autolabel, "static": _run_static,
+               "composite": _run_composite, "export": _run_export,
                "eval": _run_eval, "up": _run_up,
                "tracks": _run_tracks, "health": _run_health, "viz": _run_viz}
     try:
