@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
+from dataclasses import replace
 from datetime import UTC, datetime, time
 from pathlib import Path
 
@@ -125,10 +126,13 @@ def _label_ground(masks: LookupMasks, labels: np.ndarray, where: object) -> np.n
 
 
 def score_camera(frames: dict[str, np.ndarray], footage: Path, masks: LookupMasks,
-                 detect: Callable[[np.ndarray], Detections], thresholds: tuple[float, ...] = (0.0,)) -> list[dict]:
+                 detect: Callable[[np.ndarray], Detections], thresholds: tuple[float, ...] = (0.0,),
+                 exclude_px: list | None = None) -> list[dict]:
     """Counts for one camera at each score threshold (detections below it left out): tp, detections
-    (within ROI_M), labels (within ROI_M), and matched errors. The detector runs once per frame."""
+    (within ROI_M), labels (within ROI_M), and matched errors. The detector runs once per frame.
+    `exclude_px`: the camera's exclusion polygons; detections there are dropped (labels there still count)."""
     foot = camera_foot(masks)
+    det_masks = replace(masks, valid=excluded(masks.valid, exclude_px)) if exclude_px else masks
     acc = [{"tp": 0, "n_det": 0, "n_lab": 0, "errors": []} for _ in thresholds]
     for name, labels in sorted(frames.items()):
         path = footage / name
@@ -137,7 +141,7 @@ def score_camera(frames: dict[str, np.ndarray], footage: Path, masks: LookupMask
             raise ValueError(f"{path}: labelled frame is missing or unreadable")
         det = detect(grey)
         l_xy = _label_ground(masks, labels, path)
-        _, d_xy_all, d_ok_all = masks.lookup(det.uv)
+        _, d_xy_all, d_ok_all = det_masks.lookup(det.uv)
         for a, thr in zip(acc, thresholds, strict=True):
             _count(a, d_xy_all[d_ok_all & (np.asarray(det.score) >= thr)], l_xy, foot)
     return [_scores(a, len(frames)) for a in acc]
@@ -196,11 +200,10 @@ def evaluate_real(labels_dir: str | Path, footage: str | Path, masks_dir: str | 
     for f in files:
         camera = f.stem
         masks = load_masks(masks_dir / f"{camera}.npz")
-        if exclude_px and exclude_px.get(camera):
-            masks.valid = excluded(masks.valid, exclude_px[camera])
         h, w = masks.shape
         frames = load_labels(f, w, h, held_out_from)
-        rows = score_camera(frames, footage / folder_pattern.format(camera=camera), masks, detect, thresholds)
+        rows = score_camera(frames, footage / folder_pattern.format(camera=camera), masks, detect, thresholds,
+                            (exclude_px or {}).get(camera))
         for acc, row in zip(per_thr, rows, strict=True):
             acc[camera] = row
     out = {"roi_m": ROI_M, "match_m": MATCH_M, "score_thr": score_thr, "overall": _overall(per_thr[0]),

@@ -102,6 +102,10 @@ def test_exclusion_zones_drop_the_detections_in_them_as_localize_does(tmp_path):
     r = evaluate_real(site / "labels", footage, site / "masks", detect(), exclude_px={"C1": zone, "C9": zone})
     assert (r["overall"]["true_positives"], r["overall"]["detections"]) == (1, 1)
     assert r["overall"]["precision"] == 1.0
+    # a vehicle standing in a zone is still a label to find: the zone drops detections, not labels
+    over_label = [[(194, 114), (206, 114), (206, 126), (194, 126)]]
+    r = evaluate_real(site / "labels", footage, site / "masks", detect(), exclude_px={"C1": over_label})
+    assert (r["overall"]["labels"], r["overall"]["true_positives"], r["overall"]["detections"]) == (1, 0, 1)
 
 
 def test_perfect_detections_score_one(tmp_path):

@@ -135,6 +135,7 @@ def trainable(model: Detector, heads: tuple[str, ...], log=print) -> list[torch.
     if not heads:
         model.train()
         return list(model.parameters())
+    heads = tuple(dict.fromkeys(heads))  # a head named twice is trained once
     unknown = sorted(set(heads) - set(model.heads))
     if unknown:
         raise ValueError(f"train_only: no head {unknown} in this model (heads: {', '.join(model.heads)})")
