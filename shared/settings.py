@@ -146,6 +146,9 @@ class FuseTrackSettings(Strict):
     # objects scoring at least this start tracks; lower ones (down to detect.score_thr) only extend confirmed
     # tracks left unmatched (ByteTrack's second round; services/fuse_track/tracker.py). 0: every object alike
     high_score: float = Field(0.0, ge=0, le=1)
+    # with high_score: a lower-scoring object may start a track too, confirmed after this many consecutive ticks
+    # (a parked or queued vehicle the detector is unsure of; static clutter goes in cameras[].exclude_px). 0: off
+    standing_hits: int = Field(0, ge=0)
     record: Path | None = None  # append every Tracks message to this JSON-lines file
 
 

@@ -150,6 +150,35 @@ def test_low_score_objects_extend_confirmed_tracks_but_never_start_one():
     assert ids[2] == {1} and ids[19] == {2}
 
 
+def test_standing_hits_confirms_a_persistent_low_score_object_and_nothing_that_flickers():
+    """standing_hits: a low-score object seen at one place tick after tick (a parked car the detector is unsure
+    of) becomes a track after that many consecutive ticks, not min_hits; one that misses a tick starts over;
+    a low-score object that flickers never becomes one; without standing_hits none ever does."""
+    def run(standing_hits: int, present) -> list[set[int]]:
+        tracker = Tracker(TrackerConfig(high_score=0.5, standing_hits=standing_hits, max_age_ticks=2,
+                                        report_coasting_ticks=0))
+        out = []
+        for k in range(30):
+            t_ns = k * 200 * MS
+            objs = [frame("A", t_ns, [[100.0 + 0.1 * k, 0.0]], score=0.9)]  # a moving high-score vehicle
+            if present(k):
+                objs.append(frame("A", t_ns, [[5.0 + 0.05 * (k % 3), 5.0]], score=0.2))  # a standing one
+            out.append(set(tracker.update(ObjectBatch.concat(objs), t_ns).id.tolist()))
+        return out
+
+    always = run(10, lambda k: True)
+    standing = [k for k, ids in enumerate(always) if len(ids) == 2]
+    assert standing[0] == 9 and standing == list(range(9, 30))  # confirmed at its 10th consecutive hit
+    assert len(set().union(*always)) == 2
+    # a miss at tick 5 restarts the count (the tentative track is dropped): confirmed at tick 6 + 9
+    gap = run(10, lambda k: k != 5)
+    assert min(k for k, ids in enumerate(gap) if len(ids) == 2) == 15
+    # present every other tick: never 10 in a row
+    assert all(len(ids) <= 1 for ids in run(10, lambda k: k % 2 == 0))
+    # off (the default): a low-score object never starts a track
+    assert all(len(ids) <= 1 for ids in run(0, lambda k: True))
+
+
 def test_fusion_split_score_keeps_low_and_high_score_objects_apart():
     """With split_score, a low-score object inside its camera's region no longer lets a high-score object from
     outside that region join it (the paper's rule drops the outsider, as without the low one)."""
@@ -440,6 +469,7 @@ def test_bad_configs_and_calls_raise_value_errors_naming_the_parameter():
         (lambda: TrackerConfig(max_age_ticks=1.5), "max_age_ticks"),
         (lambda: TrackerConfig(min_hits=0), "min_hits"),
         (lambda: TrackerConfig(high_score=1.5), "high_score"),
+        (lambda: TrackerConfig(standing_hits=-1), "standing_hits"),
         (lambda: TrackerConfig(accel_std_mps2=math.nan), "accel_std_mps2"),
         (lambda: TrackerConfig(report_coasting_ticks=5), "report_coasting_ticks"),
         (lambda: TrackerConfig(yaw_gain=0.0), "yaw_gain"),

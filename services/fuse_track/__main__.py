@@ -120,7 +120,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
     fusion = Fusion(regions, FusionConfig(merge_gate_m=cfg.merge_gate_m, occlusion_fallback=cfg.occlusion_fallback,
                                           split_score=cfg.high_score))
     tracker = Tracker(TrackerConfig(gate_m=cfg.gate_m, max_age_ticks=cfg.max_age_ticks, min_hits=cfg.min_hits,
-                                    high_score=cfg.high_score))
+                                    high_score=cfg.high_score, standing_hits=cfg.standing_hits))
     ticks: TickBuffer = TickBuffer(positions, TickConfig(tick_ms=cfg.tick_ms, watermark_ms=cfg.watermark_ms,
                                                          max_wait_ms=cfg.max_wait_ms,
                                                          camera_timeout_ms=cfg.camera_timeout_ms))

@@ -4,7 +4,12 @@ more than `max_age_ticks` ticks without one (SORT's max_age; empty ticks count, 
 With `high_score` the assignment has ByteTrack's two rounds: objects scoring at least `high_score` first,
 then the lower-scoring ones against the confirmed tracks still unmatched; only high-score objects start
 tracks (on the validation recording, seed 77, with the shipped detector: tracks from 0.44 and extended down
-to 0.35 gave MOTA 0.593, IDF1 0.712, 20 id switches against 0.588, 0.692, 32 for one round at 0.44).
+to 0.35 gave MOTA 0.593, IDF1 0.712, 20 id switches against 0.588, 0.692, 32 for one round at 0.44), unless
+`standing_hits` is set: then a low-score object may start a tentative track too, confirmed only after that
+many consecutive hits (a parked or queued vehicle the detector is unsure of in every frame but sees at the
+same place frame after frame; static clutter that does the same belongs in the site's exclusion zones, which
+`roadside static` finds; off by default: on the real State/Ellsworth footage it cost more precision than it
+gained recall, deploy/sites/state_ellsworth/README.md).
 
 State (the paper's): x = [x, y, s, r, vx, vy, vs, vr]; x, y the bottom centre in metres (site ENU
 frame), s = l * w the footprint area (m^2), r = l / w the aspect ratio, v* their rates per second.
@@ -56,7 +61,10 @@ class TrackerConfig:
     yaw measurement, yaw_from_motion_mps the speed above which motion sets the heading's sign.
     high_score: objects scoring at least this are associated first and may start tracks; the others only
     extend confirmed tracks that the first round left unmatched (ByteTrack's second round: a vehicle the
-    detector is unsure of in one frame keeps its track and id instead of breaking it); 0 = one round."""
+    detector is unsure of in one frame keeps its track and id instead of breaking it); 0 = one round.
+    standing_hits: with high_score, a low-score object left unmatched starts a tentative track that needs this
+    many consecutive hits (by objects of any score) to be confirmed, instead of min_hits; 0 = low-score objects
+    never start tracks."""
 
     gate_m: float = 3.0
     max_age_ticks: int = 3
@@ -73,6 +81,7 @@ class TrackerConfig:
     yaw_gain: float = 0.4
     yaw_from_motion_mps: float = 1.5
     high_score: float = 0.0
+    standing_hits: int = 0
 
     def __post_init__(self) -> None:
         positive = ("gate_m", "max_coast_s", "position_std_m", "size_std_m", "accel_std_mps2", "area_accel_std_m2ps2",
@@ -81,7 +90,7 @@ class TrackerConfig:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-        for name, low in (("max_age_ticks", 0), ("min_hits", 1), ("report_coasting_ticks", 0)):
+        for name, low in (("max_age_ticks", 0), ("min_hits", 1), ("report_coasting_ticks", 0), ("standing_hits", 0)):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < low:
                 raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
@@ -198,6 +207,7 @@ class Tracker:
         self._since_hit = np.zeros(0, np.int64)
         self._last_hit_ns = np.zeros(0, np.int64)
         self._confirmed = np.zeros(0, bool)
+        self._need = np.zeros(0, np.int64)  # consecutive hits a tentative track needs: min_hits, or standing_hits
         self._yaw = np.zeros(0)
         self._height = np.zeros(0)
         self._score = np.zeros(0)
@@ -245,20 +255,25 @@ class Tracker:
         self._cameras = [[] for _ in range(len(self._ids))]
         high = objects.score >= self.config.high_score
         rows, tracks = self._associate(objects, np.flatnonzero(high), np.arange(len(self._ids)))
+        self._need[tracks] = np.minimum(self._need[tracks], self.config.min_hits)  # a high-score hit: as if born high
         if not high.all():  # second round: the low-score objects may only extend tracks the first left unmatched
             free = np.ones(len(self._ids), bool)
             free[tracks] = False
-            rows2, tracks2 = self._associate(objects, np.flatnonzero(~high), np.flatnonzero(free & self._confirmed))
+            # (with standing_hits, tentative tracks too: those low-score objects started need their hits)
+            open_ = self._confirmed | (self.config.standing_hits > 0)
+            rows2, tracks2 = self._associate(objects, np.flatnonzero(~high), np.flatnonzero(free & open_))
             rows, tracks = np.concatenate([rows, rows2]), np.concatenate([tracks, tracks2])
         self._correct(objects, rows, tracks)
         missed = np.ones(len(self._ids), bool)
         missed[tracks] = False
         self._streak[missed] = 0
         self._drop(t_ns)
-        unmatched = high.copy()
+        unmatched = np.ones(len(objects), bool) if self.config.standing_hits else high.copy()
         unmatched[rows] = False
-        self._birth(objects, np.flatnonzero(unmatched))
-        self._confirmed |= self._streak >= self.config.min_hits
+        born_low = unmatched & ~high
+        self._birth(objects, np.flatnonzero(unmatched & high), self.config.min_hits)
+        self._birth(objects, np.flatnonzero(born_low), max(self.config.standing_hits, self.config.min_hits))
+        self._confirmed |= self._streak >= self._need
         return self._report(t_ns)
 
     # ---- steps ----------------------------------------------------------------------------------
@@ -338,12 +353,13 @@ class Tracker:
 
     def _keep(self, keep: np.ndarray) -> None:
         for name in ("_x", "_p", "_ids", "_age", "_hits", "_streak", "_since_hit", "_last_hit_ns", "_confirmed",
-                     "_yaw", "_height", "_score", "_votes"):
+                     "_need", "_yaw", "_height", "_score", "_votes"):
             setattr(self, name, getattr(self, name)[keep])
         self._cameras = [c for c, k in zip(self._cameras, keep, strict=True) if k]
 
-    def _birth(self, objects: ObjectBatch, rows: np.ndarray) -> None:
-        """New tentative tracks for the unmatched objects, except duplicates of an existing track."""
+    def _birth(self, objects: ObjectBatch, rows: np.ndarray, need: int) -> None:
+        """New tentative tracks for the unmatched objects, except duplicates of an existing track; each
+        needs `need` consecutive hits to be confirmed."""
         if len(rows) == 0:
             return
         taken = self._x[:, :2]
@@ -379,6 +395,7 @@ class Tracker:
         self._since_hit = np.concatenate([self._since_hit, np.zeros(n, np.int64)])
         self._last_hit_ns = np.concatenate([self._last_hit_ns, objects.t_ns[born]])
         self._confirmed = np.concatenate([self._confirmed, np.zeros(n, bool)])
+        self._need = np.concatenate([self._need, np.full(n, need, np.int64)])
         self._yaw = np.concatenate([self._yaw, objects.yaw[born]])
         self._height = np.concatenate([self._height, objects.size_lwh[born, 2]])
         self._score = np.concatenate([self._score, objects.score[born]])
