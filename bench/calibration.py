@@ -8,6 +8,10 @@ given per range band (25-50, 50-100, 100-200 m), where a pixel of a forward-look
 metres and the ground's departure from any plane dominates. The same run adds the real pinhole
 data of `../shared/data` when present (`bench.calibration_real`), and times a 100-point lookup.
 
+The same landmarks once more, each site's cameras calibrated together (`calibration.site_ground`: one
+ground surface fitted to every camera's landmarks, the pinhole and thermal cameras refitted on it):
+`*_site_ground` keys and `site_ground_rows`.
+
     python -m bench.calibration [--stride 2] [--seed 0] [--data ../shared/data] [--exact]
 """
 
@@ -25,6 +29,7 @@ from bench.calibration_real import default_data_root, real_data_rows
 from calibration.fit import CalibConfig, calibrate
 from calibration.landmarks import landmarks_from_rows
 from calibration.masks import build_masks, calibrated_area
+from calibration.site_ground import calibrate_site
 from shared.ground import ground_lookup
 from sim.landmarks import pick_landmarks
 from sim.render import CameraRenderer, ShadowCaster, build_world, sample_environment
@@ -37,11 +42,21 @@ BANDS_M = ((25.0, 50.0), (50.0, 100.0), (100.0, 200.0))
 
 def score_camera(cam, site, records: list[dict], n: int, stride: int) -> dict:
     lm = landmarks_from_rows(records[:n], f"{cam.name} landmarks")
-    circle = (cam.cx, cam.cy, cam.image_circle_radius_px()) if cam.kind == "fisheye" else None
-    cfg = CalibConfig(cam.kind, cam.width, cam.height, image_circle=circle, fov_deg=2 * cam.max_angle_deg)
+    cfg = camera_config(cam)
     t0 = time.perf_counter()
     cal = calibrate(lm, cfg, site.geo)
     t_fit = time.perf_counter() - t0
+    return score_calibration(cam, site, cal, lm, records[:n], stride, t_fit)
+
+
+def camera_config(cam) -> CalibConfig:
+    circle = (cam.cx, cam.cy, cam.image_circle_radius_px()) if cam.kind == "fisheye" else None
+    return CalibConfig(cam.kind, cam.width, cam.height, image_circle=circle, fov_deg=2 * cam.max_angle_deg)
+
+
+def score_calibration(cam, site, cal, lm, records: list[dict], stride: int, t_fit: float) -> dict:
+    """A fitted calibration's masks against the camera's exact ground lookup (module doc)."""
+    n = len(records)
     t0 = time.perf_counter()
     masks = build_masks(cal, lm.digest(), calibrated_area(cal, lm.to_local(site.geo)))
     t_masks = time.perf_counter() - t0
@@ -90,12 +105,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--exact", action="store_true",
                    help="landmarks without noise or mistakes: what is left is the model's own error (lens, planes)")
     args = p.parse_args(argv)
-    rows = []
+    rows, site_rows = [], []
     for site_name in ("state_ellsworth", "intersection"):
         site = load_site(site_name)
         world = build_world(site)
         env = sample_environment(np.random.default_rng(0), "clear")
         shadows = ShadowCaster(world, env)
+        site_records = []
         for k, cam in enumerate(site.build_cameras()):
             depth = CameraRenderer(cam, world, env, shadows, seed=k).depth
             records = pick_landmarks(cam, world.net.paint.features, site.ground, site.geo, depth,
@@ -103,9 +119,21 @@ def main(argv: list[str] | None = None) -> int:
             if args.exact:
                 records = [{**r, **{c: r["truth"][c] for c in ("u", "v", "lat", "lon")}, "gross": False}
                            for r in records]
+            site_records.append((cam, records))
             for n in COUNTS:
                 if len(records) >= max(n, 4):
                     rows.append({"site": site_name, **score_camera(cam, site, records, n, args.stride)})
+        # the same landmarks, the whole site at once: one ground surface for all cameras (calibration.site_ground)
+        for n in COUNTS:
+            use = [(cam, recs[:n]) for cam, recs in site_records if len(recs) >= max(n, 4)]
+            lms = {cam.name: landmarks_from_rows(recs, f"{cam.name} landmarks") for cam, recs in use}
+            t0 = time.perf_counter()
+            cals = calibrate_site([(cam.name, lms[cam.name], camera_config(cam)) for cam, _ in use], site.geo)
+            t_fit = time.perf_counter() - t0
+            for cam, recs in use:
+                if cals[cam.name].ground is not None:
+                    row = score_calibration(cam, site, cals[cam.name], lms[cam.name], recs, args.stride, t_fit)
+                    site_rows.append({"site": site_name, **row})
     out: dict = {"benchmark": "calibration", "stride_px": args.stride, "seed": args.seed, "exact": args.exact}
     groups = {"fisheye": lambda r: r["kind"] == "fisheye", "thermal": lambda r: r["modality"] == "thermal",
               "pinhole": lambda r: r["kind"] == "pinhole" and r["modality"] == "visible"}
@@ -116,6 +144,12 @@ def main(argv: list[str] | None = None) -> int:
             out[f"{name}_out_roi_mean_m{label}"] = _mean(sel, "out_roi_mean_m")
             for lo, hi in BANDS_M:
                 out[f"{name}_band_{lo:.0f}_{hi:.0f}_mean_m{label}"] = _mean(sel, f"band_{lo:.0f}_{hi:.0f}_mean_m")
+    # pinhole and thermal cameras on the site's shared ground surface (fisheye cameras keep their own planes)
+    for name, pick in (("thermal", groups["thermal"]), ("pinhole", groups["pinhole"])):
+        for label, ns in (("", (10, 20)), ("_at5", (5,))):
+            sel = [r for r in site_rows if pick(r) and r["n"] in ns]
+            out[f"{name}_in_roi_mean_m_site_ground{label}"] = _mean(sel, "in_roi_mean_m")
+            out[f"{name}_out_roi_mean_m_site_ground{label}"] = _mean(sel, "out_roi_mean_m")
     # gross mistakes in the input (10-20 landmarks): how many were rejected, and good landmarks rejected
     sel = [r for r in rows if r["n"] >= 10]
     gross = sum(len(r["gross_in_input"]) for r in sel)
@@ -132,6 +166,8 @@ def main(argv: list[str] | None = None) -> int:
     out.update({k: v for k, v in real_data_rows(args.data).items() if k != "benchmark"})
     out["targets"] = {"fisheye_in_roi_mean_m": 0.15, "fisheye_out_roi_mean_m": 0.35, "thermal_in_roi_mean_m": 0.20}
     out["rows"] = [{k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()} for r in rows]
+    out["site_ground_rows"] = [{k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}
+                               for r in site_rows]
     print(json.dumps(out, indent=1))
     return 0
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -94,6 +95,9 @@ class Calibration:
     test_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))
     detectable_map_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
     detectable_pixel_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    # a site-wide ground surface (`calibration.site_ground`, anything with `height((N, 2) xy) -> (N,)`): pixels are
+    # lifted onto it instead of the planes
+    ground: Any = None
 
     def weights(self, uv: np.ndarray, dirs: np.ndarray | None = None) -> np.ndarray:
         """(N, P) blending weights of the segments at pixels uv (rows sum to 1)."""
@@ -125,6 +129,10 @@ class Calibration:
             cam_rays, _ = self.camera.unproject_cam(uv)
             ok &= cam_rays[:, 2] > math.cos(math.radians(MAX_VIEW_ANGLE_DEG))
         o = self.camera.pose.position_m
+        if self.ground is not None:
+            out = _onto_surface(self.ground, o, dirs, self.planes.mean(axis=0))
+            ok &= np.all(np.isfinite(out), axis=1)
+            return np.where(ok[:, None], out, np.nan), ok
         w = self.weights(uv, dirs)
         out = np.zeros((len(uv), 2))
         for k, (a, b, c) in enumerate(self.planes):
@@ -155,6 +163,26 @@ class Calibration:
         return h
 
 
+def _onto_surface(ground: Any, o: np.ndarray, dirs: np.ndarray, start_plane: np.ndarray,
+                  iterations: int = 6) -> np.ndarray:
+    """(N, 2) points where rays from o along dirs meet z = ground.height(x, y): from the rays' meeting with
+    `start_plane` (a, b, c), alternately read the height there and meet the level plane at that height (a
+    fixed point that converges while the ground's slope is below the ray's depression; NaN for a ray that
+    does not descend)."""
+    a, b, c = start_plane
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (a * o[0] + b * o[1] + c - o[2]) / (dirs[:, 2] - a * dirs[:, 0] - b * dirs[:, 1])
+        t = np.where((t > 0) & (dirs[:, 2] < 0), t, np.nan)
+        for _ in range(iterations):
+            xy = o[:2] + t[:, None] * dirs[:, :2]
+            good = np.isfinite(t)
+            z = np.full(len(t), np.nan)
+            z[good] = ground.height(xy[good])
+            t = np.where(good, (z - o[2]) / dirs[:, 2], np.nan)
+            t = np.where(t > 0, t, np.nan)
+    return o[:2] + t[:, None] * dirs[:, :2]
+
+
 def _band_weights(r: np.ndarray, edges: np.ndarray, blend: float = 0.15) -> np.ndarray:
     """(N, P) weights of P range bands split at `edges`, blended linearly over +-blend x edge."""
     w = np.zeros((len(r), len(edges) + 1))
@@ -167,7 +195,7 @@ def _band_weights(r: np.ndarray, edges: np.ndarray, blend: float = 0.15) -> np.n
 
 
 # ---- camera model -------------------------------------------------------------------------------
-def _camera(p: np.ndarray, cfg: CalibConfig) -> Camera:
+def camera_from_params(p: np.ndarray, cfg: CalibConfig) -> Camera:
     f, cx, cy, k1, k2 = p[:5]
     r = cv2.Rodrigues(np.asarray(p[5:8], float))[0]
     pos = -r.T @ np.asarray(p[8:11], float)
@@ -188,6 +216,13 @@ def _camera(p: np.ndarray, cfg: CalibConfig) -> Camera:
         Pose(pos, r),
         max_angle_deg=max_angle,
     )
+
+
+def camera_params(cam: Camera) -> np.ndarray:
+    """The parameter vector of `_camera` (f, cx, cy, k1, k2, Rodrigues rotation, translation) of a fitted camera."""
+    r = cam.pose.r_cam_from_world
+    return np.array([cam.fx, cam.cx, cam.cy, cam.dist[0], cam.dist[1], *cv2.Rodrigues(r)[0].ravel(),
+                     *(-r @ cam.pose.position_m)])
 
 
 def _initial_fisheye(uv: np.ndarray, obj: np.ndarray, cfg: CalibConfig) -> tuple[np.ndarray, float]:
@@ -224,7 +259,7 @@ def _initial_pinhole(uv: np.ndarray, obj: np.ndarray, cfg: CalibConfig) -> tuple
     return np.array([f, cx0, cy0, 0.0, 0.0, *rvec.ravel(), *tvec.ravel()]), f
 
 
-def _fit_camera(
+def fit_camera(
     uv: np.ndarray, obj: np.ndarray, cfg: CalibConfig, p0: np.ndarray | None = None, robust: bool = True
 ) -> tuple[np.ndarray, np.ndarray, OptimizeResult]:
     """Errors-in-variables least squares: the lens, the pose and each landmark's true ground
@@ -252,7 +287,7 @@ def _fit_camera(
 
     def resid(x):
         p, dxy = x[:11], x[11:].reshape(n, 2)
-        cam = _camera(p, cfg)
+        cam = camera_from_params(p, cfg)
         pts = obj.copy()
         pts[:, :2] += dxy
         proj, ok = cam.project(pts)
@@ -272,7 +307,7 @@ def _fit_camera(
 
 
 def _landmark_tests(sol: OptimizeResult, n: int, cfg: CalibConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per landmark of a plain least-squares fit (`_fit_camera`'s result): the group outlier test
+    """Per landmark of a plain least-squares fit (`fit_camera`'s result): the group outlier test
     statistic (sigma units) and the smallest map mistake (m) and pixel mistake (px) it would detect.
 
     A landmark contributes four normalised residuals (two pixel, two map). Deleting it is tested
@@ -297,7 +332,7 @@ def _landmark_tests(sol: OptimizeResult, n: int, cfg: CalibConfig) -> tuple[np.n
 
 
 # ---- ground planes --------------------------------------------------------------------------
-def _implied_heights(cam: Camera, uv: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def implied_heights(cam: Camera, uv: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Ground height at each landmark implied by its pixel ray, and a weight (steep rays say
     little about height)."""
     dirs, _ = cam.unproject(uv)
@@ -346,12 +381,12 @@ def calibrate(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame) -> Calibration:
     xy = lm.to_local(geo)
     n = len(lm)
     obj = np.column_stack([xy, np.zeros(n)])
-    p, dxy, _ = _fit_camera(lm.uv, obj, cfg)  # robust: a start that gross mistakes do not drag far
+    p, dxy, _ = fit_camera(lm.uv, obj, cfg)  # robust: a start that gross mistakes do not drag far
     use = np.ones(n, bool)
     # Reject the landmark with the worst outlier test while it fails, refitting each time.
     warnings: list[str] = []
     while True:
-        p_ls, dxy_ls, sol = _fit_camera(lm.uv[use], obj[use], cfg, p, robust=False)
+        p_ls, dxy_ls, sol = fit_camera(lm.uv[use], obj[use], cfg, p, robust=False)
         stat, mdb_map, mdb_px = _landmark_tests(sol, int(use.sum()), cfg)
         worst = int(np.argmax(stat))
         if use.sum() <= MIN_LANDMARKS:  # too few to tell a mistake from the rest: keep the robust fit
@@ -367,17 +402,17 @@ def calibrate(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame) -> Calibration:
         use[np.nonzero(use)[0][worst]] = False
     test_sigma, detectable_map, detectable_px = (np.full(n, np.nan) for _ in range(3))
     test_sigma[use], detectable_map[use], detectable_px[use] = stat, mdb_map, mdb_px
-    cam = _camera(p, cfg)
+    cam = camera_from_params(p, cfg)
     # Ground planes: a global one, then one per segment around the nadir.
-    z, w = _implied_heights(cam, lm.uv[use], xy[use])
+    z, w = implied_heights(cam, lm.uv[use], xy[use])
     centre = xy[use].mean(axis=0)
     global_plane = _fit_plane(xy[use], z, w, None, centre) if use.sum() >= 6 else np.zeros(3)
     # Refit the camera on the plane's heights (the ground is not at z = 0).
     obj[:, 2] = global_plane[0] * xy[:, 0] + global_plane[1] * xy[:, 1] + global_plane[2]
-    p, dxy, _ = _fit_camera(lm.uv[use], obj[use], cfg, p, robust=False)
-    cam = _camera(p, cfg)
+    p, dxy, _ = fit_camera(lm.uv[use], obj[use], cfg, p, robust=False)
+    cam = camera_from_params(p, cfg)
     xy_use = xy[use] + dxy  # the fitted ground positions of the landmarks
-    z, w = _implied_heights(cam, lm.uv[use], xy_use)
+    z, w = implied_heights(cam, lm.uv[use], xy_use)
     if use.sum() >= 6:
         global_plane = _fit_plane(xy_use, z, w, global_plane, centre)
     nadir_px = cam.project(cam.pose.position_m[None] - [0.0, 0.0, 10.0])[0][0]

@@ -5,7 +5,8 @@ File (`.npz`, numpy's zip of arrays, loaded without pickle):
 - `xy`: (H, W, 2) float32 site-frame metres (east, north) around `meta.geo_origin`;
 - `valid`: (H, W) bool, ground pixels inside the calibrated area;
 - `meta`: a JSON string: format, version, camera (fitted model), geo origin, segments with
-  their ground planes and homographies, landmark hash, calibrated area, warnings.
+  their ground planes and homographies, `ground` ("planes", or the site surface the pixels were lifted
+  onto: `calibration.site_ground`), landmark hash, calibrated area, warnings.
 """
 
 from __future__ import annotations
@@ -158,7 +159,8 @@ def build_masks(cal: Calibration, landmarks_hash: str, area: dict, extra_meta: d
         "camera": cal.camera.to_dict(),
         "geo_origin": cal.geo.to_dict(),
         "nadir_px": [float(x) for x in cal.nadir_px],
-        "segments": segments,
+        "segments": segments,  # the camera's own planes; with a site surface (`ground`) pixels are lifted onto that
+        "ground": cal.ground.to_dict() if cal.ground is not None else "planes",
         "landmarks_hash": landmarks_hash,
         "calibrated_area": area,
         "warnings": list(cal.warnings),

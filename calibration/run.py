@@ -13,6 +13,7 @@ from calibration.fit import CalibConfig, calibrate
 from calibration.landmarks import load_landmarks, validate_landmarks
 from calibration.masks import build_masks, calibrated_area, default_roi
 from calibration.report import build_report, plot_residuals, summary_text
+from calibration.site_ground import calibrate_site
 from shared.geo import GeoFrame
 
 
@@ -31,6 +32,8 @@ class CalibrateJob:
     roi: dict | None = None  # {"center_latlon": [lat, lon], "radius_m": r} or {"polygon_latlon": [...]}
     plot: Path | None = None
     image: Path | None = None
+    # the site's other cameras (landmark file, kind, fisheye image circle): fit one ground surface to all
+    shared_ground: tuple[tuple[Path, str, tuple[float, float, float] | None], ...] = ()
 
 
 def _roi_local(roi: dict | None, geo: GeoFrame) -> dict | None:
@@ -44,6 +47,16 @@ def _roi_local(roi: dict | None, geo: GeoFrame) -> dict | None:
         xy = geo.to_enu(p[:, 0], p[:, 1], geo.alt0_m)[:, :2]
         return {"polygon_m": xy.tolist()}
     return roi
+
+
+def _other_camera(path: Path, kind: str, circle, fov_deg: float) -> tuple:
+    """(Landmarks, CalibConfig) of another camera of the site (`--shared-ground`), checked as this one's."""
+    lm, header = load_landmarks(path)
+    if not header.get("width") or not header.get("height"):
+        raise ValueError(f"{path}: image size unknown (the landmark file has no width and height)")
+    cfg = CalibConfig(kind, int(header["width"]), int(header["height"]), image_circle=circle, fov_deg=fov_deg)
+    validate_landmarks(lm, cfg.width, cfg.height, cfg.circle if cfg.kind == "fisheye" else None)
+    return lm, cfg
 
 
 def run_calibration(job: CalibrateJob) -> dict:
@@ -62,7 +75,12 @@ def run_calibration(job: CalibrateJob) -> dict:
         med = np.median(lm.latlon, axis=0)
         geo = GeoFrame(float(med[0]), float(med[1]))
     t0 = time.perf_counter()
-    cal = calibrate(lm, cfg, geo)
+    if job.shared_ground:
+        others = [(str(path), *_other_camera(path, kind, circle, job.fov_deg))
+                  for path, kind, circle in job.shared_ground]
+        cal = calibrate_site([(str(job.landmarks), lm, cfg), *others], geo)[str(job.landmarks)]
+    else:
+        cal = calibrate(lm, cfg, geo)
     t_fit = time.perf_counter() - t0
     xy = lm.to_local(geo)
     area = calibrated_area(cal, xy)
@@ -79,6 +97,9 @@ def run_calibration(job: CalibrateJob) -> dict:
             "fit_s": round(t_fit, 3),
             "masks_s": round(t_masks, 3),
             "calibrated_area": area,
+            # where the ground comes from: this camera's own planes, or the site's surface (--shared-ground; the
+            # leave-one-out above refits this camera alone, on its own planes)
+            "ground": cal.ground.to_dict() if cal.ground is not None else "planes",
         }
     )
     report_path = job.report or job.out.with_suffix(".report.json")

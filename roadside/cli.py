@@ -119,6 +119,22 @@ def _add_calibrate(sub) -> None:
     p.add_argument("--roi-radius", type=float, default=25.0, help="ROI radius in metres (with --roi-center)")
     p.add_argument("--plot", type=Path, help="draw residual arrows to this PNG")
     p.add_argument("--image", type=Path, help="camera frame to draw the plot on")
+    p.add_argument("--shared-ground", type=_shared_ground, action="append", default=[],
+                   metavar="LANDMARKS:KIND[:CX,CY,R]",
+                   help="another camera of the site (its landmark file, pinhole or fisheye, a fisheye's image circle; "
+                        "repeatable): one ground surface is fitted to every camera's landmarks and a pinhole camera "
+                        "is refitted on it and lifted onto it (calibration/site_ground.py)")
+
+
+def _shared_ground(text: str) -> tuple[Path, str, tuple[float, float, float] | None]:
+    parts = text.split(":")
+    circle = None
+    if len(parts) >= 3 and "," in parts[-1]:
+        circle = _floats(3)(parts.pop())
+    if len(parts) < 2 or parts[-1] not in ("pinhole", "fisheye"):
+        raise argparse.ArgumentTypeError(f"expected LANDMARKS:pinhole or LANDMARKS:fisheye[:CX,CY,R], got {text!r}")
+    kind = parts.pop()
+    return Path(":".join(parts)), kind, circle
 
 
 def _run_calibrate(args) -> int:
@@ -139,6 +155,7 @@ def _run_calibrate(args) -> int:
         roi=roi,
         plot=args.plot,
         image=args.image,
+        shared_ground=tuple(args.shared_ground),
     )
     report = run_calibration(job)
     print(report["summary"])
