@@ -219,7 +219,8 @@ def camera_from_params(p: np.ndarray, cfg: CalibConfig) -> Camera:
 
 
 def camera_params(cam: Camera) -> np.ndarray:
-    """The parameter vector of `_camera` (f, cx, cy, k1, k2, Rodrigues rotation, translation) of a fitted camera."""
+    """A fitted camera's parameter vector, as `camera_from_params` takes it (f, cx, cy, k1, k2, Rodrigues rotation,
+    translation)."""
     r = cam.pose.r_cam_from_world
     return np.array([cam.fx, cam.cx, cam.cy, cam.dist[0], cam.dist[1], *cv2.Rodrigues(r)[0].ravel(),
                      *(-r @ cam.pose.position_m)])

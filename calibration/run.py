@@ -76,6 +76,10 @@ def run_calibration(job: CalibrateJob) -> dict:
         geo = GeoFrame(float(med[0]), float(med[1]))
     t0 = time.perf_counter()
     if job.shared_ground:
+        if cfg.kind == "fisheye":
+            raise ValueError("--shared-ground moves pinhole and thermal cameras onto the site's ground surface; a "
+                             "fisheye camera keeps its own planes (calibration/site_ground.py): calibrate it "
+                             "without --shared-ground, and give its landmarks to the pinhole cameras' runs")
         others = [(str(path), *_other_camera(path, kind, circle, job.fov_deg))
                   for path, kind, circle in job.shared_ground]
         cal = calibrate_site([(str(job.landmarks), lm, cfg), *others], geo)[str(job.landmarks)]

@@ -41,7 +41,7 @@ from shared.geo import GeoFrame
 
 GRID_M = 12.0  # spacing (and Gaussian sigma) of the surface's bumps
 RIDGE = 1.0  # pull of each bump towards 0, in units of a median landmark's weight
-MAX_BUMPS = 400
+MAX_BUMPS = 400  # beyond this the grid is made coarser (about 240 x 240 m of landmarks at 12 m)
 
 
 @dataclass(frozen=True)
@@ -107,11 +107,14 @@ def fit_ground_surface(xy: np.ndarray, z: np.ndarray, weight: np.ndarray, grid_m
     xy, z, weight = xy[ok], z[ok], weight[ok]
     if len(xy) < 3:
         raise ValueError(f"a site ground surface needs at least 3 landmark heights, got {len(xy)}")
-    lo, hi = xy.min(axis=0) - grid_m, xy.max(axis=0) + grid_m
-    gx, gy = np.meshgrid(np.arange(lo[0], hi[0] + 1e-9, grid_m), np.arange(lo[1], hi[1] + 1e-9, grid_m))
-    centres = np.column_stack([gx.ravel(), gy.ravel()])
-    near = np.min(np.linalg.norm(centres[:, None] - xy[None], axis=2), axis=1) <= 2 * grid_m  # where landmarks are
-    centres = centres[near][:MAX_BUMPS]
+    while True:  # bumps where there are landmarks; a site too large for MAX_BUMPS gets a coarser grid
+        lo, hi = xy.min(axis=0) - grid_m, xy.max(axis=0) + grid_m
+        gx, gy = np.meshgrid(np.arange(lo[0], hi[0] + 1e-9, grid_m), np.arange(lo[1], hi[1] + 1e-9, grid_m))
+        centres = np.column_stack([gx.ravel(), gy.ravel()])
+        centres = centres[np.min(np.linalg.norm(centres[:, None] - xy[None], axis=2), axis=1) <= 2 * grid_m]
+        if len(centres) <= MAX_BUMPS:
+            break
+        grid_m *= 1.25
     phi = np.exp(-((xy[:, None, :] - centres[None]) ** 2).sum(axis=2) / (2 * grid_m**2))
     a = np.column_stack([np.ones(len(xy)), xy, phi])
     reg = np.zeros((a.shape[1], a.shape[1]))

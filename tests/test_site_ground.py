@@ -117,3 +117,16 @@ def test_cli_calibrate_with_shared_ground(tmp_path):
     with pytest.raises(SystemExit):
         main(["calibrate", "--landmarks", str(files["P"]), "--kind", "pinhole", "--out", str(out),
               "--shared-ground", f"{files['Q']}:wide"])
+    with pytest.raises(ValueError, match="fisheye camera keeps its own planes"):
+        from calibration.run import CalibrateJob, run_calibration
+
+        run_calibration(CalibrateJob(files["P"], "fisheye", out, image_circle=(320.0, 256.0, 420.0),
+                                     shared_ground=((files["Q"], "pinhole", None),)))
+
+
+def test_a_site_too_large_for_the_bumps_gets_a_coarser_grid():
+    rng = np.random.default_rng(6)
+    xy = rng.uniform(0, 600, (300, 2))
+    surface = fit_ground_surface(xy, 0.01 * xy[:, 0], np.ones(len(xy)))
+    assert len(surface.centres) <= 400 and surface.sigma_m > 12.0
+    assert np.allclose(surface.height(xy[:5]), 0.01 * xy[:5, 0], atol=0.05)
