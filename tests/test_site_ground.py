@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from calibration.fit import CalibConfig, calibrate
-from calibration.site_ground import GroundSurface, calibrate_site, fit_ground_surface
+from calibration.site_ground import GRID_M, MAX_BUMPS, GroundSurface, calibrate_site, fit_ground_surface
 from shared.cameras import Camera, Pose
 from shared.ground import Bump, Terrain, ground_lookup
 from tests.test_calibration import GEO, _fisheye, _pinhole, _synthetic_landmarks
@@ -21,10 +21,10 @@ def test_fit_recovers_a_smooth_surface_and_the_grid_matches_the_exact_surface():
     rng = np.random.default_rng(0)
     xy = rng.uniform(-30, 60, (200, 2))
     z = BUMPY.height(xy[:, 0], xy[:, 1]) + 0.3
-    surface = fit_ground_surface(xy, z, np.ones(len(xy)))
+    surface = fit_ground_surface(xy, z, np.ones(len(xy)), grid_m=10.0)  # a grid as fine as the bumps
     probe = rng.uniform(-20, 50, (500, 2))
     err = surface.height(probe) - (BUMPY.height(probe[:, 0], probe[:, 1]) + 0.3)
-    assert np.mean(np.abs(err)) < 0.03 and np.max(np.abs(err)) < 0.15  # bumps narrower than the 12 m grid's
+    assert np.mean(np.abs(err)) < 0.03 and np.max(np.abs(err)) < 0.15
     many = rng.uniform(-40, 70, (30000, 2))  # read off the 0.5 m grid
     assert np.max(np.abs(surface.height(many) - surface._exact(many))) < 1e-3
     assert json.loads(json.dumps(surface.to_dict()))["model"] == "plane + Gaussian bumps"
@@ -126,7 +126,7 @@ def test_cli_calibrate_with_shared_ground(tmp_path):
 
 def test_a_site_too_large_for_the_bumps_gets_a_coarser_grid():
     rng = np.random.default_rng(6)
-    xy = rng.uniform(0, 600, (300, 2))
+    xy = rng.uniform(0, 900, (300, 2))
     surface = fit_ground_surface(xy, 0.01 * xy[:, 0], np.ones(len(xy)))
-    assert len(surface.centres) <= 400 and surface.sigma_m > 12.0
+    assert len(surface.centres) <= MAX_BUMPS and surface.sigma_m > GRID_M
     assert np.allclose(surface.height(xy[:5]), 0.01 * xy[:5, 0], atol=0.05)
