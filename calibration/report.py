@@ -88,9 +88,12 @@ def summary_text(report: dict) -> str:
     def fmt(s: dict) -> str:
         return "n/a" if s["n"] == 0 else f"{s['mean_m']:.3f} ± {s['std_m']:.3f} m (n={s['n']}, max {s['max_m']:.3f})"
 
+    ground = report.get("ground")
+    shared = isinstance(ground, dict)
     lines = [
         f"{report['camera_kind']} camera: {report['landmarks_used']}/{report['landmarks_total']} landmarks used, "
-        f"{report['segments']} ground segment(s)",
+        + (f"the site's ground surface (fitted to the landmarks of {len(ground['cameras'])} cameras; leave-one-out "
+           "on this camera's own planes)" if shared else f"{report['segments']} ground segment(s)"),
         f"  residual      in-ROI  {fmt(report['residual_in_roi'])}",
         f"  residual      out-ROI {fmt(report['residual_out_roi'])}",
         f"  leave-one-out in-ROI  {fmt(report['leave_one_out_in_roi'])}",

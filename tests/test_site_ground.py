@@ -94,7 +94,7 @@ def test_site_calibration_refuses_one_camera_and_twice_the_same_name():
         calibrate_site([job, ("Q", *job[1:])], GEO, iterations=0)
 
 
-def test_cli_calibrate_with_shared_ground(tmp_path):
+def test_cli_calibrate_with_shared_ground(tmp_path, capsys):
     from roadside.cli import main
 
     rng = np.random.default_rng(5)
@@ -109,6 +109,7 @@ def test_cli_calibrate_with_shared_ground(tmp_path):
     assert main(["calibrate", "--landmarks", str(files["P"]), "--kind", "pinhole", "--out", str(out),
                  "--origin", f"{GEO.lat0_deg},{GEO.lon0_deg},{GEO.alt0_m}",
                  "--shared-ground", f"{files['Q']}:pinhole"]) == 0
+    assert "the site's ground surface (fitted to the landmarks of 2 cameras" in capsys.readouterr().out
     report = json.loads(out.with_suffix(".report.json").read_text())
     assert report["ground"]["model"] == "plane + Gaussian bumps" and len(report["ground"]["cameras"]) == 2
     from calibration.masks import load_masks
