@@ -3,9 +3,11 @@ rejected landmarks with the reason, and warnings about what the landmarks leave 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
-from calibration.fit import CalibConfig, Calibration, calibrate
+from calibration.fit import CalibConfig, Calibration, calibrate, camera_from_params, camera_params, fit_camera
 from calibration.landmarks import Landmarks
 from calibration.masks import angular_coverage_deg, roi_mask
 
@@ -39,7 +41,13 @@ def build_report(cal: Calibration, lm: Landmarks, cfg: CalibConfig, roi: dict, l
             keep = np.ones(len(lm), bool)
             keep[i] = False
             try:
-                sub = calibrate(lm.subset(np.nonzero(keep)[0]), cfg, cal.geo)
+                if cal.ground is None:
+                    sub = calibrate(lm.subset(np.nonzero(keep)[0]), cfg, cal.geo)
+                else:  # on the site's surface: this camera refitted on it without the landmark (the surface keeps it)
+                    use = keep & cal.inliers
+                    obj = np.column_stack([xy, cal.ground.height(xy)])
+                    p, _, _ = fit_camera(lm.uv[use], obj[use], cfg, camera_params(cal.camera), robust=False)
+                    sub = replace(cal, camera=camera_from_params(p, cfg))
             except ValueError:
                 continue
             p, pok_i = sub.pixel_to_xy(lm.uv[i : i + 1])
@@ -92,8 +100,8 @@ def summary_text(report: dict) -> str:
     shared = isinstance(ground, dict)
     lines = [
         f"{report['camera_kind']} camera: {report['landmarks_used']}/{report['landmarks_total']} landmarks used, "
-        + (f"the site's ground surface (fitted to the landmarks of {len(ground['cameras'])} cameras; leave-one-out "
-           "on this camera's own planes)" if shared else f"{report['segments']} ground segment(s)"),
+        + (f"the site's ground surface (fitted to the landmarks of {len(ground['cameras'])} cameras; leave-one-out: "
+           "the camera refitted on it without the landmark)" if shared else f"{report['segments']} ground segment(s)"),
         f"  residual      in-ROI  {fmt(report['residual_in_roi'])}",
         f"  residual      out-ROI {fmt(report['residual_out_roi'])}",
         f"  leave-one-out in-ROI  {fmt(report['leave_one_out_in_roi'])}",

@@ -102,7 +102,7 @@ def run_calibration(job: CalibrateJob) -> dict:
             "masks_s": round(t_masks, 3),
             "calibrated_area": area,
             # where the ground comes from: this camera's own planes, or the site's surface (--shared-ground; the
-            # leave-one-out above refits this camera alone, on its own planes)
+            # leave-one-out then refits this camera on the surface without the landmark, the surface keeping it)
             "ground": cal.ground.to_dict() if cal.ground is not None else "planes",
         }
     )

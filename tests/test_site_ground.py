@@ -111,6 +111,8 @@ def test_cli_calibrate_with_shared_ground(tmp_path, capsys):
                  "--shared-ground", f"{files['Q']}:pinhole"]) == 0
     assert "the site's ground surface (fitted to the landmarks of 2 cameras" in capsys.readouterr().out
     report = json.loads(out.with_suffix(".report.json").read_text())
+    loo = [lm["leave_one_out_m"] for lm in report["landmarks"] if lm["inlier"]]
+    assert all(v is not None for v in loo) and 0 < np.mean(loo) < 2.0  # refitted on the surface without each one
     assert report["ground"]["model"] == "plane + Gaussian bumps" and len(report["ground"]["cameras"]) == 2
     from calibration.masks import load_masks
 
