@@ -3,13 +3,12 @@ rejected landmarks with the reason, and warnings about what the landmarks leave 
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 
-from calibration.fit import CalibConfig, Calibration, calibrate, camera_from_params, camera_params, fit_camera
+from calibration.fit import CalibConfig, Calibration, calibrate
 from calibration.landmarks import Landmarks
 from calibration.masks import angular_coverage_deg, roi_mask
+from calibration.site_ground import refit_on_surface
 
 
 def _stats(x: np.ndarray) -> dict:
@@ -44,10 +43,7 @@ def build_report(cal: Calibration, lm: Landmarks, cfg: CalibConfig, roi: dict, l
                 if cal.ground is None:
                     sub = calibrate(lm.subset(np.nonzero(keep)[0]), cfg, cal.geo)
                 else:  # on the site's surface: this camera refitted on it without the landmark (the surface keeps it)
-                    use = keep & cal.inliers
-                    obj = np.column_stack([xy, cal.ground.height(xy)])
-                    p, _, _ = fit_camera(lm.uv[use], obj[use], cfg, camera_params(cal.camera), robust=False)
-                    sub = replace(cal, camera=camera_from_params(p, cfg))
+                    sub = refit_on_surface(cal, lm, cfg, cal.ground, keep & cal.inliers)
             except ValueError:
                 continue
             p, pok_i = sub.pixel_to_xy(lm.uv[i : i + 1])

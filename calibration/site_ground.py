@@ -149,13 +149,17 @@ def calibrate_site(cameras: list[tuple[str, Landmarks, CalibConfig]], geo: GeoFr
         surface = fit_ground_surface(np.concatenate(xy_all), np.concatenate(z_all), np.concatenate(w_all),
                                      grid_m, ridge, tuple(names))
         for name, lm, cfg in cameras:
-            if cfg.kind == "fisheye":
-                continue
-            cal = cals[name]
-            use = cal.inliers
-            xy = lm.to_local(geo)
-            obj = np.column_stack([xy, surface.height(xy)])
-            p, _, _ = fit_camera(lm.uv[use], obj[use], cfg, camera_params(cal.camera), robust=False)
-            cals[name] = replace(cal, camera=camera_from_params(p, cfg), ground=surface)
+            if cfg.kind != "fisheye":
+                cals[name] = refit_on_surface(cals[name], lm, cfg, surface, cals[name].inliers)
     return cals
+
+
+def refit_on_surface(cal: Calibration, lm: Landmarks, cfg: CalibConfig, surface: GroundSurface,
+                     use: np.ndarray) -> Calibration:
+    """`cal` with its lens and pose refitted on the landmarks `use` (bool mask) at the surface's heights, from
+    its current camera, and its pixels lifted onto the surface (`Calibration.ground`)."""
+    xy = lm.to_local(cal.geo)
+    obj = np.column_stack([xy, surface.height(xy)])
+    p, _, _ = fit_camera(lm.uv[use], obj[use], cfg, camera_params(cal.camera), robust=False)
+    return replace(cal, camera=camera_from_params(p, cfg), ground=surface)
 
