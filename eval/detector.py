@@ -150,8 +150,10 @@ def breakdown_frame(det: Detections, box: np.ndarray, bottom_uv: np.ndarray, wei
 
 
 def evaluate(recording: str | Path, detect: Callable[[np.ndarray], Detections], every: int = 1,
-             cameras: list[str] | None = None, log=None) -> dict:
-    """Score `detect(grey image) -> Detections` (original pixels) on every `every`-th frame."""
+             cameras: list[str] | None = None, log=None, fisheye_area_deg: float | None = None) -> dict:
+    """Score `detect(grey image) -> Detections` (original pixels) on every `every`-th frame. With
+    `fisheye_area_deg`, fisheye frames are detected as `detect(grey, area_px=...)` inside the image circle up to
+    that angle off axis (`Camera.image_area_px`), as a site's `detect_area_px` has the detect service do."""
     rec = Recording(recording)
     names = cameras or rec.camera_names
     modality = {c["name"]: c.get("modality", "visible") for c in rec.meta["cameras"]}
@@ -162,13 +164,14 @@ def evaluate(recording: str | Path, detect: Callable[[np.ndarray], Detections], 
         kind = "thermal" if modality[name] == "thermal" else cam.kind
         lift = GroundLifter(*ground_lookup(cam, rec.terrain))
         truth = {g["t_ns"]: g for g in rec.ground_truth(name)}
+        area = cam.image_area_px(fisheye_area_deg) if fisheye_area_deg is not None and cam.kind == "fisheye" else None
         acc = per.setdefault(kind, {"scores": [], "hits": [], "n_pos": 0, "loc": [], "yaw": [], "size": [],
                                     "size_l2": [], "type": [], "frames": 0, "alarms": Counter(),
                                     "pos_size": [], "pos_matched": [], "pos_found": []})
         for ref in samples_from_recording(rec.path, [name], every=every):
             sample = ref.load()
             t0 = time.perf_counter()
-            det = detect(sample.image)
+            det = detect(sample.image) if area is None else detect(sample.image, area_px=area)
             t_total += time.perf_counter() - t0
             n_frames += 1
             acc["frames"] += 1
@@ -245,7 +248,8 @@ def evaluate(recording: str | Path, detect: Callable[[np.ndarray], Detections], 
                           "found": round(float(found[sel].mean()), 4) if sel.any() else None})
         return bands
 
-    out = {"recording": str(rec.path), "every": every, "overall": summary(list(per.values()))}
+    out = {"recording": str(rec.path), "every": every, "fisheye_area_deg": fisheye_area_deg,
+           "overall": summary(list(per.values()))}
     out["per_kind"] = {k: summary([a]) for k, a in sorted(per.items())}
     out["detect_ms_per_frame"] = round(1e3 * t_total / max(n_frames, 1), 2)
     return out

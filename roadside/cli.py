@@ -264,6 +264,9 @@ def _add_eval(sub) -> None:
     p.add_argument("--footage", type=Path, default=Path("../shared/data/state_ellsworth/sample_data"),
                    help="folder of the cameras' frame folders (real)")
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--fisheye-area-deg", type=_positive_float,
+                   help="detector: look at fisheye frames only inside the image circle up to this angle off axis "
+                        "(e.g. 90), as a camera's detect_area_px does in the detect service")
     p.add_argument("--json", action="store_true", help="print one JSON document (default: also a summary)")
 
 
@@ -306,8 +309,9 @@ def _run_eval(args) -> int:
         has_settings = args.site.is_file() or (args.site / "site.yaml").is_file()  # a bare labels + masks folder too
         cams = load_settings(args.site).cameras if has_settings else []
         exclude = {c.name: c.exclude_px for c in cams if c.exclude_px}
+        areas = {c.name: c.detect_area_px for c in cams if c.detect_area_px}
         result = evaluate_real(args.site / "labels", args.footage, args.site / "masks", det.detect, score_thr=thr,
-                               curve=curve, exclude_px=exclude)
+                               curve=curve, exclude_px=exclude, detect_area_px=areas)
         result["excluded_cameras"] = sorted(exclude)  # cameras whose exclusion zones (site.yaml) were applied
         line = ("{name:8s} precision {precision} recall {recall} ({labels} labels, {detections} detections within "
                 f"{result['roi_m']:g} m)")
@@ -317,7 +321,7 @@ def _run_eval(args) -> int:
     if args.recording is None:
         raise ValueError("eval detector needs --recording")
     det = OnnxDetector(args.model, threads=args.threads, score_thr=args.score_thr or 0.05)
-    result = evaluate(args.recording, det.detect, every=args.every)
+    result = evaluate(args.recording, det.detect, every=args.every, fisheye_area_deg=args.fisheye_area_deg)
     line = ("{name:8s} ap50 {ap50} loc {loc_err_m} m yaw {yaw_err_deg} deg size {size_err_m} m ({frames} frames); "
             "false alarms at {breakdown_score_thr}: {false_alarms[box]} boxes off a found vehicle, "
             "{false_alarms[duplicate]} duplicates, {false_alarms[background]} on the background")
@@ -585,7 +589,7 @@ def _viz_frames(args):
             raise ValueError(f"{sf.origin}: not a readable image")
         if grey.ndim == 3:
             grey = cv2.cvtColor(grey, cv2.COLOR_BGR2GRAY)
-        yield sf.camera, sf.t_capture_ns, grey, det.detect(grey)
+        yield sf.camera, sf.t_capture_ns, grey, det.detect(grey, area_px=settings.camera(sf.camera).detect_area_px)
 
 
 def _run_viz(args) -> int:

@@ -100,7 +100,7 @@ def make_site(cfg: DemoConfig, rec_dir: Path, log) -> tuple[Path, dict]:
         reports[name] = {k: rep.get(k) for k in ("in_roi", "out_roi", "rejected", "leave_one_out") if k in rep}
         log(f"calibrated {name} from {len(lm['landmarks'])} landmarks")
         cameras.append({"name": name, "kind": cam.kind, "width": cam.width, "height": cam.height,
-                        "masks": f"masks/{name}.npz"})
+                        "masks": f"masks/{name}.npz", "detect_area_px": list(cam.image_area_px())})
     site = {
         "site": "state_ellsworth",
         "origin": origin,
@@ -126,14 +126,15 @@ def model_long_side(model: str | Path) -> int:
 
 class DetectorAlone:
     """The detector by itself on the pipeline's input (JPEG decoded as ingest does, grey), run as the detect
-    service runs it (`detect.workers` inferences at once, `detect.threads` threads each): frames/s and ms per
-    frame, without and with each frame's JPEG decode.
+    service runs it (`detect.workers` inferences at once, `detect.threads` threads each, on each camera's
+    `detect_area_px`): frames/s and ms per frame, without and with each frame's JPEG decode.
 
     This shared machine's speed drifts by a quarter within minutes, so one pass of a few seconds before the
     pipeline is a poor baseline for a ratio: `run_demo` times a pass before the pipeline and one after it and
     pools them (`pooled`), and the summary keeps both passes."""
 
-    def __init__(self, cfg: DemoConfig, rec_dir: Path, detect: DetectSettings) -> None:
+    def __init__(self, cfg: DemoConfig, rec_dir: Path, detect: DetectSettings,
+                 area: dict[str, tuple[int, int, int, int] | None]) -> None:
         import cv2
 
         from services.ingest.__main__ import REDUCED, decode_scale_for
@@ -144,12 +145,13 @@ class DetectorAlone:
         self.detect = detect
         self.det = OnnxDetector(cfg.model, providers=["CPUExecutionProvider"], threads=detect.threads,
                                 spin=detect.spin)
-        frames = [(p, decode_scale_for(rec.cameras[c].width, rec.cameras[c].height, self.det.long_side))
+        cams = {c: rec.cameras[c] for c in rec.camera_names}
+        frames = [(p, decode_scale_for(cams[c].width, cams[c].height, self.det.long_side), area[c])
                   for c in rec.camera_names for _, p in rec.frames(c)]
         step = max(1, len(frames) // cfg.baseline_frames)
-        self.files = [(p.read_bytes(), n) for p, n in frames[::step]]
+        self.files = [(p.read_bytes(), n, a) for p, n, a in frames[::step]]
         self.reduced = REDUCED
-        self.images = [(cv2.imdecode(np.frombuffer(b, np.uint8), REDUCED[n]), 1.0 / n) for b, n in self.files]
+        self.images = [(cv2.imdecode(np.frombuffer(b, np.uint8), REDUCED[n]), 1.0 / n, a) for b, n, a in self.files]
         # one untimed pass: a new ONNX Runtime session runs its first hundred frames 10-15 % slower (measured on
         # this machine: a first pass of 82.9 frames/s, then 89.5 and 94.9), which would flatter the pipeline
         self.run()
@@ -163,8 +165,8 @@ class DetectorAlone:
         import cv2
 
         t0 = time.perf_counter()
-        data, n = item
-        self.det.detect(cv2.imdecode(np.frombuffer(data, np.uint8), self.reduced[n]), 1.0 / n)
+        data, n, area = item
+        self.det.detect(cv2.imdecode(np.frombuffer(data, np.uint8), self.reduced[n]), 1.0 / n, area)
         return (time.perf_counter() - t0) * 1e3
 
     def run(self) -> dict:
@@ -363,7 +365,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
     settings = load_settings(site_path)
     cams = [c.name for c in settings.cameras]
     log("timing the detector alone (before the pipeline; again after it)")
-    timer = DetectorAlone(cfg, rec_dir, settings.detect)
+    timer = DetectorAlone(cfg, rec_dir, settings.detect, {c.name: c.detect_area_px for c in settings.cameras})
     passes = [timer.run()]
     tracks_path = settings.path(settings.fuse_track.record)
     tracks_path.unlink(missing_ok=True)

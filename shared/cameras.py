@@ -266,6 +266,21 @@ class Camera:
             return float(self._radial_map(np.array(self._theta_limit))) * self.fx
         return 0.5 * math.hypot(self.width, self.height)
 
+    def image_area_px(self, max_angle_deg: float | None = None) -> tuple[int, int, int, int]:
+        """The smallest whole-pixel rectangle (x0, y0, x1, y1), x1 and y1 exclusive, holding every pixel that sees
+        anything (or, with `max_angle_deg`, up to that angle off the optical axis: 90 for a fisheye looking down
+        sees no ground beyond it): a fisheye's image circle clipped to the image, else the whole image (a camera's
+        `detect_area_px`)."""
+        if self.kind != "fisheye":
+            return 0, 0, self.width, self.height
+        if max_angle_deg is None:
+            r = self.image_circle_radius_px()
+        else:
+            theta = min(math.radians(max_angle_deg), self._theta_limit)
+            r = float(self._radial_map(np.array(theta))) * self.fx
+        return (max(0, math.floor(self.cx - r)), max(0, math.floor(self.cy - r)),
+                min(self.width, math.ceil(self.cx + r) + 1), min(self.height, math.ceil(self.cy + r) + 1))
+
     def pixel_grid(self) -> np.ndarray:
         """(H, W, 2) float64 pixel centres (u, v)."""
         v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)

@@ -54,6 +54,10 @@ class CameraSettings(Strict):
     # pixel polygons where localize drops detections: things the detector keeps mistaking for a vehicle (a painted
     # word, a lamp head), marked by the installer on the camera's image (deploy/sites/README.md)
     exclude_px: list[list[tuple[float, float]]] = []
+    # the rectangle x0, y0, x1, y1 (full-resolution pixels) that the detector looks at: a fisheye's image circle,
+    # so the black corners beside it cost no inference (State/Ellsworth's sim cameras: 480x480 network input instead
+    # of 640x480); default the whole image
+    detect_area_px: tuple[int, int, int, int] | None = None
 
     @field_validator("name")
     @classmethod
@@ -66,6 +70,15 @@ class CameraSettings(Strict):
         if v is not None and len(v) < 3:
             raise ValueError(f"region_m needs at least 3 points, got {len(v)}")
         return v
+
+    @model_validator(mode="after")
+    def _area(self) -> CameraSettings:
+        if self.detect_area_px is not None:
+            x0, y0, x1, y1 = self.detect_area_px
+            if not (0 <= x0 < x1 <= self.width and 0 <= y0 < y1 <= self.height):
+                raise ValueError(f"camera {self.name}: detect_area_px {list(self.detect_area_px)} must be x0 < x1, "
+                                 f"y0 < y1 within the {self.width}x{self.height} image")
+        return self
 
     @field_validator("exclude_px")
     @classmethod

@@ -22,6 +22,7 @@ import cv2
 import msgpack
 import numpy as np
 import pytest
+import yaml
 from pipeline_fixtures import (
     CAMERA,
     Peer,
@@ -341,6 +342,27 @@ def test_detect_drops_bad_frames_and_keeps_running(site, site_name, small_record
     assert "camera NE: frames come at 320x240, smaller than the model's input" in detect.log()
     assert "set ingest.decode_long_side to 640" in detect.log()
     assert bad_count(detect, r"(\d+) bad messages") == len(cases)
+
+
+def test_detect_looks_only_inside_the_cameras_detect_area(site, site_name, small_recording, port_base, peer, launch):
+    """`cameras[].detect_area_px`: the detector runs on that rectangle (widened to the network's 32-pixel grid of the
+    whole image) and its detections come back in the whole image's pixels."""
+    config = yaml.safe_load(site.read_text())
+    config["cameras"][0]["detect_area_px"] = [640, 480, 1280, 960]  # the lower right quarter of 1280 x 960
+    area_site = site.parent / "site_area.yaml"
+    area_site.write_text(yaml.safe_dump(config, sort_keys=False))
+    peer.subscribe("detections", camera_key(site_name, CAMERA, "detections"), Detections)
+    detect = launch("detect", area_site, *bus_sets(port_base))
+    assert peer.wait_alive(alive_key(site_name, "detect", CAMERA), 1, WAIT_S), detect.log()
+    warm_up(peer, camera_key(site_name, CAMERA, "frame"), encode(good_frame(site_name, small_recording, 0)),
+            lambda: peer.got["detections"], "a good frame")
+    det = peer.got["detections"][0]
+    assert (det.width, det.height) == (1280, 960) and len(det) > 10  # the untrained net: top-k everywhere
+    # decoded at 1/2 for a 640 px model: the grid is 32 pixels of the 640 x 480 copy, 64 of the full image, so the
+    # area's top edge moves up from 480 to 448; nothing left of 640 or above 448
+    assert det.uv[:, 0].min() >= 640 - 1 and det.uv[:, 1].min() >= 448 - 1, det.uv.min(axis=0)
+    assert det.uv[:, 1].min() < 480  # the rows the grid added are looked at too
+    assert_clean_exit(detect, detect.terminate())
 
 
 def test_localize_drops_bad_detections_and_keeps_running(site, site_name, port_base, peer, launch):

@@ -13,6 +13,8 @@ take 47 % more frames per second than one two-threaded inference, at a higher la
 (shared/settings.py). Detections of one camera may then be published slightly out of capture order.
 A frame decoded smaller than the model's input needs (`Frame.scale`: ingest's `decode_long_side` below the
 model's `input_long_side`) is enlarged back to the scale the model was trained at, with one warning per camera.
+A camera's `detect_area_px` (its fisheye image circle) limits the inference to that rectangle, at the whole
+image's scale.
 """
 
 from __future__ import annotations
@@ -99,9 +101,11 @@ def main(settings: Settings, stopper: Stopper) -> int:
         warned: set[str] = set()  # cameras whose frames come too small for the model
         done = 0
 
-        def infer(img: np.ndarray, scale: float):
+        areas = {c.name: c.detect_area_px for c in settings.cameras}
+
+        def infer(img: np.ndarray, scale: float, area: tuple[int, int, int, int] | None):
             t0 = time.perf_counter()
-            det = detector.detect(img, scale)
+            det = detector.detect(img, scale, area)
             return det, (time.perf_counter() - t0) * 1e3
 
         while not stopper.is_set():
@@ -124,7 +128,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
                     log.warning("camera %s: frames come at %dx%d, smaller than the model's input (longer side %d); "
                                 "enlarged, detail lost: set ingest.decode_long_side to %d", frame.camera,
                                 frame.width, frame.height, detector.long_side, detector.long_side)
-                future = pool.submit(infer, img, frame.scale)
+                future = pool.submit(infer, img, frame.scale, areas[frame.camera])
                 future.add_done_callback(lambda _: wake.set())
                 running.append((future, frame, t_in))
             for item in [r for r in running if r[0].done()]:
@@ -132,6 +136,9 @@ def main(settings: Settings, stopper: Stopper) -> int:
                 future, frame, t_in = item
                 try:
                     det, infer_ms = future.result()
+                except ValueError as exc:  # the camera's detect area leaves nothing of a frame this size
+                    bad(f"camera {frame.camera} seq {frame.seq}: {exc}", frame.camera)
+                    continue
                 except cv2.error as exc:  # e.g. an image too thin to resize to the network's input
                     bad(f"camera {frame.camera} seq {frame.seq}: cannot detect on a {frame.width}x{frame.height} "
                         f"image ({str(exc).strip().splitlines()[-1]})", frame.camera)
