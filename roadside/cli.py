@@ -367,6 +367,34 @@ def _add_static(sub) -> None:
     p.add_argument("--crops", type=Path, help="folder: write the image around each place (spot_<k>.png) to look at")
 
 
+def _add_area(sub) -> None:
+    p = sub.add_parser("area", help="the rectangle of a camera's frames that shows anything (a fisheye's image "
+                                    "circle): its cameras[].detect_area_px")
+    p.add_argument("--frames", type=Path, required=True, help="one camera's frames (a folder of images)")
+    p.add_argument("--every", type=int, default=60, help="use every n-th frame (default 60)")
+    p.add_argument("--level", type=float, default=40.0, help="grey level above which a pixel shows something")
+    p.add_argument("--share", type=float, default=0.02,
+                   help="a column (row) belongs to the area when more than this share of its pixels do")
+
+
+def _run_area(args) -> int:
+    from calibration.area import image_area, read_frames
+    from training.autolabel import IMAGE_SUFFIXES
+
+    if args.every < 1:
+        raise ValueError(f"--every must be >= 1, got {args.every}")
+    if not args.frames.is_dir():
+        raise ValueError(f"frames folder not found: {args.frames}")
+    paths = sorted(p for p in args.frames.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)[:: args.every]
+    if not paths:
+        raise ValueError(f"{args.frames}: no images")
+    area, (w, h), n = image_area(read_frames(paths), args.level, args.share)
+    print(json.dumps({"frames_folder": str(args.frames), "frames": n, "width": w, "height": h,
+                      "detect_area_px": list(area), "share_of_image": round((area[2] - area[0]) * (area[3] - area[1])
+                                                                            / (w * h), 3)}, indent=1))
+    return 0
+
+
 def _run_static(args) -> int:
     import cv2
 
@@ -662,6 +690,7 @@ def main(argv: list[str] | None = None) -> int:
     _add_train(sub)
     _add_autolabel(sub)
     _add_static(sub)
+    _add_area(sub)
     _add_composite(sub)
     _add_export(sub)
     _add_eval(sub)
@@ -671,7 +700,7 @@ def main(argv: list[str] | None = None) -> int:
     _add_viz(sub)
     args = parser.parse_args(argv)
     runners = {"sim": _run_sim, "demo": _run_demo, "calibrate": _run_calibrate, "bench": _run_bench,
-               "train": _run_train, "autolabel": _run_autolabel, "static": _run_static,
+               "train": _run_train, "autolabel": _run_autolabel, "static": _run_static, "area": _run_area,
                "composite": _run_composite, "export": _run_export,
                "eval": _run_eval, "up": _run_up,
                "tracks": _run_tracks, "health": _run_health, "viz": _run_viz}

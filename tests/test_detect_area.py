@@ -101,3 +101,53 @@ def test_settings_reject_an_area_outside_the_image():
     for bad in ((0, 0, 1300, 960), (500, 0, 400, 960), (-1, 0, 100, 100)):
         with pytest.raises(ValueError, match=r"camera NE: detect_area_px .* within the 1280x960 image"):
             CameraSettings(name="NE", kind="fisheye", width=1280, height=960, detect_area_px=bad)
+
+
+def disc_frames(n: int = 3, w: int = 320, h: int = 240, r: int = 100) -> list[tuple[str, np.ndarray]]:
+    """Frames of a lit image circle (centre 150, 120, radius r) on black, with noise in the circle only."""
+    import cv2
+
+    rng = np.random.default_rng(0)
+    out = []
+    for k in range(n):
+        img = np.zeros((h, w), np.uint8)
+        cv2.circle(img, (150, 120), r, 90, -1)
+        img[img > 0] = np.clip(img[img > 0] + rng.integers(-20, 20, int((img > 0).sum())), 50, 255)
+        out.append((f"f{k}.png", img))
+    return out
+
+
+def test_image_area_finds_the_circle_and_names_bad_frames():
+    from calibration.area import image_area
+
+    area, size, n = image_area(disc_frames())
+    assert size == (320, 240) and n == 3
+    # rows 20..220 and columns 50..250 are lit; a column needs more than 2 % of its rows lit (5 of 240)
+    x0, y0, x1, y1 = area
+    assert 50 <= x0 <= 53 and 247 <= x1 <= 251 and 20 <= y0 <= 23 and 217 <= y1 <= 221
+    frames = disc_frames()
+    frames.append(("odd.png", np.zeros((100, 100), np.uint8)))
+    with pytest.raises(ValueError, match=r"odd.png: 100x100, the frames before it are 320x240"):
+        image_area(frames)
+    with pytest.raises(ValueError, match="all dark"):
+        image_area([("dark.png", np.full((50, 60), 10, np.uint8))])
+    with pytest.raises(ValueError, match="no frames"):
+        image_area([])
+
+
+def test_roadside_area_prints_the_site_setting(tmp_path, capsys):
+    import json
+
+    import cv2
+
+    from roadside.cli import main
+
+    for name, img in disc_frames():
+        cv2.imwrite(str(tmp_path / name), img)
+    assert main(["area", "--frames", str(tmp_path), "--every", "1"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["frames"] == 3 and (out["width"], out["height"]) == (320, 240)
+    x0, y0, x1, y1 = out["detect_area_px"]
+    assert CameraSettings(name="C", kind="fisheye", width=320, height=240, detect_area_px=(x0, y0, x1, y1))
+    assert main(["area", "--frames", str(tmp_path / "missing")]) == 2
+    assert "frames folder not found" in capsys.readouterr().err
