@@ -19,6 +19,7 @@ import numpy as np
 from shared.decode import CONFIG_KEY, Detections, decode
 
 PAD_MULTIPLE = 32
+AREA_CONTEXT_PX = 32  # network pixels of the image kept around a camera's detect area (see `OnnxDetector.detect`)
 PREFERRED_PROVIDERS = ("TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider")
 
 
@@ -113,17 +114,30 @@ class OnnxDetector:
     def detect(self, grey: np.ndarray, source_scale: float = 1.0,
                area_px: tuple[int, int, int, int] | None = None) -> Detections:
         """Detections in `grey`'s own pixels; `source_scale`: see `input_shape`. `area_px` (x0, y0, x1, y1), in the
-        camera's full-resolution pixels: look only inside that rectangle (a fisheye's image circle: the black
-        corners outside it are not computed), at the scale of the whole image, so the vehicles keep the size the
-        model learnt. The rectangle is widened to the network's 32-pixel grid of the whole image (`area_box`): the
-        network is not shift-invariant below it (on the held-out roundabout, every 4th frame, a crop shifted by 1-4
-        network pixels localized the fisheye vehicles 1.41-1.44 m off against 1.31 m for the whole image; shifted
-        by 32 pixels, 1.32 m), so inside the area the detections are those of the whole image."""
+        camera's full-resolution pixels: look only at that rectangle (a fisheye's image circle: the black sides
+        beside it are not computed) and its surroundings (`area_crop`), at the scale of the whole image, so the
+        vehicles keep the size the model learnt."""
         if area_px is None:
             return self._detect(grey, source_scale, None)
+        x0, y0, x1, y1 = self.area_crop(grey.shape, source_scale, area_px)
         scale = self.scale_for(*grey.shape, source_scale)
-        x0, y0, x1, y1 = area_box(area_px, grey.shape, source_scale, PAD_MULTIPLE / scale)
         return self._detect(grey[y0:y1, x0:x1], source_scale, scale).scaled(1.0, 1.0, x0, y0)
+
+    def area_crop(self, shape: tuple[int, int], source_scale: float,
+                  area_px: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
+        """The part of an image of `shape` (H, W, decoded at `source_scale`) that `detect` runs the network on for a
+        detect area: the area widened by `AREA_CONTEXT_PX` network pixels where the image reaches, then out to the
+        network's 32-pixel grid of the whole image.
+
+        The network is not shift-invariant below that grid: on a frame of the simulated roundabout a crop 6 pixels
+        off it moved 34 of 35 detections by more than half a pixel or 0.03 in score. On the grid the detections
+        are the whole image's but near the crop's edges, where the network's view reaches past them: on 25 frames
+        of the validation recording 91 % of the detections were identical with the circle alone, 97.6 % with 32
+        pixels of context around it (tracking MOTA 0.559 and 0.586 against 0.593 on the whole image)."""
+        scale = self.scale_for(*shape, source_scale)
+        m = AREA_CONTEXT_PX / scale / source_scale  # in full-resolution pixels
+        wider = (area_px[0] - m, area_px[1] - m, area_px[2] + m, area_px[3] + m)
+        return area_box(wider, shape, source_scale, PAD_MULTIPLE / scale)
 
     def _detect(self, grey: np.ndarray, source_scale: float, scale: float | None) -> Detections:
         x, scale = self.preprocess(grey, source_scale, scale)

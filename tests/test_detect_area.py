@@ -38,10 +38,13 @@ def textured(h: int, w: int) -> np.ndarray:
 
 def test_detections_inside_the_area_in_the_whole_images_pixels(tiny):
     img = textured(480, 640)  # smaller than the model's 640 px input: scale 1, a 32-pixel grid
-    part = tiny.detect(img, area_px=(100, 70, 300, 250))  # on the grid: (96, 64) to (320, 256)
+    # 32 pixels of context around the area, (68, 38) to (332, 282), then out to the grid
+    assert tiny.area_crop(img.shape, 1.0, (100, 70, 300, 250)) == (64, 32, 352, 288)
+    part = tiny.detect(img, area_px=(100, 70, 300, 250))
     assert len(part) > 0
-    assert part.uv[:, 0].min() >= 96 - 0.5 and part.uv[:, 0].max() <= 320
-    assert part.uv[:, 1].min() >= 64 - 0.5 and part.uv[:, 1].max() <= 256
+    assert part.uv[:, 0].min() >= 64 - 0.5 and part.uv[:, 0].max() <= 352
+    assert part.uv[:, 1].min() >= 32 - 0.5 and part.uv[:, 1].max() <= 288
+    assert part.uv[:, 0].min() < 100 and part.uv[:, 1].max() > 250  # the context is looked at too
     # the whole image as the area is the whole image
     whole, full = tiny.detect(img), tiny.detect(img, area_px=(0, 0, 640, 480))
     np.testing.assert_array_equal(full.uv, whole.uv)
@@ -56,8 +59,9 @@ def matched_share(a, b, tol_px: float = 0.5) -> float:
 
 
 def test_the_shipped_detector_on_a_fisheye_circle_finds_what_it_finds_on_the_whole_image(small_recording):
-    """On the grid the network sees the circle's pixels as in the whole image; off it (a crop 6 pixels over, 3 at
-    the network's input) the same vehicles come out pixels apart: the network is not shift-invariant below it."""
+    """On the grid the network sees the circle and its surroundings as in the whole image; off it (a crop 6 pixels
+    over, 3 at the network's input) the same vehicles come out pixels apart: the network is not shift-invariant
+    below it."""
     import cv2
 
     from sim.recording import Recording
@@ -70,17 +74,20 @@ def test_the_shipped_detector_on_a_fisheye_circle_finds_what_it_finds_on_the_who
     area = cam.image_area_px()
     circle = det.detect(img, area_px=area)
     assert len(whole) >= 5
-    assert matched_share(whole, circle) >= 0.8
-    x0, _, x1, _ = area_box(area, img.shape, 1.0, 64.0)
+    assert matched_share(whole, circle) >= 0.9
+    x0, _, x1, _ = det.area_crop(img.shape, 1.0, area)
+    assert (x0, x1) == (64, 1216)  # the circle, 145 to 1135, with 64 pixels of context, on the 64-pixel grid
     off = det._detect(img[:, x0 + 6:x1 + 6].copy(), 1.0, det.scale_for(*img.shape)).scaled(1.0, 1.0, x0 + 6, 0)
-    assert matched_share(whole, off) <= 0.5  # measured: 0.86 on the grid, 0.03 off it
+    assert matched_share(whole, off) <= 0.5
 
 
 def test_area_on_a_copy_decoded_smaller(tiny):
     img = textured(480, 640)  # a 1280 x 960 camera decoded at half size
-    det = tiny.detect(img, 0.5, area_px=(640, 480, 1280, 960))  # in the camera's full-size pixels
+    # in the camera's full-size pixels; the context is 64 of them (32 of the copy, at the network's scale)
+    assert tiny.area_crop(img.shape, 0.5, (640, 480, 1280, 960)) == (288, 192, 640, 480)
+    det = tiny.detect(img, 0.5, area_px=(640, 480, 1280, 960))
     assert len(det) > 0
-    assert det.uv[:, 0].min() >= 320 - 0.5 and det.uv[:, 1].min() >= 224 - 0.5  # the copy's pixels, grid 32
+    assert det.uv[:, 0].min() >= 288 - 0.5 and det.uv[:, 1].min() >= 192 - 0.5  # the copy's pixels
 
 
 def test_camera_image_area():

@@ -358,10 +358,10 @@ def test_detect_looks_only_inside_the_cameras_detect_area(site, site_name, small
             lambda: peer.got["detections"], "a good frame")
     det = peer.got["detections"][0]
     assert (det.width, det.height) == (1280, 960) and len(det) > 10  # the untrained net: top-k everywhere
-    # decoded at 1/2 for a 640 px model: the grid is 32 pixels of the 640 x 480 copy, 64 of the full image, so the
-    # area's top edge moves up from 480 to 448; nothing left of 640 or above 448
-    assert det.uv[:, 0].min() >= 640 - 1 and det.uv[:, 1].min() >= 448 - 1, det.uv.min(axis=0)
-    assert det.uv[:, 1].min() < 480  # the rows the grid added are looked at too
+    # decoded at 1/2 for a 640 px model: 32 pixels of the 640 x 480 copy around the area (64 of the full image),
+    # then out to the copy's 32-pixel grid: the crop starts at (576, 384); nothing left of it or above it
+    assert det.uv[:, 0].min() >= 576 - 1 and det.uv[:, 1].min() >= 384 - 1, det.uv.min(axis=0)
+    assert det.uv[:, 1].min() < 480  # the rows around the area are looked at too
     assert_clean_exit(detect, detect.terminate())
 
 
