@@ -379,7 +379,7 @@ def _add_area(sub) -> None:
 
 def _run_area(args) -> int:
     from calibration.area import image_area, read_frames
-    from training.autolabel import IMAGE_SUFFIXES
+    from services.ingest.sources import IMAGE_SUFFIXES
 
     if args.every < 1:
         raise ValueError(f"--every must be >= 1, got {args.every}")
