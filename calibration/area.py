@@ -48,6 +48,7 @@ def image_area(images: Iterable[tuple[str, np.ndarray]], level: float = 40.0,
 
 
 def read_frames(paths: list[Path]) -> Iterable[tuple[str, np.ndarray]]:
+    """(path, grey image) of each file, read as needed; ValueError naming a file that is not a readable image."""
     for p in paths:
         img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
         if img is None:

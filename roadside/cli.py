@@ -398,6 +398,7 @@ def _run_area(args) -> int:
 def _run_static(args) -> int:
     import cv2
 
+    from calibration.area import read_frames
     from eval.static import crop, static_detections
     from shared.inference import OnnxDetector
     from training.autolabel import list_frames
@@ -406,15 +407,8 @@ def _run_static(args) -> int:
         raise ValueError(f"--every must be >= 1, got {args.every}")
     paths = [p for _, p in list_frames(args.frames, _time_of_day(args.until))][:: args.every]
     det = OnnxDetector(args.model, score_thr=args.score_thr, spin=False)
-
-    def images():
-        for p in paths:
-            grey = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
-            if grey is None:
-                raise ValueError(f"{p}: not a readable image")
-            yield grey
-
-    result = static_detections(images(), det.detect, min_fraction=args.min_fraction)
+    images = (grey for _, grey in read_frames(paths))
+    result = static_detections(images, det.detect, min_fraction=args.min_fraction)
     if args.crops is not None:
         args.crops.mkdir(parents=True, exist_ok=True)
         last = cv2.imread(str(paths[-1]), cv2.IMREAD_GRAYSCALE)

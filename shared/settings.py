@@ -54,9 +54,9 @@ class CameraSettings(Strict):
     # pixel polygons where localize drops detections: things the detector keeps mistaking for a vehicle (a painted
     # word, a lamp head), marked by the installer on the camera's image (deploy/sites/README.md)
     exclude_px: list[list[tuple[float, float]]] = []
-    # the rectangle x0, y0, x1, y1 (full-resolution pixels) that the detector looks at: a fisheye's image circle,
-    # so the black corners beside it cost no inference (State/Ellsworth's sim cameras: 480x480 network input instead
-    # of 640x480); default the whole image
+    # the rectangle x0, y0, x1, y1 (full-resolution pixels) that the detector looks at, with 32 network pixels of
+    # context around it (OnnxDetector.area_crop): a fisheye's image circle, so the black sides beside it cost no
+    # inference (the simulated roundabout's cameras: 576x480 network input instead of 640x480); default the whole image
     detect_area_px: tuple[int, int, int, int] | None = None
 
     @field_validator("name")

@@ -142,3 +142,23 @@ def test_onnx_detector_threads_sleep_between_jobs_unless_asked_to_spin():
     sleeping = OnnxDetector(model, threads=1, spin=False)
     assert sleeping.session.get_session_options().get_session_config_entry("session.intra_op.allow_spinning") == "0"
     assert len(sleeping.detect(np.zeros((96, 128), np.uint8))) == 0
+
+
+def test_fisheye_area_reaches_the_fisheye_frames_only(small_recording):
+    """`evaluate(..., fisheye_area_deg)` detects fisheye frames as `detect(grey, area_px=...)`, the camera's circle up
+    to that angle, as a site's detect_area_px has the detect service do; thermal frames on the whole image."""
+    from sim.recording import Recording
+
+    seen = []
+
+    def detect(grey: np.ndarray, area_px=None) -> Detections:
+        seen.append((grey.shape, area_px))
+        return Detections(np.zeros(0), np.zeros((0, 2)), np.zeros((0, 4)), np.zeros((0, 2)), np.zeros((0, 3)),
+                          np.zeros(0, np.int64), np.zeros((0, 5)))
+
+    result = evaluate(small_recording, detect, fisheye_area_deg=90.0)
+    assert result["fisheye_area_deg"] == 90.0
+    circle = Recording(small_recording).cameras["NE"].image_area_px(90.0)
+    assert {a for shape, a in seen if shape == (960, 1280)} == {circle}
+    assert {a for shape, a in seen if shape != (960, 1280)} == {None}
+    assert 0 < circle[0] and circle[2] < 1280  # narrower than the frame
