@@ -249,9 +249,10 @@ def _run_export(args) -> int:
 
 def _add_eval(sub) -> None:
     p = sub.add_parser("eval", help="score the detector: on a simulator recording, or on hand-labelled real frames")
-    p.add_argument("what", choices=["detector", "real", "handoff"],
+    p.add_argument("what", choices=["detector", "real", "handoff", "budget"],
                    help="detector: against a recording's ground truth; real: against hand labels (eval/real.py); "
-                        "handoff: camera-region crossings kept under one id in a tracks file (no ground truth)")
+                        "handoff: camera-region crossings kept under one id in a tracks file (no ground truth); "
+                        "budget: where a simulated run's tracking accuracy goes (eval/budget.py, --demo)")
     p.add_argument("--model", type=Path, help="exported ONNX detector (detector, real)")
     p.add_argument("--tracks", type=Path, help="tracks file written by fuse_track (handoff; real: score the tracks "
                    "of the footage played through the pipeline instead of a model's detections)")
@@ -267,12 +268,24 @@ def _add_eval(sub) -> None:
     p.add_argument("--fisheye-area-deg", type=_positive_float,
                    help="detector: look at fisheye frames only inside the image circle up to this angle off axis "
                         "(e.g. 90), as a camera's detect_area_px does in the detect service")
+    p.add_argument("--demo", type=Path, default=Path("out/demo"),
+                   help="budget: a roadside demo output folder (objects.jsonl, site/, the recording)")
+    p.add_argument("--scenario", action="append",
+                   help="budget: score only this scenario (repeatable; default all: as_run, exact_lift, "
+                        "true_positions, no_false_alarms, true_positions_no_false_alarms, truth)")
     p.add_argument("--json", action="store_true", help="print one JSON document (default: also a summary)")
 
 
 def _run_eval(args) -> int:
     from shared.inference import OnnxDetector
 
+    if args.what == "budget":
+        from eval.budget import SCENARIOS, budget
+
+        result = budget(args.demo, args.scenario or SCENARIOS,
+                        log=None if args.json else lambda m: print(m, file=sys.stderr))
+        print(json.dumps(result, indent=1))
+        return 0
     if args.what == "handoff":
         from eval.tracking import handoff_without_truth
         from services.fuse_track.__main__ import camera_positions

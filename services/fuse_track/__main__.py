@@ -112,7 +112,9 @@ class Recorder:
             self.file.close()
 
 
-def main(settings: Settings, stopper: Stopper) -> int:
+def build(settings: Settings) -> tuple[Fusion, Tracker, TickBuffer, dict[str, tuple[float, float]], GeoFrame]:
+    """The fusion, tracker and tick buffer of a site's settings, as the service runs them (also used offline:
+    eval/budget.py replays a run's objects through them), with the cameras' ground positions and the site frame."""
     cfg = settings.fuse_track
     positions, geo = camera_positions(settings)
     regions = [CameraRegion(c.name, positions[c.name], np.asarray(c.region_m) if c.region_m else None)
@@ -124,6 +126,12 @@ def main(settings: Settings, stopper: Stopper) -> int:
     ticks: TickBuffer = TickBuffer(positions, TickConfig(tick_ms=cfg.tick_ms, watermark_ms=cfg.watermark_ms,
                                                          max_wait_ms=cfg.max_wait_ms,
                                                          camera_timeout_ms=cfg.camera_timeout_ms))
+    return fusion, tracker, ticks, positions, geo
+
+
+def main(settings: Settings, stopper: Stopper) -> int:
+    cfg = settings.fuse_track
+    fusion, tracker, ticks, positions, geo = build(settings)
     recorder = Recorder(settings.path(cfg.record))
     bad = BadInput("fuse_track")
     session = open_session(settings, "fuse_track")
@@ -140,7 +148,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
         # after the subscriber and queryable: a token means ready
         tokens = declare_alive(session, settings.site, "fuse_track", [tracker.id.replace("tracker-", "t")])
         seq = 0
-        log.info("tracker %s, %d cameras, tick %g ms", tracker.id, len(regions), cfg.tick_ms)
+        log.info("tracker %s, %d cameras, tick %g ms", tracker.id, len(fusion.regions), cfg.tick_ms)
 
         def close(closed: list[Tick]) -> None:
             nonlocal seq

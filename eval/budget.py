@@ -1,0 +1,205 @@
+"""Where a simulated run's tracking accuracy goes (`roadside eval budget DEMO_DIR`).
+
+A run of `roadside demo` leaves what localize published (`objects.jsonl`: every camera frame's objects on the
+ground), the site it ran (`site/site.yaml` and the lookup masks) and the recording with its ground truth. This
+module replays those objects offline through fuse_track's own fusion, tracker and ticks (`services.fuse_track.
+__main__.build`), scores the tracks as the demo does, and then replays them again with one source of error taken
+away at a time:
+
+- `as_run`: the objects unchanged (at pace `max`, where no frame is dropped, this is the run's own score);
+- `exact_lift`: each object lifted through the simulator's exact ground lookup instead of the calibrated masks, at
+  the pixel whose mask position is nearest to it (what the calibration costs);
+- `true_positions`: every object that is one of the camera's vehicles (Hungarian assignment within `gate_m` of the
+  vehicles it sees) moved to that vehicle's true ground position (what the detector's localization costs);
+- `no_false_alarms`: the objects that match no vehicle dropped (what its false alarms cost);
+- `true_positions_no_false_alarms`: both; what is left is what the detector misses, and what the fusion and the
+  tracker lose of what it finds;
+- `truth`: every vehicle each camera sees (bottom centre in the image, `min_visible_fraction` visible, as the
+  evaluation's rule) at its true pixel, lifted through the masks (fusion, tracking and calibration alone).
+
+A camera "sees" a vehicle as in eval/tracking.py. The figures tell which part of the pipeline to improve next;
+they are not the run's score (README, "The live pipeline").
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
+
+SCENARIOS = ("as_run", "exact_lift", "true_positions", "no_false_alarms", "true_positions_no_false_alarms", "truth")
+SCORES = ("mota", "idf1", "id_switches", "precision", "recall", "traj_err_in_roi_m")
+OBJECT_KEYS = ("camera", "seq", "t_ns", "xy", "yaw", "size_lwh", "vtype", "score")
+TRUTH_SCORE = 0.9  # the score of a `truth` object: above any threshold a site uses
+
+
+def read_objects(path: str | Path) -> list[dict]:
+    """The rows of an objects file (JSON lines, `roadside demo`'s `objects.jsonl`); ValueError naming the line."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"objects file not found: {path}")
+    rows = []
+    for i, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{path}:{i}: not JSON ({exc.msg})") from None
+        missing = [k for k in OBJECT_KEYS if not isinstance(row, dict) or k not in row]
+        if missing:
+            raise ValueError(f"{path}:{i}: missing {', '.join(missing)}")
+        n = len(row["score"])
+        if any(len(row[k]) != n for k in ("xy", "yaw", "size_lwh", "vtype")):
+            raise ValueError(f"{path}:{i}: xy, yaw, size_lwh, vtype and score must have one entry per object")
+        rows.append(row)
+    return rows
+
+
+def replay(rows: Sequence[dict], settings) -> list[dict]:
+    """Objects rows -> tracks-file rows: every frame in its event-time tick, fused and tracked as fuse_track does."""
+    from services.fuse_track.__main__ import build, tracks_message
+    from services.fuse_track.fusion import ObjectBatch
+
+    fusion, tracker, ticks, _, geo = build(settings)
+    for r in sorted(rows, key=lambda r: r["t_ns"]):
+        batch = ObjectBatch.from_frame(
+            r["camera"], int(r["t_ns"]), np.asarray(r["xy"], np.float64).reshape(-1, 2),
+            np.asarray(r["yaw"], np.float64), np.asarray(r["size_lwh"], np.float64).reshape(-1, 3),
+            np.asarray(r["vtype"], np.int64), np.asarray(r["score"], np.float64))
+        ticks.add(r["camera"], int(r["t_ns"]), batch, 0.0)
+    out = []
+    for seq, tick in enumerate(ticks.flush()):
+        items = tick.items()
+        objs = ObjectBatch.concat(items) if items else ObjectBatch.empty()
+        state = tracker.update(fusion.fuse(objs, tick.t_ref_ns, tracker.velocity_hints(objs)), tick.t_ref_ns)
+        msg = tracks_message(settings.site, state, tick.t_ref_ns, seq, geo, [], [])
+        out.append({"site": settings.site, "seq": seq, "t_ns": tick.t_ref_ns, "tracker": tracker.id,
+                    "tracks": msg.rows()})
+    return out
+
+
+def seen_vehicles(recording, min_visible_fraction: float) -> dict[tuple[str, int], list[dict]]:
+    """(camera, capture time) -> the vehicles that camera sees in that frame."""
+    out = {}
+    for cam in recording.camera_names:
+        for frame in recording.ground_truth(cam):
+            out[(cam, int(frame["t_ns"]))] = [
+                v for v in frame["vehicles"]
+                if v.get("in_image") and float(v.get("visible_fraction") or 0.0) >= min_visible_fraction]
+    return out
+
+
+def _select(row: dict, keep: np.ndarray, xy: np.ndarray) -> dict:
+    out = dict(row)
+    for k in ("yaw", "vtype", "score"):
+        out[k] = [v for v, kk in zip(row[k], keep, strict=True) if kk]
+    out["size_lwh"] = [v for v, kk in zip(row["size_lwh"], keep, strict=True) if kk]
+    out["xy"] = xy[keep].tolist()
+    return out
+
+
+def with_truth(rows: Sequence[dict], seen: dict, gate_m: float = 3.0, move: bool = True,
+               drop: bool = False) -> list[dict]:
+    """Objects matched to the vehicles their camera sees (Hungarian, ground distance within `gate_m`) moved to the
+    truth (`move`); the unmatched dropped (`drop`)."""
+    out = []
+    for r in rows:
+        xy = np.asarray(r["xy"], np.float64).reshape(-1, 2).copy()
+        truth = np.array([v["xyz"][:2] for v in seen.get((r["camera"], int(r["t_ns"])), [])], np.float64)
+        matched = np.zeros(len(xy), bool)
+        if len(xy) and len(truth):
+            d = np.linalg.norm(xy[:, None] - truth[None], axis=2)
+            i, j = linear_sum_assignment(np.where(d <= gate_m, d, 1e9))
+            ok = d[i, j] <= gate_m
+            i, j = i[ok], j[ok]
+            matched[i] = True
+            if move:
+                xy[i] = truth[j]
+        out.append(_select(r, matched if drop else np.ones(len(xy), bool), xy))
+    return out
+
+
+def lift_exact(rows: Sequence[dict], masks: dict, exact: dict) -> list[dict]:
+    """Objects moved from the calibrated masks' ground position to the exact lookup's at the same pixel (the pixel
+    whose mask position is nearest). masks / exact: camera -> ((H, W, 2) metres, (H, W) valid)."""
+    index = {}
+    for cam, (mxy, mvalid) in masks.items():
+        exy, evalid = exact[cam]
+        ok = mvalid & evalid
+        index[cam] = (cKDTree(mxy[ok].astype(np.float64)), exy[ok][:, :2].astype(np.float64))
+    out = []
+    for r in rows:
+        xy = np.asarray(r["xy"], np.float64).reshape(-1, 2)
+        if len(xy):
+            tree, exy = index[r["camera"]]
+            xy = exy[tree.query(xy)[1]]
+        out.append(_select(r, np.ones(len(xy), bool), xy))
+    return out
+
+
+def truth_objects(rows: Sequence[dict], seen: dict, masks: dict) -> list[dict]:
+    """For each frame of `rows`: one object per vehicle its camera sees, at its true pixel (`uv`) lifted through
+    the masks (nearest pixel), with its true heading and size."""
+    out = []
+    for r in rows:
+        mxy, mvalid = masks[r["camera"]]
+        h, w = mvalid.shape
+        obj = {"xy": [], "yaw": [], "size_lwh": [], "vtype": [], "score": []}
+        for v in seen.get((r["camera"], int(r["t_ns"])), []):
+            u, vv = (int(round(c)) for c in v["uv"])
+            if not (0 <= u < w and 0 <= vv < h and mvalid[vv, u]):
+                continue
+            obj["xy"].append(mxy[vv, u].astype(float).tolist())
+            obj["yaw"].append(float(v["yaw"]))
+            obj["size_lwh"].append([float(x) for x in v["lwh"]])
+            obj["vtype"].append(0)
+            obj["score"].append(TRUTH_SCORE)
+        out.append({**r, **obj})
+    return out
+
+
+def budget(demo_dir: str | Path, scenarios: Sequence[str] = SCENARIOS, gate_m: float = 3.0, log=None) -> dict:
+    """Scores of each scenario (module docstring) for a `roadside demo` output folder."""
+    from calibration.masks import load_masks
+    from eval.tracking import TrackingEvalConfig, evaluate_many
+    from shared.settings import load_settings
+    from sim.recording import Recording
+
+    demo = Path(demo_dir)
+    unknown = [s for s in scenarios if s not in SCENARIOS]
+    if unknown:
+        raise ValueError(f"unknown scenario(s) {', '.join(unknown)}; choose from {', '.join(SCENARIOS)}")
+    settings = load_settings(demo / "site" / "site.yaml")
+    summary = demo / "summary.json"
+    rec_dir = Path(json.loads(summary.read_text())["recording"]) if summary.is_file() else demo / "recording"
+    recording = Recording(rec_dir)
+    rows = read_objects(demo / "objects.jsonl")
+    cams = [c.name for c in settings.cameras]
+    seen = seen_vehicles(recording, TrackingEvalConfig().min_visible_fraction)
+    masks = {}
+    for c in settings.cameras:
+        if c.masks is None:
+            raise ValueError(f"camera {c.name} has no masks in {demo / 'site' / 'site.yaml'}")
+        m = load_masks(settings.path(c.masks), with_latlon=False)
+        masks[c.name] = (m.xy, m.valid)
+    variants = {
+        "as_run": lambda: rows,
+        "exact_lift": lambda: lift_exact(rows, masks, {c: recording.ground_lookup(c) for c in cams}),
+        "true_positions": lambda: with_truth(rows, seen, gate_m, move=True),
+        "no_false_alarms": lambda: with_truth(rows, seen, gate_m, move=False, drop=True),
+        "true_positions_no_false_alarms": lambda: with_truth(rows, seen, gate_m, move=True, drop=True),
+        "truth": lambda: truth_objects(rows, seen, masks),
+    }
+    out = {"demo": str(demo), "recording": str(rec_dir), "gate_m": gate_m, "scenarios": {}}
+    for name in scenarios:
+        tracks = replay(variants[name](), settings)
+        s = evaluate_many(recording, {"fused": tracks}, cameras=cams)["sources"]["fused"]
+        out["scenarios"][name] = {k: round(s[k], 4) if isinstance(s[k], float) else s[k] for k in SCORES}
+        if log:
+            log(f"{name}: " + ", ".join(f"{k} {out['scenarios'][name][k]}" for k in SCORES))
+    return out

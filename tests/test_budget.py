@@ -1,0 +1,129 @@
+"""eval/budget.py: the error budget of a simulated run. The pieces on hand-made arrays; the whole on the small
+recording (one fisheye camera, two frames) with objects made from its ground truth, moved off and with a false
+alarm added, so each scenario's effect is known."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from pipeline_fixtures import CAMERA, write_exact_masks
+
+from eval.budget import SCENARIOS, budget, lift_exact, read_objects, seen_vehicles, truth_objects, with_truth
+
+
+def row(xy, camera="A", t_ns=0, score=None) -> dict:
+    xy = np.asarray(xy, float).reshape(-1, 2)
+    n = len(xy)
+    return {"camera": camera, "seq": 0, "t_ns": t_ns, "xy": xy.tolist(), "yaw": [0.1] * n,
+            "size_lwh": [[4.5, 1.8, 1.5]] * n, "vtype": [1] * n, "score": score or [0.8] * n}
+
+
+def vehicle(x, y, u=0.0, v=0.0) -> dict:
+    return {"xyz": [x, y, 0.0], "uv": [u, v], "yaw": 0.5, "lwh": [4.0, 1.7, 1.4], "in_image": True,
+            "visible_fraction": 1.0}
+
+
+def test_with_truth_moves_matched_objects_and_drops_the_rest():
+    seen = {("A", 0): [vehicle(0.0, 0.0), vehicle(10.0, 0.0)]}
+    r = row([[0.5, 0.5], [10.0, 2.5], [30.0, 0.0]])  # two within the 3 m gate, one false alarm
+    moved = with_truth([r], seen)[0]
+    assert moved["xy"] == [[0.0, 0.0], [10.0, 0.0], [30.0, 0.0]]
+    assert moved["yaw"] == r["yaw"] and moved["score"] == r["score"]
+    dropped = with_truth([r], seen, move=False, drop=True)[0]
+    assert dropped["xy"] == [[0.5, 0.5], [10.0, 2.5]] and len(dropped["score"]) == 2 and len(dropped["size_lwh"]) == 2
+    both = with_truth([r], seen, move=True, drop=True)[0]
+    assert both["xy"] == [[0.0, 0.0], [10.0, 0.0]]
+    assert with_truth([r], seen, gate_m=1.0, drop=True)[0]["xy"] == [[0.0, 0.0]]  # 2.5 m off is beyond the gate
+    assert with_truth([row([[1.0, 1.0]], camera="B")], seen, drop=True)[0]["xy"] == []  # B sees nothing
+
+
+def test_lift_exact_replaces_the_mask_position_by_the_exact_one_at_that_pixel():
+    h, w = 4, 5
+    uu, vv = np.meshgrid(np.arange(w), np.arange(h))
+    exact = np.stack([uu * 1.0, vv * 1.0, np.zeros_like(uu, float)], axis=-1)
+    masks = exact[..., :2] + [0.3, -0.2]  # the calibration is off by (0.3, -0.2) m everywhere
+    valid = np.ones((h, w), bool)
+    valid[0, 0] = False
+    out = lift_exact([row([[2.3, 1.8], [4.3, 2.8]])], {"A": (masks, valid)}, {"A": (exact, valid)})[0]
+    assert np.allclose(out["xy"], [[2.0, 2.0], [4.0, 3.0]])
+
+
+def test_truth_objects_lift_each_seen_vehicle_at_its_pixel():
+    h, w = 10, 10
+    uu, vv = np.meshgrid(np.arange(w), np.arange(h))
+    masks = np.stack([uu * 2.0, vv * 3.0], axis=-1)
+    valid = np.ones((h, w), bool)
+    seen = {("A", 0): [vehicle(4.0, 6.0, u=2.2, v=1.9), vehicle(0.0, 0.0, u=12.0, v=1.0)]}  # the second off the image
+    out = truth_objects([row([[50.0, 50.0]])], seen, {"A": (masks, valid)})[0]
+    assert out["xy"] == [[4.0, 6.0]] and out["yaw"] == [0.5] and out["size_lwh"] == [[4.0, 1.7, 1.4]]
+    assert out["score"][0] >= 0.9
+
+
+def test_read_objects_names_the_bad_line(tmp_path: Path):
+    path = tmp_path / "objects.jsonl"
+    path.write_text(json.dumps(row([[0.0, 0.0]])) + "\n{not json\n")
+    with pytest.raises(ValueError, match=r"objects.jsonl:2: not JSON"):
+        read_objects(path)
+    bad = row([[0.0, 0.0]])
+    del bad["score"]
+    path.write_text(json.dumps(bad) + "\n")
+    with pytest.raises(ValueError, match=r"objects.jsonl:1: missing score"):
+        read_objects(path)
+    short = row([[0.0, 0.0], [1.0, 1.0]])
+    short["yaw"] = [0.0]
+    path.write_text(json.dumps(short) + "\n")
+    with pytest.raises(ValueError, match="one entry per object"):
+        read_objects(path)
+    with pytest.raises(ValueError, match="objects file not found"):
+        read_objects(tmp_path / "missing.jsonl")
+
+
+@pytest.fixture(scope="module")
+def demo(small_recording: Path, tmp_path_factory) -> Path:
+    """A demo folder on the small recording: NE alone, exact masks, objects = the seen vehicles' true positions
+    moved 2 m east, plus a false alarm 15 m from the camera in every frame."""
+    from sim.recording import Recording
+
+    out = tmp_path_factory.mktemp("budget")
+    write_exact_masks(small_recording, CAMERA, out / "site" / "masks" / f"{CAMERA}.npz")
+    meta = json.loads((small_recording / "recording.json").read_text())
+    cam = next(c for c in meta["cameras"] if c["name"] == CAMERA)
+    (out / "site" / "site.yaml").write_text(yaml.safe_dump({
+        "site": meta["site"]["name"], "origin": meta["site"]["origin"],
+        "cameras": [{"name": CAMERA, "kind": cam["kind"], "width": cam["width"], "height": cam["height"],
+                     "masks": f"masks/{CAMERA}.npz"}],
+        "fuse_track": {"min_hits": 1, "tick_ms": 500.0}}))
+    (out / "summary.json").write_text(json.dumps({"recording": str(small_recording)}))
+    rec = Recording(small_recording)
+    seen = seen_vehicles(rec, 0.3)
+    camera_xy = np.asarray(cam["pose"]["position_m"][:2])
+    rows = []
+    for seq, (t_ns, _) in enumerate(rec.frames(CAMERA)):
+        truth = np.array([v["xyz"][:2] for v in seen[(CAMERA, t_ns)]]).reshape(-1, 2)
+        xy = np.vstack([truth + np.array([2.0, 0.0]), camera_xy + np.array([0.0, 15.0])])
+        rows.append({**row(xy, camera=CAMERA, t_ns=t_ns), "seq": seq})
+    assert all(len(r["xy"]) > 2 for r in rows), "the small recording's NE frames should show vehicles"
+    (out / "objects.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    return out
+
+
+def test_budget_takes_away_one_error_at_a_time(demo: Path):
+    result = budget(demo)
+    s = result["scenarios"]
+    assert list(s) == list(SCENARIOS)
+    # 2 m off: beyond the 1.5 m match gate, every track misses; the false alarm is one more miss
+    assert s["as_run"]["recall"] == 0.0 and s["as_run"]["mota"] < 0
+    assert json.dumps(s["exact_lift"]) == json.dumps(s["as_run"])  # the masks are the exact lookup: nothing to gain
+    assert s["true_positions"]["recall"] == 1.0 and s["true_positions"]["precision"] < 1.0  # the false alarm stays
+    assert s["no_false_alarms"]["recall"] == 0.0  # the false alarm goes, the vehicles stay 2 m off
+    assert s["true_positions_no_false_alarms"]["mota"] == 1.0
+    assert s["truth"]["mota"] == 1.0 and s["truth"]["traj_err_in_roi_m"] < 0.1
+
+
+def test_budget_rejects_an_unknown_scenario(demo: Path):
+    with pytest.raises(ValueError, match="unknown scenario"):
+        budget(demo, ["as_run", "perfect"])
