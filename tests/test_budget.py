@@ -127,3 +127,9 @@ def test_budget_takes_away_one_error_at_a_time(demo: Path):
 def test_budget_rejects_an_unknown_scenario(demo: Path):
     with pytest.raises(ValueError, match="unknown scenario"):
         budget(demo, ["as_run", "perfect"])
+
+
+def test_budget_replays_at_the_sites_detect_threshold(demo: Path, monkeypatch):
+    monkeypatch.setenv("ROADSIDE_DETECT__SCORE_THR", "0.9")  # above every object's 0.8: none is left
+    s = budget(demo, ["true_positions"])["scenarios"]["true_positions"]
+    assert s["recall"] == 0.0 and s["mota"] == 0.0  # no tracks at all: no match, no false positive
