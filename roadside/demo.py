@@ -45,12 +45,12 @@ class DemoConfig:
     model: Path = DEFAULT_MODEL
     pace: str = "max"
     # chosen by fused MOTA on a validation recording of the roundabout (seed 77, 60 s at 10 Hz, the same
-    # cameras and calibration procedure), never on the demo's own (seed 2024), with the shipped model: one round
-    # at 0.34 / 0.38 / 0.42 / 0.44 / 0.46 / 0.50 gave MOTA 0.499 / 0.577 / 0.583 / 0.588 / 0.580 / 0.561 there;
-    # tracks started at 0.44 and extended by detections down to 0.35 (fuse_track.high_score, ByteTrack's second
-    # round) 0.593, IDF1 0.712 against 0.692, id switches 20 against 32 (README, "The live pipeline").
-    score_thr: float = 0.35
-    high_score: float = 0.44  # fuse_track.high_score: objects below it only extend confirmed tracks
+    # cameras and calibration procedure), never on the demo's own (seed 2024), with the shipped model (run 8,
+    # models/README.md): one round at 0.30 / 0.33 / 0.35 / 0.36 / 0.38 / 0.39 gave MOTA 0.618 / 0.639 / 0.653 /
+    # 0.656 / 0.651 / 0.602 there; tracks started at 0.36 and extended by detections down to 0.33 (fuse_track.
+    # high_score, ByteTrack's second round) 0.656, id switches 26 against 31 (README, "The live pipeline").
+    score_thr: float = 0.33
+    high_score: float = 0.36  # fuse_track.high_score: objects below it only extend confirmed tracks
     port_base: int = 7451
     baseline_frames: int = 120
 
