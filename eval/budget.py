@@ -65,7 +65,7 @@ def read_objects(path: str | Path) -> list[dict]:
 
 def replay(rows: Sequence[dict], settings) -> list[dict]:
     """Objects rows -> tracks-file rows: every frame in its event-time tick, fused and tracked as fuse_track does."""
-    from services.fuse_track.__main__ import build, tracks_message
+    from services.fuse_track.__main__ import build, fuse_and_track, tracks_message
     from services.fuse_track.fusion import ObjectBatch
 
     fusion, tracker, ticks, _, geo = build(settings)
@@ -77,9 +77,7 @@ def replay(rows: Sequence[dict], settings) -> list[dict]:
         ticks.add(r["camera"], int(r["t_ns"]), batch, 0.0)
     out = []
     for seq, tick in enumerate(ticks.flush()):
-        items = tick.items()
-        objs = ObjectBatch.concat(items) if items else ObjectBatch.empty()
-        state = tracker.update(fusion.fuse(objs, tick.t_ref_ns, tracker.velocity_hints(objs)), tick.t_ref_ns)
+        state = fuse_and_track(fusion, tracker, tick.items(), tick.t_ref_ns)
         msg = tracks_message(settings.site, state, tick.t_ref_ns, seq, geo, [], [])
         out.append({"site": settings.site, "seq": seq, "t_ns": tick.t_ref_ns, "tracker": tracker.id,
                     "tracks": msg.rows()})

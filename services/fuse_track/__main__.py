@@ -129,6 +129,12 @@ def build(settings: Settings) -> tuple[Fusion, Tracker, TickBuffer, dict[str, tu
     return fusion, tracker, ticks, positions, geo
 
 
+def fuse_and_track(fusion: Fusion, tracker: Tracker, batches: list[ObjectBatch], t_ref_ns: int) -> TrackState:
+    """One closed tick: its cameras' objects fused, then the tracker's update at the tick's reference time."""
+    objs = ObjectBatch.concat(batches) if batches else ObjectBatch.empty()
+    return tracker.update(fusion.fuse(objs, t_ref_ns, tracker.velocity_hints(objs)), t_ref_ns)
+
+
 def main(settings: Settings, stopper: Stopper) -> int:
     cfg = settings.fuse_track
     fusion, tracker, ticks, positions, geo = build(settings)
@@ -154,10 +160,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
             nonlocal seq
             for tick in closed:
                 t_closed = time.time_ns()
-                items = [b for _, _, b in tick.items()]
-                objs = ObjectBatch.concat(items) if items else ObjectBatch.empty()
-                fused = fusion.fuse(objs, tick.t_ref_ns, tracker.velocity_hints(objs))
-                state = tracker.update(fused, tick.t_ref_ns)
+                state = fuse_and_track(fusion, tracker, [b for _, _, b in tick.items()], tick.t_ref_ns)
                 msg = tracks_message(settings.site, state, tick.t_ref_ns, seq, geo,
                                      [("tick_closed", t_closed), ("fuse_track", time.time_ns())], tick_frames(tick))
                 payload = encode(msg)
