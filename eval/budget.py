@@ -145,22 +145,16 @@ def lift_exact(rows: Sequence[dict], masks: dict, exact: dict) -> list[dict]:
 
 def truth_objects(rows: Sequence[dict], seen: dict, masks: dict) -> list[dict]:
     """For each frame of `rows`: one object per vehicle its camera sees, at its true pixel (`uv`) lifted through
-    the masks (nearest pixel), with its true heading and size."""
+    the masks (camera -> LookupMasks; bilinear, as localize lifts), with its true heading and size."""
     out = []
     for r in rows:
-        mxy, mvalid = masks[r["camera"]]
-        h, w = mvalid.shape
-        obj = {"xy": [], "yaw": [], "size_lwh": [], "vtype": [], "score": []}
-        for v in seen.get((r["camera"], int(r["t_ns"])), []):
-            u, vv = (int(round(c)) for c in v["uv"])
-            if not (0 <= u < w and 0 <= vv < h and mvalid[vv, u]):
-                continue
-            obj["xy"].append(mxy[vv, u].astype(float).tolist())
-            obj["yaw"].append(float(v["yaw"]))
-            obj["size_lwh"].append([float(x) for x in v["lwh"]])
-            obj["vtype"].append(0)
-            obj["score"].append(TRUTH_SCORE)
-        out.append({**r, **obj})
+        vehicles = seen.get((r["camera"], int(r["t_ns"])), [])
+        uv = np.array([v["uv"] for v in vehicles], np.float64).reshape(-1, 2)
+        _, xy, ok = masks[r["camera"]].lookup(uv, geodetic=False)
+        kept = [v for v, k in zip(vehicles, ok, strict=True) if k]
+        out.append({**r, "xy": xy[ok].tolist(), "yaw": [float(v["yaw"]) for v in kept],
+                    "size_lwh": [[float(x) for x in v["lwh"]] for v in kept], "vtype": [0] * len(kept),
+                    "score": [TRUTH_SCORE] * len(kept)})
     return out
 
 
@@ -188,11 +182,12 @@ def budget(demo_dir: str | Path, scenarios: Sequence[str] = SCENARIOS, gate_m: f
     for c in settings.cameras:
         if c.masks is None:
             raise ValueError(f"camera {c.name} has no masks in {demo / 'site' / 'site.yaml'}")
-        m = load_masks(settings.path(c.masks), with_latlon=False)
-        masks[c.name] = (m.xy, m.valid)
+        m = load_masks(settings.path(c.masks))
+        masks[c.name] = m
     variants = {
         "as_run": lambda: rows,
-        "exact_lift": lambda: lift_exact(rows, masks, {c: recording.ground_lookup(c) for c in cams}),
+        "exact_lift": lambda: lift_exact(rows, {c: (m.xy, m.valid) for c, m in masks.items()},
+                                         {c: recording.ground_lookup(c) for c in cams}),
         "true_positions": lambda: with_truth(rows, in_image, gate_m, move=True),
         "no_false_alarms": lambda: with_truth(rows, in_image, gate_m, move=False, drop=True),
         "true_positions_no_false_alarms": lambda: with_truth(rows, in_image, gate_m, move=True, drop=True),

@@ -57,9 +57,12 @@ def test_truth_objects_lift_each_seen_vehicle_at_its_pixel():
     uu, vv = np.meshgrid(np.arange(w), np.arange(h))
     masks = np.stack([uu * 2.0, vv * 3.0], axis=-1)
     valid = np.ones((h, w), bool)
-    seen = {("A", 0): [vehicle(4.0, 6.0, u=2.2, v=1.9), vehicle(0.0, 0.0, u=12.0, v=1.0)]}  # the second off the image
-    out = truth_objects([row([[50.0, 50.0]])], seen, {"A": (masks, valid)})[0]
-    assert out["xy"] == [[4.0, 6.0]] and out["yaw"] == [0.5] and out["size_lwh"] == [[4.0, 1.7, 1.4]]
+    seen = {("A", 0): [vehicle(4.4, 5.7, u=2.2, v=1.9), vehicle(0.0, 0.0, u=12.0, v=1.0)]}  # the second off the image
+    from calibration.masks import LookupMasks
+
+    lookup = LookupMasks(np.zeros((h, w)), np.zeros((h, w)), masks.astype(np.float32), valid, {})
+    out = truth_objects([row([[50.0, 50.0]])], seen, {"A": lookup})[0]
+    assert np.allclose(out["xy"], [[4.4, 5.7]]) and out["yaw"] == [0.5] and out["size_lwh"] == [[4.0, 1.7, 1.4]]
     assert out["score"][0] >= 0.9
 
 
