@@ -272,6 +272,15 @@ def test_handoff_kept_versus_switched_identity(gt):
     assert math.isnan(lost["handoff_kept_fraction"])
 
 
+def test_handoff_is_seen_only_where_the_area_reaches_the_region_border(gt):
+    # the border between A and B (x = 0) lies 20 m from both: with 12 m ROIs alone vehicle 1 is never seen near it
+    # (the demo scores handoff over a wider area for this reason: DemoConfig.handoff_radius_m)
+    narrow = evaluate_tracks(gt, make_rows(), config=TrackingEvalConfig(roi_radius_m=12.0))
+    assert narrow["handoff_crossings"] == 0 and narrow["handoff_crossings_untracked"] == 0
+    wide = evaluate_tracks(gt, make_rows(), config=TrackingEvalConfig(roi_radius_m=12.0, eval_radius_m=25.0))
+    assert wide["handoff_crossings"] == 1 and wide["handoff_kept_fraction"] == 1.0
+
+
 def test_handoff_measure_directly():
     cams = {"A": (-20.0, 0.0), "B": (20.0, 0.0)}
     frames = [FrameMatch(k * 100_000_000, {7: np.array([-1.0 + k, 0.0])}, {}, {7: ("t", 1 if k < 2 else 2)})
