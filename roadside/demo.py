@@ -355,7 +355,7 @@ def track_single_camera(objects: list[Objects], camera: str, tracker_config, geo
 
 
 def run_demo(cfg: DemoConfig, log=print) -> dict:
-    from eval.tracking import TrackingEvalConfig, evaluate_many, evaluate_tracks
+    from eval.tracking import GroundTruth, TrackingEvalConfig, evaluate_many, evaluate_tracks
     from roadside.launcher import Launcher, UpConfig
     from services.fuse_track.tracker import TrackerConfig
     from services.rerun_sink import tracks_file_to_rrd
@@ -401,9 +401,10 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
                          min_hits=settings.fuse_track.min_hits, high_score=settings.fuse_track.high_score)
     geo = GeoFrame.from_dict(settings.origin)
     sources = {"fused": tracks_path, **{c: track_single_camera(objects, c, tcfg, geo) for c in cams}}
-    scores = evaluate_many(rec_dir, sources, cameras=cams)
+    gt = GroundTruth(rec_dir)
+    scores = evaluate_many(gt, sources, cameras=cams)
     fused = scores["sources"]["fused"]
-    wide = evaluate_tracks(rec_dir, tracks_path, cams, TrackingEvalConfig(eval_radius_m=cfg.handoff_radius_m))
+    wide = evaluate_tracks(gt, tracks_path, cams, TrackingEvalConfig(eval_radius_m=cfg.handoff_radius_m))
 
     log("writing the Rerun recording")
     origin = settings.origin
