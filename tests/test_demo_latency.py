@@ -53,10 +53,14 @@ def test_summary_table_renders_a_summary():
                             "overhead_without_queue_p50", "overhead_without_queue_p99", "tick_wait_p50",
                             "tick_wait_p99")}
     s = {"mota": 0.7, "idf1": 0.7, "id_switches": 4, "traj_err_in_roi_m": 0.5, "traj_err_best_single_camera_m": 0.4,
-         "best_single_camera": "SW", "handoff_crossings": 33, "handoff_crossing_kept_fraction": 32 / 33,
+         "best_single_camera": "SW",
+         "single_camera": {"NE": {"traj_err_in_roi_m": 0.62, "fused_traj_err_in_roi_m": 0.71},
+                           "SW": {"traj_err_in_roi_m": 0.35, "fused_traj_err_in_roi_m": 0.36}},
+         "handoff_crossings": 33, "handoff_crossing_kept_fraction": 32 / 33,
          "handoff_radius_m": 40.0, "latency_ms": lat, "throughput_ratio": 0.8, "pipeline_fps": 60.0,
          "detector_alone": {"passes": [{"fps": 80.0}, {"fps": 75.0}]}, "throughput_ratio_vs_decode_and_detect": 0.8,
          "cpu_ratio_vs_decode_and_detect": 0.8, "peak_rss_mb": {"detect": 220.0}, "cpu_ms_per_frame": {"detect": 22.0}}
     table = summary_table(s)
     assert "0.970 of 33 (within 40 m of a camera)" in table
     assert "80.0 / 75.0 frames/s" in table
+    assert "NE 0.71 / 0.62, SW 0.36 / 0.35 m" in table
