@@ -182,8 +182,7 @@ def budget(demo_dir: str | Path, scenarios: Sequence[str] = SCENARIOS, gate_m: f
     for c in settings.cameras:
         if c.masks is None:
             raise ValueError(f"camera {c.name} has no masks in {demo / 'site' / 'site.yaml'}")
-        m = load_masks(settings.path(c.masks))
-        masks[c.name] = m
+        masks[c.name] = load_masks(settings.path(c.masks))
     variants = {
         "as_run": lambda: rows,
         "exact_lift": lambda: lift_exact(rows, {c: (m.xy, m.valid) for c, m in masks.items()},
