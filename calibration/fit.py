@@ -333,9 +333,12 @@ def _landmark_tests(sol: OptimizeResult, n: int, cfg: CalibConfig) -> tuple[np.n
 
 
 # ---- ground planes --------------------------------------------------------------------------
-def implied_heights(cam: Camera, uv: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Ground height at each landmark implied by its pixel ray, and a weight (steep rays say
-    little about height)."""
+def implied_heights(cam: Camera, uv: np.ndarray, xy: np.ndarray, pixel_sigma_px: float,
+                    map_sigma_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Ground height at each landmark implied by its pixel ray, and a weight: 1 / its variance from the map
+    error (a steep ray says little about height) and from the click (a grazing ray's height moves with its
+    pixel: at range d and depression a, one radian of ray is d / cos^2 a of height, so a far landmark under a
+    fisheye, 2 px off, is ~0.4 m off in height)."""
     dirs, _ = cam.unproject(uv)
     o = cam.pose.position_m
     dxy = dirs[:, :2]
@@ -343,8 +346,14 @@ def implied_heights(cam: Camera, uv: np.ndarray, xy: np.ndarray) -> tuple[np.nda
     z = o[2] + t * dirs[:, 2]
     horiz = np.linalg.norm(dxy, axis=1)
     slope = np.abs(dirs[:, 2]) / np.maximum(horiz, 1e-6)  # tan(depression)
-    weight = 1.0 / (0.15**2 * slope**2 + 0.02**2)
-    return z, weight
+    # radians of ray per pixel here: the mean over a one-pixel step in u and in v
+    rad_px = np.zeros(len(uv))
+    for step in ((1.0, 0.0), (0.0, 1.0)):
+        d2, _ = cam.unproject(np.asarray(uv, float) + step)
+        rad_px += 0.5 * np.arccos(np.clip(np.sum(dirs * d2, axis=1), -1.0, 1.0))
+    d = np.linalg.norm(xy - o[:2], axis=1)
+    var = (map_sigma_m * slope) ** 2 + (pixel_sigma_px * rad_px * d * (1.0 + slope**2)) ** 2 + 0.02**2
+    return z, 1.0 / var
 
 
 def _fit_plane(
@@ -405,7 +414,7 @@ def calibrate(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame) -> Calibration:
     test_sigma[use], detectable_map[use], detectable_px[use] = stat, mdb_map, mdb_px
     cam = camera_from_params(p, cfg)
     # Ground planes: a global one, then one per segment around the nadir.
-    z, w = implied_heights(cam, lm.uv[use], xy[use])
+    z, w = implied_heights(cam, lm.uv[use], xy[use], cfg.pixel_sigma_px, cfg.map_sigma_m)
     centre = xy[use].mean(axis=0)
     global_plane = _fit_plane(xy[use], z, w, None, centre) if use.sum() >= 6 else np.zeros(3)
     # Refit the camera on the plane's heights (the ground is not at z = 0).
@@ -413,7 +422,7 @@ def calibrate(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame) -> Calibration:
     p, dxy, _ = fit_camera(lm.uv[use], obj[use], cfg, p, robust=False)
     cam = camera_from_params(p, cfg)
     xy_use = xy[use] + dxy  # the fitted ground positions of the landmarks
-    z, w = implied_heights(cam, lm.uv[use], xy_use)
+    z, w = implied_heights(cam, lm.uv[use], xy_use, cfg.pixel_sigma_px, cfg.map_sigma_m)
     if use.sum() >= 6:
         global_plane = _fit_plane(xy_use, z, w, global_plane, centre)
     nadir_px = cam.project(cam.pose.position_m[None] - [0.0, 0.0, 10.0])[0][0]

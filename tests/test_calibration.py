@@ -160,6 +160,27 @@ def test_a_pinhole_camera_gets_two_range_bands_by_default_and_one_plane_with_few
     assert len(cal.planes) == 1 and any("1 ground segment(s) instead of 2" in w for w in cal.warnings)
 
 
+def test_implied_heights_weigh_a_grazing_ray_by_its_click_as_well_as_its_map_point():
+    from calibration.fit import implied_heights
+
+    cam = _fisheye()  # 11 m up, 300 px per radian at the centre
+    xy = cam.pose.position_m[:2] + np.array([[5.0, 0.0], [20.0, 0.0], [50.0, 0.0]])
+    pts = np.column_stack([xy, np.zeros(3)])
+    uv, ok = cam.project(pts)
+    assert ok.all()
+    z, w = implied_heights(cam, uv, xy, 2.0, 0.15)
+    np.testing.assert_allclose(z, 0.0, atol=1e-6)  # exact clicks: the ground's own height
+    _, w0 = implied_heights(cam, uv, xy, 0.0, 0.15)
+    slope = 11.0 / np.array([5.0, 20.0, 50.0])
+    np.testing.assert_allclose(w0, 1 / ((0.15 * slope) ** 2 + 0.02**2), rtol=1e-6)  # the map's share alone
+    # the click's share: 2 px at ~1/300 rad each, times d / cos^2(depression) metres of height per radian
+    sigma = np.sqrt(1 / w - 1 / w0)
+    expected = 2.0 / 300.0 * np.array([5.0, 20.0, 50.0]) * (1 + slope**2)
+    np.testing.assert_allclose(sigma, expected, rtol=0.2)  # the lens is not quite equidistant off axis
+    # 50 m out a 2 px click is ~0.3 m of height: the map's share alone would trust that landmark 60 times more
+    assert sigma[2] > 0.25 and w0[2] > 50 * w[2] and w[2] < w[1]
+
+
 def test_too_few_landmarks_for_four_segments_falls_back_with_a_warning():
     cam = _fisheye()
     lm = _synthetic_landmarks(cam, 8, np.random.default_rng(3), 40.0)
