@@ -437,3 +437,33 @@ def test_with_too_few_landmarks_to_reject_a_mistake_it_is_named_in_a_warning():
     cal = calibrate(Landmarks(lm.ids, lm.uv, ll, lm.segment), cfg, GEO)
     assert cal.rejected == [] and cal.inliers.all()  # five cannot outvote one
     assert any("fails the outlier test" in w and "cannot be told from the rest" in w for w in cal.warnings)
+
+
+def _ring_landmarks(cam: Camera, ranges_m: list[float]) -> Landmarks:
+    """Exact landmarks on the terrain at these distances from the camera's foot, spread around it."""
+    ang = np.radians(np.arange(len(ranges_m)) * 137.5)  # golden-angle spread
+    xy = cam.pose.position_m[:2] + np.column_stack([np.cos(ang), np.sin(ang)]) * np.asarray(ranges_m)[:, None]
+    uv, ok = cam.project(np.column_stack([xy, TERRAIN.height(xy[:, 0], xy[:, 1])]))
+    assert ok.all()
+    ll = GEO.to_geodetic(np.column_stack([xy, np.zeros(len(xy))]))
+    return Landmarks(tuple(f"L{i}" for i in range(len(xy))), uv, ll[:, :2], -np.ones(len(xy), int))
+
+
+def test_report_warns_where_the_roi_is_extrapolated_not_landmarked():
+    from calibration.report import build_report
+
+    cam = _fisheye()
+    cfg = CalibConfig("fisheye", 1280, 960, image_circle=(639.5, 479.5, cam.image_circle_radius_px()), fov_deg=188.0)
+    roi = {"center_m": cam.pose.position_m[:2].tolist(), "radius_m": 25.0}
+
+    def warnings(ranges):
+        lm = _ring_landmarks(cam, ranges)
+        return build_report(calibrate(lm, cfg, GEO), lm, cfg, roi, leave_one_out=False)["warnings"]
+
+    far = warnings([18, 22, 30, 35, 38, 42, 45, 50, 28, 33])  # two inside the ROI, the nearest 18 m out
+    assert any("only 2 landmarks inside the ROI" in w and "add at least 2" in w for w in far)
+    ring = warnings([16, 18, 20, 22, 24, 30, 35, 40, 45, 19])  # six inside, none within 12.5 m of the camera
+    assert not any("inside the ROI" in w for w in ring)
+    assert any("no landmark within 16 m of the ROI centre" in w for w in ring)
+    spread = warnings([3, 8, 12, 16, 20, 24, 30, 35, 40, 45])
+    assert not any("inside the ROI" in w or "ROI centre" in w for w in spread)
