@@ -338,7 +338,7 @@ def implied_heights(cam: Camera, uv: np.ndarray, xy: np.ndarray, pixel_sigma_px:
     """Ground height at each landmark implied by its pixel ray, and a weight: 1 / its variance from the map
     error (a steep ray says little about height) and from the click (a grazing ray's height moves with its
     pixel: at range d and depression a, one radian of ray is d / cos^2 a of height, so a far landmark under a
-    fisheye, 2 px off, is ~0.4 m off in height)."""
+    fisheye, 2 px off, is 0.3-0.4 m off in height)."""
     dirs, _ = cam.unproject(uv)
     o = cam.pose.position_m
     dxy = dirs[:, :2]
