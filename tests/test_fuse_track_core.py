@@ -516,3 +516,33 @@ def test_tick_closes_without_waiting_for_the_next_frame_once_periods_are_known()
                 closed_at[tick.index] = (cam, k)
     # from tick 3 on, B's frame of the same tick closes it
     assert all(closed_at[k] == ("B", k) for k in range(3, 8))
+
+
+def test_frame_labels_number_camera_and_time_pairs_in_sorted_order():
+    from services.fuse_track.fusion import frame_labels
+
+    rng = np.random.default_rng(0)
+    for _ in range(100):
+        n = int(rng.integers(1, 60))
+        cam = rng.choice(np.array(["NE", "NW", "SE", "SW"]), n)
+        t = rng.choice(np.array([5, 3, 9, 10**18, 2**62], np.int64), n)
+        _, code = np.unique(cam, return_inverse=True)
+        _, want = np.unique(np.stack([code.reshape(-1), t]), axis=1, return_inverse=True)
+        assert (frame_labels(cam, t) == want.reshape(-1)).all()
+    assert frame_labels(np.array(["B", "A", "B"]), np.array([2, 7, 1])).tolist() == [2, 0, 1]
+    assert frame_labels(np.zeros(0, "U1"), np.zeros(0, np.int64)).shape == (0,)
+
+
+def test_select_and_concat_keep_every_column_and_the_sources():
+    a = ObjectBatch.from_frame("A", 5, np.array([[1.0, 2.0], [3.0, 4.0]]), np.array([0.1, 0.2]),
+                               np.ones((2, 3)), np.array([0, 2]), np.array([0.5, 0.9]))
+    b = ObjectBatch(np.array(["B"]), np.array([7]), np.array([[9.0, 9.0]]), np.array([0.3]), np.full((1, 3), 2.0),
+                    np.array([1]), np.array([0.4]), sources=[["B", "C"]])
+    ab = ObjectBatch.concat([a, ObjectBatch.empty(), b])
+    assert ab.camera.tolist() == ["A", "A", "B"] and ab.t_ns.tolist() == [5, 5, 7] and ab.t_ns.dtype == np.int64
+    assert ab.xy.tolist() == [[1.0, 2.0], [3.0, 4.0], [9.0, 9.0]] and ab.size_lwh.shape == (3, 3)
+    assert [ab.sources_of(i) for i in range(3)] == [["A"], ["A"], ["B", "C"]]
+    last = ab.select(np.array([False, True, True]))
+    assert last.vtype.tolist() == [2, 1] and last.score.tolist() == [0.9, 0.4] and last.yaw.tolist() == [0.2, 0.3]
+    assert [last.sources_of(i) for i in range(2)] == [["A"], ["B", "C"]]
+    assert ObjectBatch.concat([a, a]).sources is None and len(a.select(np.zeros(0, int))) == 0

@@ -34,6 +34,7 @@ from scipy.optimize import linear_sum_assignment
 
 NS_PER_S = 1_000_000_000
 MAX_VTYPE = 127  # vtype travels as int8
+COLUMNS = ("camera", "t_ns", "xy", "yaw", "size_lwh", "vtype", "score")  # ObjectBatch's per-row arrays
 
 
 def check_columns(owner: str, columns: dict[str, tuple[np.ndarray, tuple[int, ...]]]) -> int:
@@ -63,6 +64,21 @@ def as_column(owner: str, name: str, value: object, dtype: type) -> np.ndarray:
     if a.dtype.kind not in ("iub" if dtype is np.int64 else "iuf"):
         raise ValueError(f"{owner}.{name} has dtype {a.dtype}, expected a {np.dtype(dtype).name} array")
     return a.astype(dtype, copy=False)
+
+
+def frame_labels(camera: np.ndarray, t_ns: np.ndarray) -> np.ndarray:
+    """(N,) int: one label per (camera, capture time) pair, numbered in that pair's sorted order (camera name,
+    then time), as `np.unique` over the pairs would number them, without its slow structured sort."""
+    if len(t_ns) == 0:
+        return np.zeros(0, np.int64)
+    _, cam_code = np.unique(camera, return_inverse=True)
+    cam_code = cam_code.reshape(-1)
+    order = np.lexsort((t_ns, cam_code))
+    c, t = cam_code[order], t_ns[order]
+    new = np.r_[True, (c[1:] != c[:-1]) | (t[1:] != t[:-1])]
+    labels = np.empty(len(t_ns), np.int64)
+    labels[order] = np.cumsum(new) - 1
+    return labels
 
 
 def wrap_angle(a: np.ndarray) -> np.ndarray:
@@ -147,18 +163,26 @@ class ObjectBatch:
         batches = [b for b in batches if len(b)]
         if not batches:
             return cls.empty()
-        cat = {k: np.concatenate([getattr(b, k) for b in batches])
-               for k in ("camera", "t_ns", "xy", "yaw", "size_lwh", "vtype", "score")}
+        cat = {k: np.concatenate([getattr(b, k) for b in batches]) for k in COLUMNS}
         if all(b.sources is None for b in batches):
-            return cls(**cat)
-        return cls(**cat, sources=[b.sources_of(i) for b in batches for i in range(len(b))])
+            return cls._validated(**cat)
+        return cls._validated(**cat, sources=[b.sources_of(i) for b in batches for i in range(len(b))])
 
     def select(self, index: np.ndarray) -> ObjectBatch:
         """The rows at `index` (integer indices or a boolean mask)."""
         rows = np.arange(len(self))[index]
         sources = None if self.sources is None else [self.sources[i] for i in rows]
-        return ObjectBatch(self.camera[rows], self.t_ns[rows], self.xy[rows], self.yaw[rows], self.size_lwh[rows],
-                           self.vtype[rows], self.score[rows], sources=sources)
+        return ObjectBatch._validated(**{k: getattr(self, k)[rows] for k in COLUMNS}, sources=sources)
+
+    @classmethod
+    def _validated(cls, sources: list[list[str]] | None = None, **columns: np.ndarray) -> ObjectBatch:
+        """A batch of rows taken from batches that were validated on construction (`select`, `concat`): the
+        columns already have their dtypes and shapes, so the checks are not run again on the per-tick path."""
+        batch = object.__new__(cls)
+        for k in COLUMNS:
+            object.__setattr__(batch, k, columns[k])
+        object.__setattr__(batch, "sources", sources)
+        return batch
 
 
 @dataclass(frozen=True)
@@ -297,9 +321,7 @@ class Fusion:
                cam_idx: np.ndarray, owners: np.ndarray) -> np.ndarray:
         """(N,) group label per object, -1 for dropped objects."""
         gate = self.config.merge_gate_m
-        _, cam_code = np.unique(objects.camera, return_inverse=True)
-        _, source = np.unique(np.stack([cam_code.reshape(-1), objects.t_ns]), axis=1, return_inverse=True)
-        source = source.reshape(-1)  # the frame each object comes from
+        source = frame_labels(objects.camera, objects.t_ns)  # the frame each object comes from
         d = np.hypot(p_ref[:, None, 0] - p_ref[None, :, 0], p_ref[:, None, 1] - p_ref[None, :, 1])
         d[source[:, None] == source[None]] = np.inf  # one frame never sees a vehicle twice
         labels = np.full(len(objects), -1)
