@@ -1,5 +1,5 @@
 """Detector latency: ONNX Runtime ms per frame (median after warm-up) for one (1, 1, S, S) input, fp32 on
-CPU with a fixed thread count and, where the CUDA or TensorRT providers exist, fp16 on them; plus MACs.
+CPU with a fixed thread count and, where the CUDA or TensorRT providers exist, fp16 (and fp32) on them; plus MACs.
 `cpu_fp32_throughput` compares, in the same run, frames/s of one inference at a time with `threads` threads
 against `workers` single-threaded inferences side by side (how the detect service runs on a CPU).
 The load average is recorded: on a shared machine the CPU numbers are upper bounds.
@@ -19,6 +19,7 @@ import json
 import os
 import platform
 import statistics
+import subprocess
 import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -119,13 +120,39 @@ def run(settings: BenchSettings, workdir: Path) -> dict:
     out["cpu_fp32_throughput"] = {f"one_at_a_time_{settings.threads}_threads_fps": round(one, 1),
                                   f"{settings.workers}_workers_1_thread_fps": round(side, 1),
                                   "ratio": round(side / one, 3)}
-    for provider in GPU_PROVIDERS:
-        if provider not in ort.get_available_providers() or fp16 is None:
-            continue
-        gpu = ort.InferenceSession(str(fp16), providers=[provider, "CPUExecutionProvider"])
-        out[f"{provider.removesuffix('ExecutionProvider').lower()}_fp16"] = time_session(
-            gpu, image, settings.runs, settings.warmup)
+    gpu_providers = [p for p in GPU_PROVIDERS if p in ort.get_available_providers()]
+    if gpu_providers:
+        out["gpu"] = gpu_name()
+    for provider in gpu_providers:
+        name = provider.removesuffix("ExecutionProvider").lower()
+        for precision, path in (("fp16", fp16), ("fp32", fp32)):
+            if path is not None:
+                out[f"{name}_{precision}"] = time_gpu(path, provider, image, settings.runs, settings.warmup)
     return out
+
+
+def time_gpu(path: Path, provider: str, image: np.ndarray, runs: int, warmup: int) -> dict:
+    """time_session on `provider`, or why it could not run there. A provider that ONNX Runtime lists can
+    still fail to load (TensorRT without its libraries, a CUDA mismatch): ONNX Runtime then falls back to
+    the CPU, and a CPU time must not be reported as the GPU's."""
+    try:
+        session = ort.InferenceSession(str(path), providers=[provider])
+    except Exception as e:  # any load failure is reported, not raised
+        return {"skipped": f"{provider} failed to load {path.name}: {str(e).splitlines()[0][:300]}"}
+    if session.get_providers()[0] != provider:
+        return {"skipped": f"{provider} unavailable; ONNX Runtime chose {session.get_providers()}"}
+    return {"input_output": "numpy on the host (copies to and from the GPU included)",
+            **time_session(session, image, runs, warmup)}
+
+
+def gpu_name() -> str | None:
+    """The first GPU nvidia-smi names, or None."""
+    try:
+        run = subprocess.run(["nvidia-smi", "--query-gpu=name,driver_version", "--format=csv,noheader"],
+                             capture_output=True, text=True, timeout=20, check=True)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return run.stdout.strip().splitlines()[0] if run.stdout.strip() else None
 
 
 def main(argv: list[str] | None = None) -> int:

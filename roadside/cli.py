@@ -198,6 +198,11 @@ def _add_train(sub) -> None:
     p.add_argument("--input-long-side", type=int,
                    help="network input: images shrunk so their longer side is at most this (default 640, or the "
                         "--init model's); with --init, the starting weights are kept")
+    p.add_argument("--device", default="cpu",
+                   help="cpu (default), cuda or cuda:N (needs a PyTorch with CUDA; the train extra's is CPU-only)")
+    p.add_argument("--workers", type=int, default=0,
+                   help="processes preparing batches in the background (a GPU needs several; 0: in this process, "
+                        "reproducible from --seed)")
     p.add_argument("--train-only", default="",
                    help="with --init: train only these heads (comma-separated: heat, size, heading, vtype, offset, "
                         "axis), the rest frozen; e.g. offset sharpens localization and leaves detection as it is")
@@ -219,7 +224,7 @@ def _run_train(args) -> int:
                       steps=args.steps or (UNLIMITED_STEPS if args.minutes else 4000),
                       minutes=args.minutes, batch_size=args.batch_size, crop=args.crop, lr=args.lr, every=args.every,
                       center=args.center, seed=args.seed, init=args.init, add_axis_head=args.axis_head,
-                      input_long_side=args.input_long_side,
+                      input_long_side=args.input_long_side, device=args.device, workers=args.workers,
                       train_only=tuple(h.strip() for h in args.train_only.split(",") if h.strip()),
                       augment=AugmentConfig(fisheye_rotation=args.fisheye_rotation),
                       model=DetectorConfig(stride=args.stride, axis_head=args.axis_head),

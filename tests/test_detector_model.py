@@ -478,6 +478,23 @@ def test_bench_detector_smoke():
     assert one > 0 and side > 0 and throughput["ratio"] == pytest.approx(side / one, rel=0.01)
 
 
+def test_bench_never_reports_a_cpu_fallback_as_a_gpu_time(tmp_path):
+    """ONNX Runtime falls back to the CPU when a GPU provider cannot load (TensorRT without its libraries, no
+    CUDA here): the benchmark must say so instead of timing the CPU under the GPU's name."""
+    from bench.detector import time_gpu
+    from training.export import export_onnx
+
+    path = tmp_path / "d.onnx"
+    export_onnx(Detector(), path, None, (64, 64))
+    image = np.zeros((1, 1, 64, 64), np.float32)
+    import onnxruntime as ort
+
+    if "CUDAExecutionProvider" in ort.get_available_providers():
+        pytest.skip("this machine's ONNX Runtime has CUDA: nothing falls back")
+    out = time_gpu(path, "CUDAExecutionProvider", image, runs=1, warmup=0)
+    assert set(out) == {"skipped"} and "CUDAExecutionProvider" in out["skipped"]
+
+
 def test_topk_share_counts_input_pixels_at_any_stride():
     """At output stride s the TopK heat term keeps topk_fraction * s * s of the cells (the paper's share of
     pixels), not topk_fraction of the cells."""

@@ -98,3 +98,46 @@ def test_a_recording_can_lend_only_some_of_its_cameras(small_recording, tmp_path
     odd.mkdir()
     assert recording_spec(str(odd)) == (str(odd), None)
     assert recording_spec("a/b@visible") == ("a/b", "visible")
+
+
+def test_background_workers_feed_the_training_and_a_dead_worker_stops_it(small_recording, tmp_path, monkeypatch):
+    import training.train as train_module
+
+    threads = torch.get_num_threads()
+    try:
+        # two processes prepare the batches; the same number of steps is trained and the log is complete
+        done = train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "w"), steps=4, batch_size=2,
+                                 crop=64, model=TINY, threads=1, log_every=2, workers=2), log=lambda _m: None)
+        assert done["steps"] == 4 and done["workers"] == 2 and done["device"] == "cpu"
+        assert [json.loads(line)["step"] for line in (tmp_path / "w" / "train_log.jsonl").read_text().splitlines()] \
+            == [2, 4]
+        assert load_detector(tmp_path / "w" / "model.pt").config == TINY
+
+        # the batches of workers=0 are those of the in-process Batcher: same seed, same first loss
+        a = train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "a"), steps=1, batch_size=2,
+                              crop=64, model=TINY, threads=1, log_every=1), log=lambda _m: None)
+        b = train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "b"), steps=1, batch_size=2,
+                              crop=64, model=TINY, threads=1, log_every=1), log=lambda _m: None)
+        assert a["steps"] == b["steps"] == 1
+        assert (tmp_path / "a" / "train_log.jsonl").read_text().split('"s"')[0] \
+            == (tmp_path / "b" / "train_log.jsonl").read_text().split('"s"')[0]
+
+        def crash(*_args, **_kwargs):
+            raise SystemExit(3)
+
+        monkeypatch.setattr(train_module, "_prepare_batches", crash)
+        with pytest.raises(RuntimeError, match=r"worker died \(exit code 3\)"):
+            train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "x"), steps=2, batch_size=2,
+                              crop=64, model=TINY, threads=1, workers=1), log=lambda _m: None)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def test_train_config_names_a_bad_device_or_worker_count(tmp_path):
+    with pytest.raises(ValueError, match="device must be cpu, cuda or cuda:N, got 'tpu'"):
+        TrainConfig(recordings=("r",), device="tpu")
+    with pytest.raises(ValueError, match="workers must be >= 0, got -1"):
+        TrainConfig(recordings=("r",), workers=-1)
+    if not torch.cuda.is_available():
+        with pytest.raises(RuntimeError, match="this PyTorch has no CUDA"):
+            train(TrainConfig(recordings=("r",), out=str(tmp_path / "c"), device="cuda"), log=lambda _m: None)

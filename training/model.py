@@ -233,7 +233,8 @@ class ExportWrapper(nn.Module):
 
 def save_detector(model: Detector, path: str | Path) -> None:
     """Write the config and weights to one file."""
-    torch.save({"config": asdict(model.config), "state_dict": model.state_dict()}, path)
+    state = {k: v.detach().cpu() for k, v in model.state_dict().items()}  # loadable without a GPU
+    torch.save({"config": asdict(model.config), "state_dict": state}, path)
 
 
 def load_detector(path: str | Path) -> Detector:

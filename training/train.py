@@ -6,12 +6,19 @@ learning rate follows a one-cycle cosine schedule over the run; with `minutes` t
 the clock (fraction of the budget spent), so a run on a busy machine still ends on time with the
 schedule complete. Writes `model.pt` (config + weights), `train_log.jsonl` (loss parts every `log_every`
 steps) and `train.json` (the settings, data and timing).
+
+`device` "cuda" trains on a GPU (the PyTorch installed must have CUDA; the `train` extra's pinned wheel is
+CPU-only); `workers` > 0 prepares the augmented batches in that many background processes, which a GPU needs
+to be kept busy. With workers the order in which their batches arrive is not reproducible; with
+`workers=0` (the default) a seed reproduces the run on the CPU.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import multiprocessing
+import queue
 import time
 from dataclasses import asdict, dataclass, field, replace
 from functools import partial
@@ -24,7 +31,7 @@ from shared.cameras import select_cameras
 from shared.inference import input_scale
 from sim.recording import Recording
 from training.augment import AugmentConfig, augment
-from training.data import Batcher, SampleRef, samples_from_coco, samples_from_recording
+from training.data import DEFAULT_CACHE_BYTES, Batcher, SampleRef, samples_from_coco, samples_from_recording
 from training.loss import LossConfig, detector_loss
 from training.model import Detector, DetectorConfig, count_macs, load_detector, save_detector
 from training.sample import Sample
@@ -51,6 +58,8 @@ class TrainConfig:
     add_axis_head: bool = False  # with `init`: give the starting model an axis head (new, the rest kept)
     input_long_side: int | None = None  # network input size (longer side); with `init`, replaces its (weights kept)
     threads: int = 2
+    device: str = "cpu"  # "cpu", "cuda" or "cuda:N"
+    workers: int = 0  # background processes preparing batches (0: in this process, reproducible)
     log_every: int = 25
     # heads to train, the rest frozen (weights and batch-norm statistics): e.g. ("offset",) sharpens the
     # localization of a trained model without touching what it detects; () trains everything
@@ -65,6 +74,10 @@ class TrainConfig:
         for name in ("steps", "batch_size", "crop", "threads", "log_every", "every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.workers < 0:
+            raise ValueError(f"workers must be >= 0, got {self.workers}")
+        if self.device != "cpu" and not self.device.startswith("cuda"):
+            raise ValueError(f"device must be cpu, cuda or cuda:N, got {self.device!r}")
         if self.crop % 32:
             raise ValueError(f"crop must be a multiple of 32, got {self.crop}")
         if self.input_long_side is not None and self.input_long_side < 32:
@@ -108,9 +121,65 @@ def training_refs(cfg: TrainConfig) -> list[SampleRef]:
 
 def batch_tensors(samples: list[Sample], stride: int, center: str) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Images (B, 1, H, W) in [0, 1] and the stacked targets of a batch."""
-    images = torch.from_numpy(np.stack([s.image for s in samples])[:, None].astype(np.float32) / 255.0)
+    return to_tensors(*batch_arrays(samples, stride, center))
+
+
+def batch_arrays(samples: list[Sample], stride: int, center: str) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Images (B, 1, H, W) uint8 and the stacked targets of a batch, as NumPy arrays (cheap to pass between
+    processes)."""
+    images = np.stack([s.image for s in samples])[:, None]
     targets = [build_targets(s, stride, center) for s in samples]
-    return images, {k: torch.from_numpy(np.stack([t[k] for t in targets])) for k in targets[0]}
+    return images, {k: np.stack([t[k] for t in targets]) for k in targets[0]}
+
+
+def to_tensors(images: np.ndarray, targets: dict[str, np.ndarray],
+               device: torch.device | str = "cpu") -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """batch_arrays' output as tensors on `device`, the images scaled to [0, 1]."""
+    x = torch.from_numpy(images).to(device, non_blocking=True).float() / 255.0
+    return x, {k: torch.from_numpy(v).to(device, non_blocking=True) for k, v in targets.items()}
+
+
+def _prepare_batches(refs: list[SampleRef], aug, batch_size: int, seed: int, stride: int, center: str,
+                     out: multiprocessing.Queue, cache_bytes: int) -> None:
+    """A worker process: endless shuffled epochs of augmented batches (batch_arrays) into `out`."""
+    torch.set_num_threads(1)
+    batcher = Batcher(refs, aug, batch_size, np.random.default_rng(seed), cache_bytes=cache_bytes)
+    while True:
+        for samples in batcher:
+            out.put(batch_arrays(samples, stride, center))
+
+
+class BackgroundBatches:
+    """Batches prepared by `workers` processes (each its own shuffle and augmentation, seeded seed·1000 + i),
+    in the order they come. Iterate for batch_arrays' tuples; close() stops the workers. A worker that dies
+    (bad image, out of memory) stops the training with its exit code instead of hanging it."""
+
+    def __init__(self, refs: list[SampleRef], aug, batch_size: int, seed: int, stride: int, center: str,
+                 workers: int, cache_bytes: int) -> None:
+        ctx = multiprocessing.get_context("fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn")
+        self.queue = ctx.Queue(maxsize=4 * workers)
+        self.procs = [ctx.Process(target=_prepare_batches, daemon=True,
+                                  args=(refs, aug, batch_size, seed * 1000 + i, stride, center, self.queue,
+                                        cache_bytes))
+                      for i in range(workers)]
+        for proc in self.procs:
+            proc.start()
+
+    def __iter__(self):
+        while True:
+            try:
+                yield self.queue.get(timeout=5.0)
+            except queue.Empty:
+                dead = [p for p in self.procs if not p.is_alive()]
+                if dead:
+                    raise RuntimeError(f"a batch-preparing worker died (exit code {dead[0].exitcode}); "
+                                       "run with workers=0 to see its error") from None
+
+    def close(self) -> None:
+        for proc in self.procs:
+            proc.terminate()
+        for proc in self.procs:
+            proc.join(timeout=5)
 
 
 def _lr(step: int, total: int, peak: float) -> float:
@@ -155,6 +224,9 @@ def trainable(model: Detector, heads: tuple[str, ...], log=print) -> list[torch.
 
 def train(cfg: TrainConfig, log=print) -> dict:
     """Run one training; returns the summary also written to `out/train.json`."""
+    device = torch.device(cfg.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise RuntimeError(f"device {cfg.device}: this PyTorch has no CUDA (torch {torch.__version__})")
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
@@ -185,7 +257,16 @@ def train(cfg: TrainConfig, log=print) -> dict:
     n_pos = sum(r.n_positive for r in refs)
     log(f"[train] {len(refs)} images, {n_pos} vehicles to detect")
     aug = partial(augment, out_hw=(cfg.crop, cfg.crop), config=cfg.augment)
-    batcher = Batcher(refs, aug, cfg.batch_size, rng)
+    if cfg.workers:  # started before CUDA is touched: forked workers must not inherit a CUDA context
+        background = BackgroundBatches(refs, aug, cfg.batch_size, cfg.seed, cfg.model.stride, cfg.center,
+                                       cfg.workers, DEFAULT_CACHE_BYTES // cfg.workers)
+        batches = iter(background)
+    else:
+        background = None
+        batcher = Batcher(refs, aug, cfg.batch_size, rng)
+        batches = (batch_arrays(samples, cfg.model.stride, cfg.center)
+                   for _ in iter(int, 1) for samples in batcher)  # endless epochs
+    model.to(device)
     params = trainable(model, cfg.train_only, log)
     opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
     total = cfg.steps
@@ -200,12 +281,12 @@ def train(cfg: TrainConfig, log=print) -> dict:
     def done() -> bool:
         return step >= total or (budget_s is not None and time.perf_counter() - t_start >= budget_s)
 
-    with open(out / "train_log.jsonl", "w") as log_file:
-        while not done():
-            for samples in batcher:
+    try:
+        with open(out / "train_log.jsonl", "w") as log_file:
+            for arrays in batches:
                 if done():
                     break
-                images, targets = batch_tensors(samples, cfg.model.stride, cfg.center)
+                images, targets = to_tensors(*arrays, device)
                 lr = lr_now()
                 for g in opt.param_groups:
                     g["lr"] = lr
@@ -230,6 +311,9 @@ def train(cfg: TrainConfig, log=print) -> dict:
                     log(f"[train] step {step} loss {parts['total']:.4f} heat {parts['heat']:.4f}")
                 if step % 500 == 0:
                     save_detector(model, out / "model.pt")
+    finally:
+        if background is not None:
+            background.close()
     model.eval()
     save_detector(model, out / "model.pt")
     summary = {
@@ -237,7 +321,9 @@ def train(cfg: TrainConfig, log=print) -> dict:
         "seconds": round(time.perf_counter() - t_start, 1),
         "images": len(refs),
         "vehicles": n_pos,
-        "macs_per_512x512": count_macs(model, 512, 512),
+        "macs_per_512x512": count_macs(model.cpu(), 512, 512),
+        "device": cfg.device,
+        "workers": cfg.workers,
         "config": json.loads(json.dumps(asdict(cfg), default=str)),
     }
     (out / "train.json").write_text(json.dumps(summary, indent=1))
