@@ -273,6 +273,12 @@ def _add_eval(sub) -> None:
     p.add_argument("--fisheye-area-deg", type=_positive_float,
                    help="detector: look at fisheye frames only inside the image circle up to this angle off axis "
                         "(e.g. 90), as a camera's detect_area_px does in the detect service")
+    p.add_argument("--near-m", type=_positive_float, default=25.0,
+                   help="detector: the near-camera metrics count vehicles and detections within this many metres "
+                        "of the camera on the ground (its region, as fusion uses it)")
+    p.add_argument("--near-score", type=float, default=0.3,
+                   help="detector: the lowest score of a detection the near-camera metrics count (the detect "
+                        "service's threshold)")
     p.add_argument("--demo", type=Path, default=Path("out/demo"),
                    help="budget: a roadside demo output folder (objects.jsonl, site/, the recording)")
     p.add_argument("--scenario", action="append",
@@ -339,7 +345,8 @@ def _run_eval(args) -> int:
     if args.recording is None:
         raise ValueError("eval detector needs --recording")
     det = OnnxDetector(args.model, threads=args.threads, score_thr=args.score_thr or 0.05)
-    result = evaluate(args.recording, det.detect, every=args.every, fisheye_area_deg=args.fisheye_area_deg)
+    result = evaluate(args.recording, det.detect, every=args.every, fisheye_area_deg=args.fisheye_area_deg,
+                      near_m=args.near_m, near_score=args.near_score)
     line = ("{name:8s} ap50 {ap50} loc {loc_err_m} m yaw {yaw_err_deg} deg size {size_err_m} m ({frames} frames); "
             "false alarms at {breakdown_score_thr}: {false_alarms[box]} boxes off a found vehicle, "
             "{false_alarms[duplicate]} duplicates, {false_alarms[background]} on the background")

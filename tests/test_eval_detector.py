@@ -8,7 +8,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eval.detector import GroundLifter, best_f1, box_iou, breakdown_frame, evaluate, match_frame, voc07_ap
+from eval.detector import (
+    GroundLifter,
+    best_f1,
+    box_iou,
+    breakdown_frame,
+    evaluate,
+    match_frame,
+    near_frame,
+    voc07_ap,
+)
 from shared.decode import Detections
 from shared.inference import OnnxDetector
 from training.data import samples_from_recording
@@ -97,6 +106,12 @@ def test_an_oracle_detector_scores_perfectly(small_recording):
     bands = [b for b in overall["recall_by_size"] if b["positives"]]
     assert bands and all(b["matched"] == 1.0 and b["found"] == 1.0 for b in bands)
     assert sum(b["positives"] for b in overall["recall_by_size"]) == overall["positives"]
+    # near the camera, on the ground: every vehicle to detect found, every detection on one, placed exactly
+    assert overall["near_positives"] > 0 and overall["near_recall"] == 1.0 and overall["near_precision"] == 1.0
+    assert overall["near_f1"] == 1.0 and overall["near_loc_err_m"] < 0.02
+    assert evaluate(small_recording, oracle, near_m=1e-3)["overall"]["near_positives"] == 0
+    with pytest.raises(ValueError, match="near_m must be > 0"):
+        evaluate(small_recording, oracle, near_m=0.0)
 
 
 def test_false_alarm_breakdown_by_kind():
@@ -162,3 +177,27 @@ def test_fisheye_area_reaches_the_fisheye_frames_only(small_recording):
     assert {a for shape, a in seen if shape == (960, 1280)} == {circle}
     assert {a for shape, a in seen if shape != (960, 1280)} == {None}
     assert 0 < circle[0] and circle[2] < 1280  # narrower than the frame
+
+
+def test_near_frame_counts_on_the_ground_around_the_camera():
+    centre = np.array([0.0, 0.0])
+    labels = np.array([[5.0, 0.0], [10.0, 0.0], [40.0, 0.0], [0.0, 8.0]])  # the third is far, the fourth ignored
+    positive = np.array([True, True, True, False])
+    dets = np.array([[5.4, 0.0],     # on vehicle 0, 0.4 m off
+                     [10.0, 2.0],    # 2 m from vehicle 1: beyond the 1.5 m gate, a false alarm
+                     [0.0, 8.5],     # on the ignored vehicle: counts neither way
+                     [39.0, 0.0],    # on the far vehicle, outside the 25 m: not counted
+                     [np.nan, np.nan],  # off the ground
+                     [24.0, 0.0]])   # near and on nothing: a false alarm
+    n = near_frame(dets, labels, positive, centre, 25.0)
+    assert n["positives"] == 2 and n["found"] == 1
+    assert n["detections"] == 3 and n["true"] == 1
+    assert n["loc"] == pytest.approx([0.4])
+    # a detection just outside the radius still finds a vehicle just inside it
+    n = near_frame(np.array([[25.5, 0.0]]), np.array([[24.5, 0.0]]), np.array([True]), centre, 25.0)
+    assert (n["positives"], n["found"], n["detections"], n["true"]) == (1, 1, 0, 0)
+    # nothing detected, nothing labelled
+    n = near_frame(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, bool), centre, 25.0)
+    assert (n["positives"], n["found"], n["detections"], n["true"], n["loc"]) == (0, 0, 0, 0, [])
+    n = near_frame(np.array([[1.0, 1.0]]), np.zeros((0, 2)), np.zeros(0, bool), centre, 25.0)
+    assert (n["detections"], n["true"]) == (1, 0)
