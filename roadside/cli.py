@@ -198,6 +198,9 @@ def _add_train(sub) -> None:
     p.add_argument("--input-long-side", type=int,
                    help="network input: images shrunk so their longer side is at most this (default 640, or the "
                         "--init model's); with --init, the starting weights are kept")
+    p.add_argument("--focus-by-size", action="store_true",
+                   help="augmentation: centre the crops on large vehicles more often (chance proportional to "
+                        "their 2D box size)")
     p.add_argument("--device", default="cpu",
                    help="cpu (default), cuda or cuda:N (needs a PyTorch with CUDA; the train extra's is CPU-only)")
     p.add_argument("--workers", type=int, default=0,
@@ -226,7 +229,7 @@ def _run_train(args) -> int:
                       center=args.center, seed=args.seed, init=args.init, add_axis_head=args.axis_head,
                       input_long_side=args.input_long_side, device=args.device, workers=args.workers,
                       train_only=tuple(h.strip() for h in args.train_only.split(",") if h.strip()),
-                      augment=AugmentConfig(fisheye_rotation=args.fisheye_rotation),
+                      augment=AugmentConfig(fisheye_rotation=args.fisheye_rotation, focus_by_size=args.focus_by_size),
                       model=DetectorConfig(stride=args.stride, axis_head=args.axis_head),
                       loss=LossConfig(topk_fraction=None if args.no_topk else 0.01, beta_box=args.beta_box,
                                       **({} if args.beta_heading is None else {"beta_heading": args.beta_heading})))

@@ -7,6 +7,7 @@ import functools
 import json
 import math
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -503,3 +504,22 @@ def test_box_under_rotation_keeps_its_size_not_its_corners():
     np.testing.assert_allclose(transform_labels(wide, quarter, image).box[0], [90, 80, 110, 120], atol=1e-9)
     flip_zoom = np.array([[-2.0, 0.0, 300.0], [0.0, 2.0, -100.0]])
     np.testing.assert_allclose(transform_labels(wide, flip_zoom, image).box[0], [60, 80, 140, 120], atol=1e-9)
+
+
+def test_focus_by_size_centres_the_crops_on_the_large_vehicles_more_often():
+    sample = _dot_sample(np.random.default_rng(8), "pinhole")
+    big = 5
+    box = sample.box.copy()
+    box[big] = np.r_[sample.bottom_uv[big] - [40, 60], sample.bottom_uv[big] + [40, 2]]  # 80x62 among 12x11 boxes
+    sample = replace(sample, box=box)
+    counts = {}
+    for by_size in (False, True):
+        config = AugmentConfig(scale_range=(1.0, 1.0), flip_prob=0.0, focus_prob=1.0, photometric=False,
+                               focus_by_size=by_size)
+        rng = np.random.default_rng(0)
+        counts[by_size] = sum(big in augment(sample, rng, (40, 40), config).meta["track_id"] for _ in range(400))
+    # uniform: 1 in 16 crops centred on it, more reaching its large box by chance (77 of 400 with this seed); by
+    # size about its share of the sizes, 0.29, centred on it (166)
+    size = np.sqrt(np.prod(box[:, 2:] - box[:, :2], axis=1))
+    assert counts[False] < 400 * 0.25
+    assert counts[True] > 400 * 0.8 * size[big] / size.sum() and counts[True] > 1.8 * counts[False]

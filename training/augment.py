@@ -57,6 +57,9 @@ class AugmentConfig:
                         angle; boxes approximated, see the module docstring), "quarter" (a random multiple of
                         90 degrees: boxes exact) or "off"
     focus_prob          probability of centring the crop near a random positive (else uniform crop)
+    focus_by_size       draw that positive with probability proportional to its 2D box size (the square root of
+                        its area) instead of uniformly: the large vehicles (a bus or truck under the pole of a
+                        fisheye camera), few in number, are centred more often
     photometric         apply the intensity jitter below at all (False: geometry only)
     gamma_range         gamma of (x / 255) ** gamma
     contrast_range      gain about mid grey
@@ -69,6 +72,7 @@ class AugmentConfig:
     flip_prob: float = 0.5
     fisheye_rotation: str = "any"
     focus_prob: float = 0.5
+    focus_by_size: bool = False
     photometric: bool = True
     gamma_range: tuple[float, float] = (0.7, 1.4)
     contrast_range: tuple[float, float] = (0.75, 1.3)
@@ -215,7 +219,11 @@ def random_affine(
     centre = None
     positives = np.flatnonzero(sample.weight > 0)
     if len(positives) and rng.random() < config.focus_prob:
-        centre = m[:2] @ np.append(sample.bottom_uv[rng.choice(positives)], 1.0)
+        p = None
+        if config.focus_by_size:
+            size = np.sqrt(np.prod(np.clip(sample.box[positives, 2:] - sample.box[positives, :2], 1.0, None), axis=1))
+            p = size / size.sum()
+        centre = m[:2] @ np.append(sample.bottom_uv[rng.choice(positives, p=p)], 1.0)
     u0 = _crop_start(lo[0], hi[0], out_w, rng, None if centre is None else centre[0])
     v0 = _crop_start(lo[1], hi[1], out_h, rng, None if centre is None else centre[1])
     # the crop's edge u0 becomes the output's edge -0.5
