@@ -113,7 +113,7 @@ def test_background_workers_feed_the_training_and_a_dead_worker_stops_it(small_r
             == [2, 4]
         assert load_detector(tmp_path / "w" / "model.pt").config == TINY
 
-        # the batches of workers=0 are those of the in-process Batcher: same seed, same first loss
+        # without workers a run stays reproducible from its seed: two runs, the same first loss
         a = train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "a"), steps=1, batch_size=2,
                               crop=64, model=TINY, threads=1, log_every=1), log=lambda _m: None)
         b = train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "b"), steps=1, batch_size=2,

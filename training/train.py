@@ -151,8 +151,9 @@ def _prepare_batches(refs: list[SampleRef], aug, batch_size: int, seed: int, str
 
 class BackgroundBatches:
     """Batches prepared by `workers` processes (each its own shuffle and augmentation, seeded seed·1000 + i),
-    in the order they come. Iterate for batch_arrays' tuples; close() stops the workers. A worker that dies
-    (bad image, out of memory) stops the training with its exit code instead of hanging it."""
+    in the order they come. Iterate for batch_arrays' tuples; close() stops the workers. When no batch has come
+    for 5 s and a worker has died (bad image, out of memory), the training stops with its exit code instead of
+    hanging; the others' batches keep it going until then."""
 
     def __init__(self, refs: list[SampleRef], aug, batch_size: int, seed: int, stride: int, center: str,
                  workers: int, cache_bytes: int) -> None:
