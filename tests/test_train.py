@@ -141,3 +141,21 @@ def test_train_config_names_a_bad_device_or_worker_count(tmp_path):
     if not torch.cuda.is_available():
         with pytest.raises(RuntimeError, match="this PyTorch has no CUDA"):
             train(TrainConfig(recordings=("r",), out=str(tmp_path / "c"), device="cuda"), log=lambda _m: None)
+
+
+def test_workers_are_stopped_even_where_the_parent_catches_sigterm(small_recording, tmp_path):
+    """A forked worker inherits the parent's SIGTERM handler (a service's, a test runner's): the workers must
+    still stop, or the parent hangs at exit joining them (it did: pytest never returned)."""
+    import multiprocessing
+    import signal
+
+    caught = []
+    previous = signal.signal(signal.SIGTERM, lambda *_: caught.append(1))
+    threads = torch.get_num_threads()
+    try:
+        train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "s"), steps=3, batch_size=2,
+                          crop=64, model=TINY, threads=1, workers=2), log=lambda _m: None)
+        assert multiprocessing.active_children() == []
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        torch.set_num_threads(threads)

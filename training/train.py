@@ -19,6 +19,7 @@ import json
 import math
 import multiprocessing
 import queue
+import signal
 import time
 from dataclasses import asdict, dataclass, field, replace
 from functools import partial
@@ -142,6 +143,10 @@ def to_tensors(images: np.ndarray, targets: dict[str, np.ndarray],
 def _prepare_batches(refs: list[SampleRef], aug, batch_size: int, seed: int, stride: int, center: str,
                      out: multiprocessing.Queue, cache_bytes: int) -> None:
     """A worker process: endless shuffled epochs of augmented batches (batch_arrays) into `out`."""
+    # a forked worker inherits its parent's signal handlers; one that catches SIGTERM (a service, a test runner)
+    # would let terminate() leave it running and the parent hang at exit joining it
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C stops the parent, which stops the workers
     torch.set_num_threads(1)
     batcher = Batcher(refs, aug, batch_size, np.random.default_rng(seed), cache_bytes=cache_bytes)
     while True:
@@ -181,6 +186,11 @@ class BackgroundBatches:
             proc.terminate()
         for proc in self.procs:
             proc.join(timeout=5)
+            if proc.is_alive():  # SIGTERM caught or stuck: a daemon left alive would hang this process's exit
+                proc.kill()
+                proc.join(timeout=5)
+        self.queue.close()
+        self.queue.cancel_join_thread()  # nothing this process put needs flushing
 
 
 def _lr(step: int, total: int, peak: float) -> float:
