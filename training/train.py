@@ -120,11 +120,6 @@ def training_refs(cfg: TrainConfig) -> list[SampleRef]:
     return refs
 
 
-def batch_tensors(samples: list[Sample], stride: int, center: str) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """Images (B, 1, H, W) in [0, 1] and the stacked targets of a batch."""
-    return to_tensors(*batch_arrays(samples, stride, center))
-
-
 def batch_arrays(samples: list[Sample], stride: int, center: str) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """Images (B, 1, H, W) uint8 and the stacked targets of a batch, as NumPy arrays (cheap to pass between
     processes)."""
