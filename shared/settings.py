@@ -144,6 +144,9 @@ class DetectSettings(Strict):
 
 class LocalizeSettings(Strict):
     heading_step_px: float = Field(6.0, gt=0)  # pixels along the image heading for the yaw Jacobian
+    # an object whose ground point lies inside a higher-scoring object's footprint (its length and width times
+    # this) of the same frame is dropped as the same vehicle (services/localize/lift.py `overlapping`). 0: off
+    footprint_overlap: float = Field(1.5, ge=0)
 
 
 class FuseTrackSettings(Strict):

@@ -5,7 +5,8 @@
 Loads each camera's masks file (`cameras[].masks`, from `roadside calibrate`) at start: a missing
 or unreadable one stops the service with one error line. Subscribes to
 `roadside/<site>/cam/*/detections`, publishes Objects (site metres, latitude/longitude, world yaw,
-size) on `roadside/<site>/cam/<camera>/objects`, dropping detections outside the calibrated area.
+size) on `roadside/<site>/cam/<camera>/objects`, dropping detections outside the calibrated area and those
+inside the ground footprint of a higher-scoring one (`localize.footprint_overlap`; `lift.overlapping`).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import time
 import numpy as np
 
 from calibration.masks import excluded, load_masks
-from services.localize.lift import GroundLookup, lift
+from services.localize.lift import GroundLookup, lift, overlapping
 from shared.bus import BadInput, Receiver, Stopper, declare_alive, open_session
 from shared.codec import encode
 from shared.geo import GeoFrame
@@ -49,12 +50,13 @@ def load_all_masks(settings: Settings) -> dict[str, GroundLookup]:
     return out
 
 
-def objects_message(det: Detections, masks: GroundLookup, step_px: float) -> Objects:
+def objects_message(det: Detections, masks: GroundLookup, step_px: float, footprint_overlap: float = 0.0) -> Objects:
     if (det.height, det.width) != masks.shape:
         raise ValueError(f"camera {det.camera}: detections for a {det.width}x{det.height} image, "
                          f"masks are {masks.shape[1]}x{masks.shape[0]}")
     lifted = lift(masks, det.uv, det.heading_uv, step_px)
-    k = lifted.valid
+    k = np.flatnonzero(lifted.valid)
+    k = k[~overlapping(lifted.xy[k], lifted.yaw[k], det.size_lwh[k], det.score[k], footprint_overlap)]
     f4 = np.float32
     return Objects(
         site=det.site, camera=det.camera, seq=det.seq, t_capture_ns=det.t_capture_ns,
@@ -83,7 +85,8 @@ def main(settings: Settings, stopper: Stopper) -> int:
                     bad(f"detections from camera {det.camera!r}, not at this site", det.camera)
                     continue
                 try:
-                    msg = objects_message(det, masks[det.camera], settings.localize.heading_step_px)
+                    msg = objects_message(det, masks[det.camera], settings.localize.heading_step_px,
+                                          settings.localize.footprint_overlap)
                 except ValueError as exc:
                     bad(str(exc), det.camera)
                     continue

@@ -5,6 +5,10 @@ The image-space heading becomes a world yaw through the local Jacobian of the lo
 centre and a point `step_px` along the heading are both lifted, and the yaw is the direction between
 them (where the forward point falls outside the calibrated area, the backward point is used).
 The detector regresses the 3D size in metres, so size needs no conversion.
+
+Two vehicles cannot stand on the same ground: `overlapping` finds the objects of one frame whose ground point
+lies inside the footprint of a higher-scoring one (its length and width, scaled), the second peaks the detector
+puts on a long vehicle (a truck read as two cars, one on each half).
 """
 
 from __future__ import annotations
@@ -82,3 +86,30 @@ def lift(masks: GroundLookup | LookupMasks, uv: np.ndarray, heading_uv: np.ndarr
     valid = ok & (ok_f | ok_b) & (np.hypot(d[:, 0], d[:, 1]) > 1e-6)
     yaw[~valid] = np.nan
     return Lifted(valid, xy, latlon, yaw)
+
+
+def overlapping(xy: np.ndarray, yaw: np.ndarray, size_lwh: np.ndarray, score: np.ndarray,
+                scale: float) -> np.ndarray:
+    """(N,) bool: the objects (site metres, world yaw, size in metres, score) to drop because their ground point
+    lies inside the footprint (length and width times `scale`, along the yaw) of a higher-scoring object that is
+    kept, or the kept one's point inside theirs. Greedy by score, as non-maximum suppression; `scale` 0 drops
+    none. Objects with a non-finite position, yaw or size neither drop nor are dropped."""
+    xy = np.asarray(xy, np.float64).reshape(-1, 2)
+    n = len(xy)
+    drop = np.zeros(n, bool)
+    if n < 2 or scale <= 0:
+        return drop
+    yaw = np.asarray(yaw, np.float64).reshape(n)
+    half = 0.5 * scale * np.asarray(size_lwh, np.float64).reshape(n, 3)[:, :2]
+    ok = np.isfinite(xy).all(axis=1) & np.isfinite(yaw) & np.isfinite(half).all(axis=1)
+    d = xy[None, :, :] - xy[:, None, :]  # d[a, b]: from a to b
+    c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+    along = np.abs(d[..., 0] * c + d[..., 1] * s)
+    across = np.abs(d[..., 1] * c - d[..., 0] * s)
+    inside = (along <= half[:, :1]) & (across <= half[:, 1:])  # inside[a, b]: b's point in a's footprint
+    inside = (inside | inside.T) & ok[:, None] & ok[None, :]
+    np.fill_diagonal(inside, False)
+    for a in np.argsort(-np.asarray(score, np.float64).reshape(n), kind="stable"):
+        if not drop[a]:  # kept: no kept higher-scoring object overlaps it
+            drop |= inside[a]
+    return drop

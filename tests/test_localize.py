@@ -1,0 +1,81 @@
+"""localize without transport: the footprint overlap rule and the Objects message it shapes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calibration.masks import LookupMasks
+from services.localize.__main__ import objects_message
+from services.localize.lift import GroundLookup, overlapping
+from shared.messages import Detections
+from shared.settings import LocalizeSettings
+
+CAR = (4.5, 1.8, 1.5)
+
+
+def _drop(xy, yaw, size, score, scale=1.5):
+    n = len(xy)
+    return overlapping(np.asarray(xy, float), np.full(n, yaw) if np.ndim(yaw) == 0 else np.asarray(yaw, float),
+                       np.asarray(size, float).reshape(-1, 3) if np.ndim(size) > 1 else np.tile(size, (n, 1)),
+                       np.asarray(score, float), scale).tolist()
+
+
+def test_a_second_peak_on_the_same_vehicle_is_dropped_and_the_higher_score_kept():
+    # a truck read as two cars, one on each half: 3 m apart along its length (east)
+    assert _drop([[0, 0], [3, 0]], 0.0, CAR, [0.4, 0.7]) == [True, False]
+    assert _drop([[0, 0], [3, 0]], 0.0, CAR, [0.7, 0.4]) == [False, True]
+    # the footprint follows the yaw: the same pair along a north-facing vehicle
+    assert _drop([[0, 0], [0, 3]], np.pi / 2, CAR, [0.7, 0.4]) == [False, True]
+
+
+def test_vehicles_that_only_stand_close_are_all_kept():
+    assert _drop([[0, 0], [0, 3.5]], 0.0, CAR, [0.9, 0.5]) == [False, False]  # side by side, two lanes
+    assert _drop([[0, 0], [7.0, 0]], 0.0, CAR, [0.9, 0.5]) == [False, False]  # queued, bumper to bumper
+    assert _drop([[0, 0], [3, 0]], 0.0, CAR, [0.9, 0.5], scale=0.0) == [False, False]  # the rule switched off
+    assert _drop([[0, 0], [3, 0]], 0.0, CAR, [0.9, 0.5], scale=1.2) == [False, False]  # 3 m > 1.2 * 4.5 / 2
+
+
+def test_either_footprint_counts_and_suppression_is_greedy():
+    # a bus (12 m) scored lower than a car-sized peak 4 m along it: the car's footprint does not hold the bus's
+    # point, the bus's holds the car's; one vehicle, the higher score kept
+    assert _drop([[0, 0], [4, 0]], 0.0, [[4.5, 1.8, 1.5], [12.0, 2.5, 3.2]], [0.8, 0.5]) == [False, True]
+    # a chain of peaks 3 m apart: the middle one is dropped by the best, the far one survives the dropped one
+    assert _drop([[0, 0], [3, 0], [6, 0]], 0.0, CAR, [0.9, 0.5, 0.4]) == [False, True, False]
+    assert _drop([], 0.0, CAR, []) == []
+
+
+def test_objects_without_a_finite_position_yaw_or_size_are_left_alone():
+    xy = [[0, 0], [3, 0], [np.nan, 0]]
+    assert _drop(xy, [0.0, np.nan, 0.0], CAR, [0.9, 0.5, 0.4]) == [False, False, False]
+    assert _drop([[0, 0], [3, 0]], 0.0, [[np.nan, 1.8, 1.5], CAR], [0.9, 0.5]) == [False, False]
+
+
+def test_settings_default_and_refuse_a_negative_scale():
+    assert LocalizeSettings().footprint_overlap == 1.5
+    with pytest.raises(ValueError, match="footprint_overlap"):
+        LocalizeSettings(footprint_overlap=-1)
+
+
+def _masks(w: int = 64, h: int = 48, m_per_px: float = 0.25) -> GroundLookup:
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    xy = np.stack([u * m_per_px, -v * m_per_px], axis=2)  # east along u, north up the image
+    meta = {"geo_origin": {"lat_deg": 42.0, "lon_deg": -83.0, "alt_m": 0.0}}
+    return GroundLookup(LookupMasks(42 + xy[..., 1] / 111e3, -83 + xy[..., 0] / 82e3, xy.astype(np.float32),
+                                    np.ones((h, w), bool), meta))
+
+
+def test_objects_message_drops_the_overlapping_detection_and_keeps_the_columns_aligned():
+    f4 = np.float32
+    # three detections heading east: two 12 px = 3 m apart on one vehicle, one 40 px = 10 m away
+    det = Detections(site="s", camera="C1", seq=1, t_capture_ns=5, width=64, height=48, infer_ms=1.0,
+                     score=np.array([0.5, 0.8, 0.6], f4), uv=np.array([[10, 20], [22, 20], [50, 20]], f4),
+                     box=np.zeros((3, 4), f4), heading_uv=np.tile(np.array([1, 0], f4), (3, 1)),
+                     size_lwh=np.tile(np.array(CAR, f4), (3, 1)), vtype=np.array([0, 1, 2], np.int8))
+    masks = _masks()
+    kept = objects_message(det, masks, 6.0, 1.5)
+    assert kept.score.tolist() == pytest.approx([0.8, 0.6])
+    assert kept.vtype.tolist() == [1, 2]
+    np.testing.assert_allclose(kept.xy, [[5.5, -5.0], [12.5, -5.0]], atol=1e-6)
+    np.testing.assert_allclose(kept.uv, [[22, 20], [50, 20]])
+    assert len(objects_message(det, masks, 6.0, 0.0)) == 3
