@@ -31,8 +31,25 @@ def _add_sim(sub) -> None:
     p.add_argument("--workers", type=int, default=2, help="render processes")
     p.add_argument("--max-vehicles", type=int, default=100, help="most moving vehicles at once")
     p.add_argument("--demand-scale", type=float, default=1.0, help="scale the site's traffic demand")
+    p.add_argument("--type-weights", type=_type_weights, default=None, metavar="TYPE=W,...",
+                   help="multiply vehicle types' shares of the mix, e.g. bus=4,truck=3 (types: car, suv_van, truck, "
+                        "bus, motorcycle)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.add_argument("--contact-sheet", type=Path, default=None, help="also draw a contact sheet PNG here")
+
+
+def _type_weights(text: str) -> dict[str, float]:
+    """'bus=4,truck=3' -> {'bus': 4.0, 'truck': 3.0} (argparse type; the sim checks the types and values)."""
+    out = {}
+    for part in text.split(","):
+        typ, sep, value = part.partition("=")
+        try:
+            out[typ.strip()] = float(value)
+        except ValueError:
+            sep = ""
+        if not sep:
+            raise argparse.ArgumentTypeError(f"expected TYPE=WEIGHT[,TYPE=WEIGHT...], got {part!r}")
+    return out
 
 
 def _run_sim(args) -> int:
@@ -50,6 +67,7 @@ def _run_sim(args) -> int:
         workers=args.workers,
         max_vehicles=args.max_vehicles,
         demand_scale=args.demand_scale,
+        type_weights=args.type_weights,
         overwrite=args.overwrite,
     )
     summary = simulate_clip(cfg, log=lambda s: print(f"[sim] {s}", file=sys.stderr))

@@ -33,7 +33,7 @@ from sim.render import (
     sample_environment,
 )
 from sim.site import SiteSpec, load_site
-from sim.traffic import VEHICLE_TYPES, TrafficHistory, simulate_traffic
+from sim.traffic import VEHICLE_TYPES, TrafficHistory, check_type_weights, simulate_traffic
 
 MAX_HZ = 60.0
 CAPTURE_JITTER_S = 0.002
@@ -51,6 +51,7 @@ class ClipConfig:
     workers: int = 2
     max_vehicles: int = 100
     demand_scale: float = 1.0
+    type_weights: dict[str, float] | None = None  # vehicle type -> factor on its share of the mix
     jpeg_quality: int = 90
     overwrite: bool = False
 
@@ -67,6 +68,7 @@ class ClipConfig:
             raise ValueError(f"--workers must be >= 1, got {self.workers}")
         if not 1 <= self.max_vehicles <= 500:
             raise ValueError(f"--max-vehicles must be in [1, 500], got {self.max_vehicles}")
+        check_type_weights(self.type_weights)
         if not 10 <= self.jpeg_quality <= 100:
             raise ValueError(f"--jpeg-quality must be in [10, 100], got {self.jpeg_quality}")
 
@@ -208,6 +210,7 @@ def simulate_clip(cfg: ClipConfig, log: Callable[[str], None] = lambda s: None) 
             cfg.seed,
             max_vehicles=cfg.max_vehicles,
             demand_scale=cfg.demand_scale,
+            type_weights=cfg.type_weights,
         )
         shadows = ShadowCaster(world, env)
         schedule = capture_schedule(cams, cfg.seconds, cfg.hz, cfg.seed)
@@ -269,6 +272,7 @@ def simulate_clip(cfg: ClipConfig, log: Callable[[str], None] = lambda s: None) 
             "t0_ns": t0,
             "environment": env.to_dict(),
             "vehicle_types": list(VEHICLE_TYPES),
+            "type_weights": check_type_weights(cfg.type_weights),
             "cameras": [
                 {
                     **c.to_dict(),

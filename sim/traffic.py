@@ -62,10 +62,27 @@ class VehicleInfo:
     parked: bool
 
 
+def check_type_weights(weights: dict[str, float] | None) -> dict[str, float]:
+    """The type weights (vehicle type -> factor on its share of the mix), checked; ValueError naming the bad one."""
+    out = {}
+    for typ, w in (weights or {}).items():
+        if typ not in TYPE_SIZES:
+            raise ValueError(f"type weight for unknown vehicle type {typ!r}; types: {', '.join(VEHICLE_TYPES)}")
+        if not (math.isfinite(w) and w >= 0):
+            raise ValueError(f"type weight for {typ} must be a finite number >= 0, got {w}")
+        out[typ] = float(w)
+    if out and not any(out.get(t, 1.0) > 0 for t in VEHICLE_TYPES):
+        raise ValueError("type weights leave no vehicle type with a share above 0")
+    return out
+
+
 def sample_vehicle(rng: np.random.Generator, vid: int = 0, parked: bool = False,
-                   allowed: tuple[str, ...] = VEHICLE_TYPES) -> VehicleInfo:
-    """A vehicle drawn from the type mix, size distributions and colour palette."""
-    shares = np.array([TYPE_SIZES[t][0] for t in allowed])
+                   allowed: tuple[str, ...] = VEHICLE_TYPES, weights: dict[str, float] | None = None) -> VehicleInfo:
+    """A vehicle drawn from the type mix (each type's share times `weights[type]`, default 1), size distributions
+    and colour palette."""
+    shares = np.array([TYPE_SIZES[t][0] * (weights or {}).get(t, 1.0) for t in allowed])
+    if not shares.sum() > 0:  # every allowed type weighted out: draw from them as if unweighted
+        shares = np.array([TYPE_SIZES[t][0] for t in allowed])
     typ = allowed[int(rng.choice(len(allowed), p=shares / shares.sum()))]
     _, lm, wm, hm = TYPE_SIZES[typ]
     size = [float(np.clip(rng.normal(m, sd), m - 2.5 * sd, m + 2.5 * sd)) for m, sd in (lm, wm, hm)]
@@ -117,7 +134,9 @@ class TrafficSim:
         rng: np.random.Generator,
         max_vehicles: int = 100,
         demand_scale: float = 1.0,
+        type_weights: dict[str, float] | None = None,
     ) -> None:
+        self.type_weights = check_type_weights(type_weights)
         if max_vehicles < 1:
             raise ValueError(f"max_vehicles must be >= 1, got {max_vehicles}")
         if demand_scale < 0 or not math.isfinite(demand_scale):
@@ -157,7 +176,7 @@ class TrafficSim:
 
     # ---- vehicles ---------------------------------------------------------------------------
     def _new_vehicle(self, parked: bool, allowed: tuple[str, ...] = VEHICLE_TYPES) -> VehicleInfo:
-        info = sample_vehicle(self.rng, self._next_id, parked, allowed)
+        info = sample_vehicle(self.rng, self._next_id, parked, allowed, self.type_weights)
         self.info[info.id] = info
         self._next_id += 1
         return info
@@ -480,12 +499,14 @@ def simulate_traffic(
     warmup_s: float = 90.0,
     max_vehicles: int = 100,
     demand_scale: float = 1.0,
+    type_weights: dict[str, float] | None = None,
 ) -> TrafficHistory:
-    """Run traffic for a warm-up, then record `seconds` of it every dt_s."""
+    """Run traffic for a warm-up, then record `seconds` of it every dt_s. `type_weights`: vehicle type -> factor
+    on its share of the mix (more buses and trucks for training data, say)."""
     if not seconds > 0:
         raise ValueError(f"seconds must be > 0, got {seconds}")
     rng = np.random.default_rng([seed, 7])
-    sim = TrafficSim(site, net, rng, max_vehicles, demand_scale)
+    sim = TrafficSim(site, net, rng, max_vehicles, demand_scale, type_weights)
     t = -warmup_s
     while t < 0:
         sim.step(dt_s, t)

@@ -170,6 +170,16 @@ def test_cli_negative_duration_is_refused(tmp_path):
     assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.parametrize("weights, message", [("bus=x", "expected TYPE=WEIGHT"),
+                                              ("plane=3", "unknown vehicle type 'plane'")])
+def test_cli_bad_type_weights_are_one_clear_line(tmp_path, weights, message):
+    r = _cli("sim", "--site", "state_ellsworth", "--seconds", "1", "--type-weights", weights,
+             "--out", str(tmp_path / "x"))
+    assert r.returncode == 2
+    assert message in r.stderr.strip().splitlines()[-1]
+    assert not (tmp_path / "x").exists()
+
+
 @pytest.mark.parametrize("bad", ["file_parent", "proc"])
 def test_cli_unwritable_output_is_refused(tmp_path, bad):
     if bad == "file_parent":
@@ -225,6 +235,7 @@ def test_bad_clip_config_values_are_named():
         ({"hz": 0.0}, "--hz"),
         ({"seed": -1}, "--seed"),
         ({"workers": 0}, "--workers"),
+        ({"type_weights": {"bus": -2.0}}, "type weight for bus"),
     ]:
         cfg = ClipConfig(**{"site": "state_ellsworth", "out": Path("/tmp/unused"), "seconds": 1.0, **kwargs})
         with pytest.raises(ValueError, match=word):

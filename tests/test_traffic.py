@@ -244,6 +244,33 @@ def test_sizes_of_many_new_vehicles_including_buses() -> None:
     assert np.mean([i.length_m for i in by_type["car"]]) == pytest.approx(4.55, abs=0.1)
 
 
+def test_type_weights_shift_the_mix_and_parked_vehicles_stay_cars() -> None:
+    site = load_site("state_ellsworth")
+    net = build_network(site)
+    plain = TrafficSim(site, net, np.random.default_rng(0))
+    heavy = TrafficSim(site, net, np.random.default_rng(0), type_weights={"bus": 6.0, "truck": 3.0, "motorcycle": 0})
+    n = 4000
+    share = {}
+    for name, sim in (("plain", plain), ("heavy", heavy)):
+        types = [sim._new_vehicle(False).type for _ in range(n)]
+        share[name] = {t: types.count(t) / n for t in VEHICLE_TYPES}
+    assert share["plain"]["bus"] == pytest.approx(0.05, abs=0.015)
+    # bus 0.05 * 6 and truck 0.08 * 3 over 0.52 + 0.30 + 0.24 + 0.30 (motorcycles weighted out)
+    assert share["heavy"]["bus"] == pytest.approx(0.30 / 1.36, abs=0.025)
+    assert share["heavy"]["truck"] == pytest.approx(0.24 / 1.36, abs=0.025)
+    assert share["heavy"]["motorcycle"] == 0
+    assert {heavy.info[i].type for i, _, _ in heavy._parked} <= {"car", "suv_van"}  # parking is for cars
+
+
+def test_bad_type_weights_are_named() -> None:
+    site = load_site("intersection")
+    net = build_network(site)
+    for weights, word in [({"plane": 2.0}, "plane"), ({"bus": -1.0}, "bus"), ({"bus": float("nan")}, "bus"),
+                          ({t: 0.0 for t in VEHICLE_TYPES}, "no vehicle type")]:
+        with pytest.raises(ValueError, match=word):
+            TrafficSim(site, net, np.random.default_rng(0), type_weights=weights)
+
+
 def _state_tuple(hist, t: float) -> tuple:
     st = hist.state_at(t)
     return (st.ids, st.xy, st.yaw, st.lwh, st.speed, st.type_idx, st.colors, st.parked, st.ped_xy)
