@@ -50,7 +50,7 @@ def load_all_masks(settings: Settings) -> dict[str, GroundLookup]:
     return out
 
 
-def objects_message(det: Detections, masks: GroundLookup, step_px: float, footprint_overlap: float = 0.0) -> Objects:
+def objects_message(det: Detections, masks: GroundLookup, step_px: float, footprint_overlap: float) -> Objects:
     if (det.height, det.width) != masks.shape:
         raise ValueError(f"camera {det.camera}: detections for a {det.width}x{det.height} image, "
                          f"masks are {masks.shape[1]}x{masks.shape[0]}")
