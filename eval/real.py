@@ -26,6 +26,7 @@ from scipy.optimize import linear_sum_assignment
 
 from calibration.masks import LookupMasks, excluded, load_masks
 from services.ingest.sources import capture_time_from_name
+from services.localize.lift import lift, overlapping
 from shared.decode import Detections
 from shared.geo import GeoFrame
 
@@ -127,11 +128,14 @@ def _label_ground(masks: LookupMasks, labels: np.ndarray, where: object) -> np.n
 
 def score_camera(frames: dict[str, np.ndarray], footage: Path, masks: LookupMasks,
                  detect: Callable[[np.ndarray], Detections], thresholds: tuple[float, ...] = (0.0,),
-                 exclude_px: list | None = None, area_px: tuple[int, int, int, int] | None = None) -> list[dict]:
+                 exclude_px: list | None = None, area_px: tuple[int, int, int, int] | None = None,
+                 footprint_overlap: float = 0.0) -> list[dict]:
     """Counts for one camera at each score threshold (detections below it left out): tp, detections
     (within ROI_M), labels (within ROI_M), and matched errors. The detector runs once per frame.
     `exclude_px`: the camera's exclusion polygons; detections there are dropped (labels there still count).
-    `area_px`: the camera's `detect_area_px`, run as `detect(grey, area_px=...)` as the detect service does."""
+    `area_px`: the camera's `detect_area_px`, run as `detect(grey, area_px=...)` as the detect service does.
+    `footprint_overlap`: the site's `localize.footprint_overlap`; detections inside a higher-scoring one's ground
+    footprint are dropped as localize drops them (greedy by score, so the same at every threshold)."""
     foot = camera_foot(masks)
     det_masks = replace(masks, valid=excluded(masks.valid, exclude_px)) if exclude_px else masks
     acc = [{"tp": 0, "n_det": 0, "n_lab": 0, "errors": []} for _ in thresholds]
@@ -142,7 +146,10 @@ def score_camera(frames: dict[str, np.ndarray], footage: Path, masks: LookupMask
             raise ValueError(f"{path}: labelled frame is missing or unreadable")
         det = detect(grey) if area_px is None else detect(grey, area_px=area_px)
         l_xy = _label_ground(masks, labels, path)
-        _, d_xy_all, d_ok_all = det_masks.lookup(det.uv)
+        lifted = lift(det_masks, det.uv, det.heading_uv)
+        d_xy_all, d_ok_all = lifted.xy, lifted.valid.copy()
+        k = np.flatnonzero(d_ok_all)
+        d_ok_all[k[overlapping(d_xy_all[k], lifted.yaw[k], det.size_lwh[k], det.score[k], footprint_overlap)]] = False
         for a, thr in zip(acc, thresholds, strict=True):
             _count(a, d_xy_all[d_ok_all & (np.asarray(det.score) >= thr)], l_xy, foot)
     return [_scores(a, len(frames)) for a in acc]
@@ -185,12 +192,14 @@ def evaluate_real(labels_dir: str | Path, footage: str | Path, masks_dir: str | 
                   detect: Callable[[np.ndarray], Detections], held_out_from: time | None = time(11, 0, 40),
                   folder_pattern: str = "gs_State_Ellsworth_{camera}", score_thr: float = 0.0,
                   curve: tuple[float, ...] = (), exclude_px: dict[str, list] | None = None,
-                  detect_area_px: dict[str, tuple[int, int, int, int]] | None = None) -> dict:
+                  detect_area_px: dict[str, tuple[int, int, int, int]] | None = None,
+                  footprint_overlap: float = 0.0) -> dict:
     """Per camera and overall precision / recall within ROI_M for every `labels_dir`/*.json, for the
     detections scoring at least `score_thr`; `curve`: overall precision / recall at these thresholds too
     (a model's whole trade-off, from the same detector pass; `detect` must keep scores that low).
     `exclude_px`: per camera, the site's exclusion polygons (`cameras[].exclude_px`): detections there are
-    dropped as localize drops them. `detect_area_px`: per camera, the site's `cameras[].detect_area_px`."""
+    dropped as localize drops them. `detect_area_px`: per camera, the site's `cameras[].detect_area_px`.
+    `footprint_overlap`: the site's `localize.footprint_overlap` (`score_camera`)."""
     labels_dir, footage, masks_dir = Path(labels_dir), Path(footage), Path(masks_dir)
     files = sorted(labels_dir.glob("*.json"))
     if not files:
@@ -205,7 +214,7 @@ def evaluate_real(labels_dir: str | Path, footage: str | Path, masks_dir: str | 
         h, w = masks.shape
         frames = load_labels(f, w, h, held_out_from)
         rows = score_camera(frames, footage / folder_pattern.format(camera=camera), masks, detect, thresholds,
-                            (exclude_px or {}).get(camera), (detect_area_px or {}).get(camera))
+                            (exclude_px or {}).get(camera), (detect_area_px or {}).get(camera), footprint_overlap)
         for acc, row in zip(per_thr, rows, strict=True):
             acc[camera] = row
     out = {"roi_m": ROI_M, "match_m": MATCH_M, "score_thr": score_thr, "overall": _overall(per_thr[0]),

@@ -352,11 +352,14 @@ def _run_eval(args) -> int:
         curve = tuple(round(0.05 * k, 2) for k in range(1, 13))  # 0.05 ... 0.6
         det = OnnxDetector(args.model, threads=args.threads, score_thr=min(thr, *curve))
         has_settings = args.site.is_file() or (args.site / "site.yaml").is_file()  # a bare labels + masks folder too
-        cams = load_settings(args.site).cameras if has_settings else []
+        settings = load_settings(args.site) if has_settings else None
+        cams = settings.cameras if settings else []
         exclude = {c.name: c.exclude_px for c in cams if c.exclude_px}
         areas = {c.name: c.detect_area_px for c in cams if c.detect_area_px}
+        overlap = settings.localize.footprint_overlap if settings else 0.0
         result = evaluate_real(args.site / "labels", args.footage, args.site / "masks", det.detect, score_thr=thr,
-                               curve=curve, exclude_px=exclude, detect_area_px=areas)
+                               curve=curve, exclude_px=exclude, detect_area_px=areas, footprint_overlap=overlap)
+        result["footprint_overlap"] = overlap  # localize's rule (site.yaml), applied to the detections
         result["excluded_cameras"] = sorted(exclude)  # cameras whose exclusion zones (site.yaml) were applied
         line = ("{name:8s} precision {precision} recall {recall} ({labels} labels, {detections} detections within "
                 f"{result['roi_m']:g} m)")

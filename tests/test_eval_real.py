@@ -108,6 +108,19 @@ def test_exclusion_zones_drop_the_detections_in_them_as_localize_does(tmp_path):
     assert (r["overall"]["labels"], r["overall"]["true_positives"], r["overall"]["detections"]) == (1, 0, 1)
 
 
+def test_a_second_peak_on_one_vehicle_is_dropped_as_localize_drops_it(tmp_path):
+    site, footage = _site(tmp_path)
+    _labels(site, {"2023-12-19 11-00-41-000000.jpg": [[200, 120]]})
+    def detect():  # heading east (+u): a hit, and a weaker peak 12 px = 3 m along the same vehicle
+        return _detector([[[200, 121], [212, 121]]], [[0.6, 0.4]])
+
+    plain = evaluate_real(site / "labels", footage, site / "masks", detect())
+    assert (plain["overall"]["true_positives"], plain["overall"]["detections"]) == (1, 2)
+    r = evaluate_real(site / "labels", footage, site / "masks", detect(), footprint_overlap=1.5, curve=(0.5,))
+    assert (r["overall"]["true_positives"], r["overall"]["detections"]) == (1, 1)
+    assert (r["curve"][0]["true_positives"], r["curve"][0]["detections"]) == (1, 1)
+
+
 def test_perfect_detections_score_one(tmp_path):
     site, footage = _site(tmp_path)
     frames = {"2023-12-19 11-00-41-000000.jpg": [[150, 100], [180, 130]], "2023-12-19 11-00-43-000000.jpg": []}
