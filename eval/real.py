@@ -26,13 +26,15 @@ from scipy.optimize import linear_sum_assignment
 
 from calibration.masks import LookupMasks, excluded, load_masks
 from services.ingest.sources import capture_time_from_name
-from services.localize.lift import lift, overlapping
+from services.localize.lift import lift_kept
 from shared.decode import Detections
 from shared.geo import GeoFrame
+from shared.settings import LocalizeSettings
 
 ROI_M = 25.0
 LABEL_RADIUS_M = 30.0
 MATCH_M = 1.5
+HEADING_STEP_PX = LocalizeSettings().heading_step_px  # localize's default
 
 
 def camera_foot(masks: LookupMasks) -> np.ndarray:
@@ -146,12 +148,9 @@ def score_camera(frames: dict[str, np.ndarray], footage: Path, masks: LookupMask
             raise ValueError(f"{path}: labelled frame is missing or unreadable")
         det = detect(grey) if area_px is None else detect(grey, area_px=area_px)
         l_xy = _label_ground(masks, labels, path)
-        lifted = lift(det_masks, det.uv, det.heading_uv)
-        d_xy_all, d_ok_all = lifted.xy, lifted.valid.copy()
-        k = np.flatnonzero(d_ok_all)
-        d_ok_all[k[overlapping(d_xy_all[k], lifted.yaw[k], det.size_lwh[k], det.score[k], footprint_overlap)]] = False
+        lifted, kept = lift_kept(det_masks, det, HEADING_STEP_PX, footprint_overlap)  # what localize publishes
         for a, thr in zip(acc, thresholds, strict=True):
-            _count(a, d_xy_all[d_ok_all & (np.asarray(det.score) >= thr)], l_xy, foot)
+            _count(a, lifted.xy[kept[np.asarray(det.score)[kept] >= thr]], l_xy, foot)
     return [_scores(a, len(frames)) for a in acc]
 
 

@@ -6,7 +6,7 @@ Loads each camera's masks file (`cameras[].masks`, from `roadside calibrate`) at
 or unreadable one stops the service with one error line. Subscribes to
 `roadside/<site>/cam/*/detections`, publishes Objects (site metres, latitude/longitude, world yaw,
 size) on `roadside/<site>/cam/<camera>/objects`, dropping detections outside the calibrated area and those
-inside the ground footprint of a higher-scoring one (`localize.footprint_overlap`; `lift.overlapping`).
+inside the ground footprint of a higher-scoring one (`localize.footprint_overlap`; `lift.lift_kept`).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import time
 import numpy as np
 
 from calibration.masks import excluded, load_masks
-from services.localize.lift import GroundLookup, lift, overlapping
+from services.localize.lift import GroundLookup, lift_kept
 from shared.bus import BadInput, Receiver, Stopper, declare_alive, open_session
 from shared.codec import encode
 from shared.geo import GeoFrame
@@ -54,9 +54,7 @@ def objects_message(det: Detections, masks: GroundLookup, step_px: float, footpr
     if (det.height, det.width) != masks.shape:
         raise ValueError(f"camera {det.camera}: detections for a {det.width}x{det.height} image, "
                          f"masks are {masks.shape[1]}x{masks.shape[0]}")
-    lifted = lift(masks, det.uv, det.heading_uv, step_px)
-    k = np.flatnonzero(lifted.valid)
-    k = k[~overlapping(lifted.xy[k], lifted.yaw[k], det.size_lwh[k], det.score[k], footprint_overlap)]
+    lifted, k = lift_kept(masks, det, step_px, footprint_overlap)
     f4 = np.float32
     return Objects(
         site=det.site, camera=det.camera, seq=det.seq, t_capture_ns=det.t_capture_ns,

@@ -113,3 +113,12 @@ def overlapping(xy: np.ndarray, yaw: np.ndarray, size_lwh: np.ndarray, score: np
         if not drop[a]:  # kept: no kept higher-scoring object overlaps it
             drop |= inside[a]
     return drop
+
+
+def lift_kept(masks: GroundLookup | LookupMasks, det, step_px: float,
+              footprint_overlap: float) -> tuple[Lifted, np.ndarray]:
+    """A frame's detections (uv, heading_uv, size_lwh, score) lifted, and the indices of those localize publishes:
+    inside the calibrated area and not inside a higher-scoring one's footprint (`overlapping`)."""
+    lifted = lift(masks, det.uv, det.heading_uv, step_px)
+    k = np.flatnonzero(lifted.valid)
+    return lifted, k[~overlapping(lifted.xy[k], lifted.yaw[k], det.size_lwh[k], det.score[k], footprint_overlap)]
