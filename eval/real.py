@@ -34,7 +34,6 @@ from shared.settings import LocalizeSettings
 ROI_M = 25.0
 LABEL_RADIUS_M = 30.0
 MATCH_M = 1.5
-HEADING_STEP_PX = LocalizeSettings().heading_step_px  # localize's default
 
 
 def camera_foot(masks: LookupMasks) -> np.ndarray:
@@ -131,13 +130,15 @@ def _label_ground(masks: LookupMasks, labels: np.ndarray, where: object) -> np.n
 def score_camera(frames: dict[str, np.ndarray], footage: Path, masks: LookupMasks,
                  detect: Callable[[np.ndarray], Detections], thresholds: tuple[float, ...] = (0.0,),
                  exclude_px: list | None = None, area_px: tuple[int, int, int, int] | None = None,
-                 footprint_overlap: float = 0.0) -> list[dict]:
+                 localize: LocalizeSettings | None = None) -> list[dict]:
     """Counts for one camera at each score threshold (detections below it left out): tp, detections
     (within ROI_M), labels (within ROI_M), and matched errors. The detector runs once per frame.
     `exclude_px`: the camera's exclusion polygons; detections there are dropped (labels there still count).
     `area_px`: the camera's `detect_area_px`, run as `detect(grey, area_px=...)` as the detect service does.
-    `footprint_overlap`: the site's `localize.footprint_overlap`; detections inside a higher-scoring one's ground
-    footprint are dropped as localize drops them (greedy by score, so the same at every threshold)."""
+    `localize`: the site's localize settings; the detections are lifted and those inside a higher-scoring one's
+    ground footprint dropped as localize does (greedy by score, so the same at every threshold). Default: localize's
+    lift without the footprint rule."""
+    loc = localize or LocalizeSettings(footprint_overlap=0.0)
     foot = camera_foot(masks)
     det_masks = replace(masks, valid=excluded(masks.valid, exclude_px)) if exclude_px else masks
     acc = [{"tp": 0, "n_det": 0, "n_lab": 0, "errors": []} for _ in thresholds]
@@ -148,7 +149,7 @@ def score_camera(frames: dict[str, np.ndarray], footage: Path, masks: LookupMask
             raise ValueError(f"{path}: labelled frame is missing or unreadable")
         det = detect(grey) if area_px is None else detect(grey, area_px=area_px)
         l_xy = _label_ground(masks, labels, path)
-        lifted, kept = lift_kept(det_masks, det, HEADING_STEP_PX, footprint_overlap)  # what localize publishes
+        lifted, kept = lift_kept(det_masks, det, loc.heading_step_px, loc.footprint_overlap)  # what localize publishes
         for a, thr in zip(acc, thresholds, strict=True):
             _count(a, lifted.xy[kept[np.asarray(det.score)[kept] >= thr]], l_xy, foot)
     return [_scores(a, len(frames)) for a in acc]
@@ -192,13 +193,13 @@ def evaluate_real(labels_dir: str | Path, footage: str | Path, masks_dir: str | 
                   folder_pattern: str = "gs_State_Ellsworth_{camera}", score_thr: float = 0.0,
                   curve: tuple[float, ...] = (), exclude_px: dict[str, list] | None = None,
                   detect_area_px: dict[str, tuple[int, int, int, int]] | None = None,
-                  footprint_overlap: float = 0.0) -> dict:
+                  localize: LocalizeSettings | None = None) -> dict:
     """Per camera and overall precision / recall within ROI_M for every `labels_dir`/*.json, for the
     detections scoring at least `score_thr`; `curve`: overall precision / recall at these thresholds too
     (a model's whole trade-off, from the same detector pass; `detect` must keep scores that low).
     `exclude_px`: per camera, the site's exclusion polygons (`cameras[].exclude_px`): detections there are
     dropped as localize drops them. `detect_area_px`: per camera, the site's `cameras[].detect_area_px`.
-    `footprint_overlap`: the site's `localize.footprint_overlap` (`score_camera`)."""
+    `localize`: the site's localize settings (`score_camera`)."""
     labels_dir, footage, masks_dir = Path(labels_dir), Path(footage), Path(masks_dir)
     files = sorted(labels_dir.glob("*.json"))
     if not files:
@@ -213,7 +214,7 @@ def evaluate_real(labels_dir: str | Path, footage: str | Path, masks_dir: str | 
         h, w = masks.shape
         frames = load_labels(f, w, h, held_out_from)
         rows = score_camera(frames, footage / folder_pattern.format(camera=camera), masks, detect, thresholds,
-                            (exclude_px or {}).get(camera), (detect_area_px or {}).get(camera), footprint_overlap)
+                            (exclude_px or {}).get(camera), (detect_area_px or {}).get(camera), localize)
         for acc, row in zip(per_thr, rows, strict=True):
             acc[camera] = row
     out = {"roi_m": ROI_M, "match_m": MATCH_M, "score_thr": score_thr, "overall": _overall(per_thr[0]),

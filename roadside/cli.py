@@ -356,10 +356,10 @@ def _run_eval(args) -> int:
         cams = settings.cameras if settings else []
         exclude = {c.name: c.exclude_px for c in cams if c.exclude_px}
         areas = {c.name: c.detect_area_px for c in cams if c.detect_area_px}
-        overlap = settings.localize.footprint_overlap if settings else 0.0
+        localize = settings.localize if settings else None
         result = evaluate_real(args.site / "labels", args.footage, args.site / "masks", det.detect, score_thr=thr,
-                               curve=curve, exclude_px=exclude, detect_area_px=areas, footprint_overlap=overlap)
-        result["footprint_overlap"] = overlap  # localize's rule (site.yaml), applied to the detections
+                               curve=curve, exclude_px=exclude, detect_area_px=areas, localize=localize)
+        result["footprint_overlap"] = localize.footprint_overlap if localize else 0.0  # localize's rule (site.yaml)
         result["excluded_cameras"] = sorted(exclude)  # cameras whose exclusion zones (site.yaml) were applied
         line = ("{name:8s} precision {precision} recall {recall} ({labels} labels, {detections} detections within "
                 f"{result['roi_m']:g} m)")

@@ -15,6 +15,7 @@ from calibration.masks import LookupMasks
 from eval.real import evaluate_real, evaluate_tracks_real, label_sheet, load_labels
 from roadside.cli import main
 from shared.decode import Detections
+from shared.settings import LocalizeSettings
 
 W, H = 320, 240
 M_PER_PX = 0.25  # the ROI (25 m) is 100 px around the camera's foot at the image centre
@@ -116,7 +117,8 @@ def test_a_second_peak_on_one_vehicle_is_dropped_as_localize_drops_it(tmp_path):
 
     plain = evaluate_real(site / "labels", footage, site / "masks", detect())
     assert (plain["overall"]["true_positives"], plain["overall"]["detections"]) == (1, 2)
-    r = evaluate_real(site / "labels", footage, site / "masks", detect(), footprint_overlap=1.5, curve=(0.5,))
+    r = evaluate_real(site / "labels", footage, site / "masks", detect(), curve=(0.5,),
+                     localize=LocalizeSettings(footprint_overlap=1.5))
     assert (r["overall"]["true_positives"], r["overall"]["detections"]) == (1, 1)
     assert (r["curve"][0]["true_positives"], r["curve"][0]["detections"]) == (1, 1)
 
