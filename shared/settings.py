@@ -156,6 +156,10 @@ class FuseTrackSettings(Strict):
     camera_timeout_ms: float = Field(1000.0, gt=0)  # wall time without frames before a camera is not waited for
     merge_gate_m: float = Field(3.0, gt=0)  # objects of two cameras this close are one vehicle
     occlusion_fallback: bool = False  # keep out-of-region objects nobody else saw (services/fuse_track/fusion.py)
+    # without occlusion_fallback: such an object within this distance of its own camera may still extend a confirmed
+    # track, never start one (a vehicle hidden from its region's camera keeps its track while a neighbour sees it;
+    # chosen on the validation recording, README "Hidden from its own camera"). 0: dropped, the paper's rule
+    extend_range_m: float = Field(50.0, ge=0)
     gate_m: float = Field(3.0, gt=0)  # largest track-to-measurement distance
     max_age_ticks: int = Field(3, ge=1)
     min_hits: int = Field(3, ge=1)

@@ -458,6 +458,19 @@ def test_environment_overrides_nested_fields_and_keeps_the_rest(tmp_path, monkey
     assert s.ingest.pace == "max"
 
 
+def test_fuse_track_extend_range_reaches_the_services_fusion(tmp_path, monkeypatch) -> None:
+    import services.fuse_track.__main__ as fuse_track
+
+    monkeypatch.setattr(fuse_track, "camera_positions", lambda s: ({"NE": (0.0, 0.0), "T_SW": (50.0, 0.0)}, None))
+    s = load_settings(write_site(tmp_path, SITE_YAML))
+    assert s.fuse_track.extend_range_m == 50.0 and fuse_track.build(s)[0].config.extend_range_m == 50.0
+    monkeypatch.setenv("ROADSIDE_FUSE_TRACK__EXTEND_RANGE_M", "0")
+    assert fuse_track.build(load_settings(write_site(tmp_path, SITE_YAML)))[0].config.extend_range_m == 0.0
+    monkeypatch.setenv("ROADSIDE_FUSE_TRACK__EXTEND_RANGE_M", "-5")
+    with pytest.raises(ValueError, match=r"fuse_track\.extend_range_m"):
+        load_settings(write_site(tmp_path, SITE_YAML))
+
+
 def test_environment_override_is_validated(tmp_path, monkeypatch) -> None:
     monkeypatch.setenv("ROADSIDE_BUS__MODE", "broker")
     with pytest.raises(ValueError, match=r"site.yaml: bus.mode"):

@@ -407,6 +407,58 @@ def test_fusion_prefers_the_region_camera_and_keeps_occluded_objects_when_asked(
     assert strict.xy[0, 0] == pytest.approx(fused.xy[0, 0])
 
 
+def test_fusion_keeps_an_object_its_region_camera_missed_as_extend_only_within_range():
+    regions = [CameraRegion("A", (-20.0, 0.0)), CameraRegion("B", (20.0, 0.0))]
+    fusion = Fusion(regions, FusionConfig(merge_gate_m=2.5, extend_range_m=40.0))
+    objects = ObjectBatch.concat([
+        frame("A", 0, [[-15.0, 0.0]], score=0.8),
+        # B: A's vehicle (merged), one in A's region that A missed 31 m from B (extend-only), one 52 m from B
+        # (beyond the range: dropped), and one in its own region (an ordinary object)
+        frame("B", 0, [[-14.5, 0.0], [-10.0, 8.0], [-32.0, 0.0], [15.0, 0.0]], score=0.8),
+    ])
+    fused = fusion.fuse(objects, 0)
+    assert [fused.sources_of(i) for i in range(len(fused))] == [["A", "B"], ["B"], ["B"]]
+    assert np.allclose(fused.xy[1:], [[15.0, 0.0], [-10.0, 8.0]])
+    assert fused.extend_mask().tolist() == [False, False, True]
+    # a fallback object joined by an ordinary one of a camera without a region is ordinary
+    mixed = fusion.fuse(ObjectBatch.concat([objects, frame("C", 0, [[-10.5, 8.0]])]), 0)
+    assert mixed.extend_mask().tolist() == [False, False, False] and mixed.sources_of(2) == ["B", "C"]
+    # range 0 is the paper's rule; the full occlusion fallback keeps it as an ordinary object
+    assert len(Fusion(regions, FusionConfig(merge_gate_m=2.5)).fuse(objects, 0)) == 2
+    full = Fusion(regions, FusionConfig(merge_gate_m=2.5, occlusion_fallback=True, extend_range_m=40.0))
+    assert not full.fuse(objects, 0).extend_mask().any() and len(full.fuse(objects, 0)) == 4
+    with pytest.raises(ValueError, match="extend_range_m"):
+        FusionConfig(extend_range_m=-1.0)
+
+
+def test_extend_only_objects_extend_a_confirmed_track_but_never_start_one():
+    tracker = Tracker(TrackerConfig(min_hits=2, max_age_ticks=3, report_coasting_ticks=0))
+
+    def hidden(t_ns: int, xy) -> ObjectBatch:  # B's objects in A's region, kept by the fusion as extend-only
+        b = frame("B", t_ns, xy, score=0.95)
+        return ObjectBatch(b.camera, b.t_ns, b.xy, b.yaw, b.size_lwh, b.vtype, b.score,
+                           extend_only=np.ones(len(b), bool))
+
+    # extend-only objects alone never start a track, whatever their score or how long they last
+    for k in range(5):
+        assert len(tracker.update(hidden(k * 100 * MS, [[5.0, 0.0]]), k * 100 * MS)) == 0
+    assert len(tracker) == 0
+    # a confirmed track goes on with them while its region's camera misses the vehicle, under its id
+    ids = []
+    for k in range(5, 15):
+        t = k * 100 * MS
+        seen = frame("A", t, [[5.0, 0.0]]) if k < 8 else hidden(t, [[5.0, 0.0]])
+        ids.append(tracker.update(seen, t).id.tolist())
+    assert ids[0] == [] and all(i == ids[1] for i in ids[1:]) and len(ids[1]) == 1
+    # an ordinary object on the track takes it before an extend-only one does (which then starts nothing)
+    t = 15 * 100 * MS
+    state = tracker.update(ObjectBatch.concat([hidden(t, [[5.0, 0.0]]), frame("A", t, [[5.2, 0.0]])]), t)
+    assert state.id.tolist() == ids[1] and state.xy[0, 0] > 5.0 and len(tracker) == 1
+    b = hidden(t, [[5.0, 0.0], [9.0, 0.0]])
+    with pytest.raises(ValueError, match="extend_only"):
+        ObjectBatch(b.camera, b.t_ns, b.xy, b.yaw, b.size_lwh, b.vtype, b.score, extend_only=np.array([1, 0]))
+
+
 def test_fusion_aligns_reversed_headings_and_brings_objects_to_a_common_time():
     fusion = Fusion([CameraRegion("A", (-20.0, 0.0)), CameraRegion("B", (20.0, 0.0))])
     # One vehicle at 15 m/s east seen by A at t=-40 ms and by B at t=+40 ms with its heading reversed.
@@ -546,3 +598,8 @@ def test_select_and_concat_keep_every_column_and_the_sources():
     assert last.vtype.tolist() == [2, 1] and last.score.tolist() == [0.9, 0.4] and last.yaw.tolist() == [0.2, 0.3]
     assert [last.sources_of(i) for i in range(2)] == [["A"], ["B", "C"]]
     assert ObjectBatch.concat([a, a]).sources is None and len(a.select(np.zeros(0, int))) == 0
+    assert ab.extend_only is None
+    e = ObjectBatch(b.camera, b.t_ns, b.xy, b.yaw, b.size_lwh, b.vtype, b.score, extend_only=np.array([True]))
+    ae = ObjectBatch.concat([a, e])
+    assert ae.extend_mask().tolist() == [False, False, True]
+    assert ae.select(np.array([2, 0])).extend_mask().tolist() == [True, False]

@@ -120,7 +120,7 @@ def build(settings: Settings) -> tuple[Fusion, Tracker, TickBuffer, dict[str, tu
     regions = [CameraRegion(c.name, positions[c.name], np.asarray(c.region_m) if c.region_m else None)
                for c in settings.cameras]
     fusion = Fusion(regions, FusionConfig(merge_gate_m=cfg.merge_gate_m, occlusion_fallback=cfg.occlusion_fallback,
-                                          split_score=cfg.high_score))
+                                          extend_range_m=cfg.extend_range_m, split_score=cfg.high_score))
     tracker = Tracker(TrackerConfig(gate_m=cfg.gate_m, max_age_ticks=cfg.max_age_ticks, min_hits=cfg.min_hits,
                                     high_score=cfg.high_score, standing_hits=cfg.standing_hits))
     ticks: TickBuffer = TickBuffer(positions, TickConfig(tick_ms=cfg.tick_ms, watermark_ms=cfg.watermark_ms,

@@ -14,7 +14,11 @@ default), optionally cut at `max_range_m`. Then, for the objects of one tick:
    on its own when no camera whose region contains it saw anything within `merge_gate_m`; that also keeps
    every far-off false positive of a camera wherever the region's own camera saw nothing: on the demo
    (four fisheye cameras, the shipped detector) MOTA -0.11 with the fallback and 0.48 without, so it is
-   off by default. Objects of a camera without a region are always kept;
+   off by default. Instead, such an object within `extend_range_m` of its own camera is kept as
+   *extend-only* (`ObjectBatch.extend_only`): the tracker lets it extend a confirmed track that nothing
+   else matched, never start one, so a vehicle hidden from its region's camera behind another keeps its
+   track while a neighbour sees it, and a far-off false positive finds no track to extend. Objects of a
+   camera without a region are always kept;
 4. each group becomes one object: position the weighted mean (weight = score x region weight),
    yaw the weighted circular mean after aligning 180-degree reversals to the heaviest member,
    size the weighted mean, type the weighted vote, score the maximum; `sources` lists its cameras.
@@ -95,7 +99,9 @@ class ObjectBatch:
     frame; yaw (N,) float64 rad ENU, counter-clockwise from east; size_lwh (N, 3) float64 metres,
     all > 0; vtype (N,) int64 index into VEHICLE_TYPES (0..127); score (N,) float64 in [0, 1];
     sources: per object the cameras whose objects went into it; None (the default) means each
-    object's own camera; read it with `sources_of(i)`.
+    object's own camera; read it with `sources_of(i)`. extend_only: (N,) bool, objects that may extend a
+    confirmed track but never start one (the fusion's occlusion fallback, module docstring 3); None (the
+    default) means none; read it with `extend_mask()`.
     Validated on construction: ValueError naming the field.
     """
 
@@ -107,6 +113,7 @@ class ObjectBatch:
     vtype: np.ndarray
     score: np.ndarray
     sources: list[list[str]] | None = None
+    extend_only: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         cam = np.asarray(self.camera)
@@ -135,6 +142,11 @@ class ObjectBatch:
         sources = self.sources
         if sources is not None and (len(sources) != n or not all(isinstance(s, list) and s for s in sources)):
             raise ValueError(f"ObjectBatch.sources must be {n} non-empty lists of camera names, got {sources!r}")
+        if self.extend_only is not None:
+            ext = np.asarray(self.extend_only)
+            if ext.dtype != bool or ext.shape != (n,):
+                raise ValueError(f"ObjectBatch.extend_only must be ({n},) bool, got {ext.shape} {ext.dtype}")
+            object.__setattr__(self, "extend_only", ext)
         for k, v in cols.items():
             object.__setattr__(self, k, v)
 
@@ -144,6 +156,10 @@ class ObjectBatch:
     def sources_of(self, i: int) -> list[str]:
         """The cameras whose objects went into row i."""
         return list(self.sources[i]) if self.sources is not None else [str(self.camera[i])]
+
+    def extend_mask(self) -> np.ndarray:
+        """(N,) bool: the rows that may only extend a confirmed track."""
+        return self.extend_only if self.extend_only is not None else np.zeros(len(self), bool)
 
     @classmethod
     def empty(cls) -> ObjectBatch:
@@ -164,24 +180,32 @@ class ObjectBatch:
         if not batches:
             return cls.empty()
         cat = {k: np.concatenate([getattr(b, k) for b in batches]) for k in COLUMNS}
+        ext = None
+        if any(b.extend_only is not None for b in batches):
+            ext = np.concatenate([b.extend_mask() for b in batches])
         if all(b.sources is None for b in batches):
-            return cls._validated(**cat)
-        return cls._validated(**cat, sources=[b.sources_of(i) for b in batches for i in range(len(b))])
+            return cls._validated(**cat, extend_only=ext)
+        return cls._validated(**cat, sources=[b.sources_of(i) for b in batches for i in range(len(b))],
+                              extend_only=ext)
 
     def select(self, index: np.ndarray) -> ObjectBatch:
         """The rows at `index` (integer indices or a boolean mask)."""
         rows = np.arange(len(self))[index]
         sources = None if self.sources is None else [self.sources[i] for i in rows]
-        return ObjectBatch._validated(**{k: getattr(self, k)[rows] for k in COLUMNS}, sources=sources)
+        ext = None if self.extend_only is None else self.extend_only[rows]
+        return ObjectBatch._validated(**{k: getattr(self, k)[rows] for k in COLUMNS}, sources=sources,
+                                      extend_only=ext)
 
     @classmethod
-    def _validated(cls, sources: list[list[str]] | None = None, **columns: np.ndarray) -> ObjectBatch:
+    def _validated(cls, sources: list[list[str]] | None = None, extend_only: np.ndarray | None = None,
+                   **columns: np.ndarray) -> ObjectBatch:
         """A batch of rows taken from batches that were validated on construction (`select`, `concat`): the
         columns already have their dtypes and shapes, so the checks are not run again on the per-tick path."""
         batch = object.__new__(cls)
         for k in COLUMNS:
             object.__setattr__(batch, k, columns[k])
         object.__setattr__(batch, "sources", sources)
+        object.__setattr__(batch, "extend_only", extend_only)
         return batch
 
 
@@ -220,6 +244,8 @@ class FusionConfig:
     one inside (~ the variance ratio of in- and out-of-region localization, (0.22 / 0.49)^2 in the
     paper); min_score: objects below it are ignored (the paper fuses high-certainty detections only);
     occlusion_fallback: keep an object outside its camera's region that no region owner saw (module doc, 3);
+    extend_range_m: without occlusion_fallback, keep such an object as extend-only when it lies within this distance
+    of its own camera (module doc, 3; 0 = drop it, the paper's rule);
     split_score: objects below it are fused only with each other, those at or above it only with each other
     (for the tracker's two rounds, `TrackerConfig.high_score`: a low-score object inside its camera's region
     would otherwise let a high-score one from outside it join its group and start a track; 0 = one pool)."""
@@ -228,6 +254,7 @@ class FusionConfig:
     out_of_region_weight: float = 0.2
     min_score: float = 0.0
     occlusion_fallback: bool = False
+    extend_range_m: float = 0.0
     split_score: float = 0.0
 
     def __post_init__(self) -> None:
@@ -235,6 +262,8 @@ class FusionConfig:
             raise ValueError(f"merge_gate_m must be > 0, got {self.merge_gate_m}")
         if not 0 < self.out_of_region_weight <= 1:
             raise ValueError(f"out_of_region_weight must be within (0, 1], got {self.out_of_region_weight}")
+        if not (np.isfinite(self.extend_range_m) and self.extend_range_m >= 0):
+            raise ValueError(f"extend_range_m must be >= 0, got {self.extend_range_m}")
         for name in ("min_score", "split_score"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ValueError(f"{name} must be within [0, 1], got {getattr(self, name)}")
@@ -314,12 +343,12 @@ class Fusion:
         owners = self.contains(p_ref)  # (N, C)
         in_region = (cam_idx >= 0) & owners[np.arange(n), np.maximum(cam_idx, 0)]
         weight = np.maximum(objects.score, 1e-6) * np.where(in_region, 1.0, self.config.out_of_region_weight)
-        labels = self._group(objects, p_ref, in_region, weight, cam_idx, owners)
-        return self._merge(objects, vel, weight, labels)
+        labels, extend = self._group(objects, p_ref, in_region, weight, cam_idx, owners)
+        return self._merge(objects, vel, weight, labels, extend | objects.extend_mask())
 
     def _group(self, objects: ObjectBatch, p_ref: np.ndarray, in_region: np.ndarray, weight: np.ndarray,
-               cam_idx: np.ndarray, owners: np.ndarray) -> np.ndarray:
-        """(N,) group label per object, -1 for dropped objects."""
+               cam_idx: np.ndarray, owners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(N,) group label per object, -1 for dropped objects, and (N,) bool: kept as extend-only."""
         gate = self.config.merge_gate_m
         source = frame_labels(objects.camera, objects.t_ns)  # the frame each object comes from
         d = np.hypot(p_ref[:, None, 0] - p_ref[None, :, 0], p_ref[:, None, 1] - p_ref[None, :, 1])
@@ -346,17 +375,22 @@ class Fusion:
                 ok = cost[r[i], j] <= gate
                 labels[out[r[i[ok]]]] = j[ok]
         # 3. Occlusion fallback (objects of cameras without a region always; the others with
-        #    `occlusion_fallback`): an object left over is kept when no camera whose region contains it
-        #    saw anything within the gate, and merged with the other objects kept so.
+        #    `occlusion_fallback`, or as extend-only within `extend_range_m` of their own camera): an object
+        #    left over is kept when no camera whose region contains it saw anything within the gate, and merged
+        #    with the other objects kept so.
+        extend = np.zeros(len(objects), bool)
         rest = out[labels[out] < 0]
-        if not self.config.occlusion_fallback:
-            rest = rest[cam_idx[rest] < 0]  # only objects of cameras without a region
+        full = (cam_idx[rest] < 0) | self.config.occlusion_fallback
+        if self.config.extend_range_m > 0 and not full.all():
+            own = self._pos[np.maximum(cam_idx[rest], 0)]
+            extend[rest] = ~full & (np.hypot(*(p_ref[rest] - own).T) <= self.config.extend_range_m)
+        rest = rest[full | extend[rest]]
         if len(rest):
             known = np.flatnonzero(cam_idx >= 0)
             seen = (d[np.ix_(rest, known)] <= gate) & owners[np.ix_(rest, cam_idx[known])]
             rest = rest[~seen.any(axis=1)]
             labels[rest] = g + self._cluster(rest, d, source, weight, p_ref)
-        return labels
+        return labels, extend & (labels >= 0)
 
     def _cluster(self, rows: np.ndarray, d: np.ndarray, source: np.ndarray, weight: np.ndarray,
                  p_ref: np.ndarray) -> np.ndarray:
@@ -394,7 +428,9 @@ class Fusion:
             has = np.concatenate([has, fresh])
         return out
 
-    def _merge(self, objects: ObjectBatch, vel: np.ndarray, weight: np.ndarray, labels: np.ndarray) -> ObjectBatch:
+    def _merge(self, objects: ObjectBatch, vel: np.ndarray, weight: np.ndarray, labels: np.ndarray,
+               extend: np.ndarray) -> ObjectBatch:
+        """One object per group; a group is extend-only when all its members are."""
         kept = np.flatnonzero(labels >= 0)
         lab, w = labels[kept], weight[kept]
         g = int(lab.max()) + 1 if len(lab) else 0
@@ -426,6 +462,10 @@ class Fusion:
         sources: list[set[str]] = [set() for _ in range(g)]
         for gi, cameras in zip(lab.tolist(), members, strict=True):
             sources[gi].update(cameras)
+        ext = None
+        if extend[kept].any():
+            ext = np.bincount(lab, ~extend[kept], g) == 0
         return ObjectBatch(
             camera=objects.camera[kept][first], t_ns=t0 + np.round(t_out_s * NS_PER_S).astype(np.int64), xy=xy,
-            yaw=yaw, size_lwh=size, vtype=np.argmax(votes, axis=1), score=score, sources=[sorted(s) for s in sources])
+            yaw=yaw, size_lwh=size, vtype=np.argmax(votes, axis=1), score=score, sources=[sorted(s) for s in sources],
+            extend_only=ext)

@@ -64,7 +64,9 @@ class TrackerConfig:
     detector is unsure of in one frame keeps its track and id instead of breaking it); 0 = one round.
     standing_hits: with high_score, a low-score object left unmatched starts a tentative track that needs this
     many consecutive hits (by objects of any score) to be confirmed, instead of min_hits; 0 = low-score objects
-    never start tracks."""
+    never start tracks. Objects marked extend-only (`ObjectBatch.extend_only`, the fusion's occlusion fallback)
+    come last, whatever their score: they may extend a confirmed track that neither round matched, never start
+    one."""
 
     gate_m: float = 3.0
     max_age_ticks: int = 3
@@ -253,22 +255,26 @@ class Tracker:
             self._age += 1
             self._since_hit += 1
         self._cameras = [[] for _ in range(len(self._ids))]
-        high = objects.score >= self.config.high_score
+        extend = objects.extend_mask()  # the fusion's occlusion fallback: may extend a confirmed track, never start one
+        high = (objects.score >= self.config.high_score) & ~extend
         rows, tracks = self._associate(objects, np.flatnonzero(high), np.arange(len(self._ids)))
         self._need[tracks] = np.minimum(self._need[tracks], self.config.min_hits)  # a high-score hit: as if born high
-        if not high.all():  # second round: the low-score objects may only extend tracks the first left unmatched
+        if not high.all():  # second round: the low-score objects may only extend tracks the first left unmatched,
+            # third: the extend-only objects confirmed tracks that neither round matched
             free = np.ones(len(self._ids), bool)
             free[tracks] = False
             # (with standing_hits, tentative tracks too: those low-score objects started need their hits)
             open_ = self._confirmed | (self.config.standing_hits > 0)
-            rows2, tracks2 = self._associate(objects, np.flatnonzero(~high), np.flatnonzero(free & open_))
-            rows, tracks = np.concatenate([rows, rows2]), np.concatenate([tracks, tracks2])
+            rows2, tracks2 = self._associate(objects, np.flatnonzero(~high & ~extend), np.flatnonzero(free & open_))
+            free[tracks2] = False
+            rows3, tracks3 = self._associate(objects, np.flatnonzero(extend), np.flatnonzero(free & self._confirmed))
+            rows, tracks = np.concatenate([rows, rows2, rows3]), np.concatenate([tracks, tracks2, tracks3])
         self._correct(objects, rows, tracks)
         missed = np.ones(len(self._ids), bool)
         missed[tracks] = False
         self._streak[missed] = 0
         self._drop(t_ns)
-        unmatched = np.ones(len(objects), bool) if self.config.standing_hits else high.copy()
+        unmatched = (np.ones(len(objects), bool) if self.config.standing_hits else high.copy()) & ~extend
         unmatched[rows] = False
         born_low = unmatched & ~high
         self._birth(objects, np.flatnonzero(unmatched & high), self.config.min_hits)
