@@ -300,6 +300,9 @@ def _add_eval(sub) -> None:
     p.add_argument("--near-score", type=float, default=0.3,
                    help="detector: the lowest score of a detection the near-camera metrics count (the detect "
                         "service's threshold)")
+    p.add_argument("--mirror", action="store_true",
+                   help="detector, real: infer each frame and its left-right mirror and average the maps "
+                        "(detect.mirror)")
     p.add_argument("--demo", type=Path, default=Path("out/demo"),
                    help="budget: a roadside demo output folder (objects.jsonl, site/, the recording)")
     p.add_argument("--scenario", action="append",
@@ -350,7 +353,7 @@ def _run_eval(args) -> int:
 
         thr = 0.3 if args.score_thr is None else args.score_thr
         curve = tuple(round(0.05 * k, 2) for k in range(1, 13))  # 0.05 ... 0.6
-        det = OnnxDetector(args.model, threads=args.threads, score_thr=min(thr, *curve))
+        det = OnnxDetector(args.model, threads=args.threads, score_thr=min(thr, *curve), mirror=args.mirror)
         has_settings = args.site.is_file() or (args.site / "site.yaml").is_file()  # a bare labels + masks folder too
         settings = load_settings(args.site) if has_settings else None
         cams = settings.cameras if settings else []
@@ -368,7 +371,7 @@ def _run_eval(args) -> int:
 
     if args.recording is None:
         raise ValueError("eval detector needs --recording")
-    det = OnnxDetector(args.model, threads=args.threads, score_thr=args.score_thr or 0.05)
+    det = OnnxDetector(args.model, threads=args.threads, score_thr=args.score_thr or 0.05, mirror=args.mirror)
     result = evaluate(args.recording, det.detect, every=args.every, fisheye_area_deg=args.fisheye_area_deg,
                       near_m=args.near_m, near_score=args.near_score)
     line = ("{name:8s} ap50 {ap50} loc {loc_err_m} m yaw {yaw_err_deg} deg size {size_err_m} m ({frames} frames); "

@@ -31,6 +31,21 @@ def available_providers(wanted: tuple[str, ...] = PREFERRED_PROVIDERS) -> list[s
 
 
 OUTPUT_NAMES = {"heat", "size", "heading", "vtype_prob", "offset", "axis"}
+# the output channels that change sign when the image is mirrored left to right: the x of the bottom centre's and
+# the box centre's offsets, the x of the heading vector, the sin(2a) of the axis (a -> pi - a)
+MIRROR_NEGATED = {"offset": (0, 2), "heading": (0,), "axis": (1,)}
+
+
+def mirror_average(outputs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The output maps of a batch of two, an image and its left-right mirror, as one image's: the mirror's maps
+    turned back (columns reversed, x-like channels negated) and averaged with the image's (test-time flip)."""
+    out = {}
+    for name, o in outputs.items():
+        back = o[1][..., ::-1].copy()
+        for c in MIRROR_NEGATED.get(name, ()):
+            back[c] = -back[c]
+        out[name] = 0.5 * (o[0] + back)
+    return out
 
 
 def input_scale(width: int, height: int, long_side: int) -> float:
@@ -43,7 +58,7 @@ class OnnxDetector:
     """An exported detector. `detect(grey)` -> Detections in the image's own pixels."""
 
     def __init__(self, path: str | Path, providers: list[str] | None = None, threads: int = 2,
-                 score_thr: float = 0.3, top_k: int = 200, spin: bool = True) -> None:
+                 score_thr: float = 0.3, top_k: int = 200, spin: bool = True, mirror: bool = False) -> None:
         import onnxruntime as ort
 
         path = Path(path)
@@ -73,6 +88,7 @@ class OnnxDetector:
         self.path = path
         self.score_thr = score_thr
         self.top_k = top_k
+        self.mirror = mirror  # infer the image and its mirror as a batch of two and average (`mirror_average`)
 
     @property
     def providers(self) -> list[str]:
@@ -141,9 +157,13 @@ class OnnxDetector:
 
     def _detect(self, grey: np.ndarray, source_scale: float, scale: float | None) -> Detections:
         x, scale = self.preprocess(grey, source_scale, scale)
-        outs = self.session.run(None, {self.input_name: x})
-        det = decode(**{name: o[0] for name, o in zip(self.output_names, outs, strict=True)}, stride=self.stride,
-                     score_thr=self.score_thr, top_k=self.top_k)
+        if self.mirror:
+            outs = self.session.run(None, {self.input_name: np.concatenate([x, x[..., ::-1]])})
+            maps = mirror_average(dict(zip(self.output_names, outs, strict=True)))
+        else:
+            outs = self.session.run(None, {self.input_name: x})
+            maps = {name: o[0] for name, o in zip(self.output_names, outs, strict=True)}
+        det = decode(**maps, stride=self.stride, score_thr=self.score_thr, top_k=self.top_k)
         # network pixel p (centre convention) <- image pixel q: p + 0.5 = (q + 0.5) * scale
         inv = 1.0 / scale
         return det.scaled(inv, inv, 0.5 * inv - 0.5, 0.5 * inv - 0.5)

@@ -140,6 +140,10 @@ class DetectSettings(Strict):
     # 44 ms at 640x480, 2 threads) that the other services sharing the cabinet's cores then lack, for ~4 ms
     # less latency per frame. Off by default; turn on when detect has cores to itself (a GPU box).
     spin: bool = False
+    # test-time flip: infer each frame and its left-right mirror as a batch of two and average the output maps
+    # (shared/inference.py `mirror_average`): twice the inference for better placed, surer detections (README
+    # "Mirror averaging"). For a GPU, or a CPU with cores to spare
+    mirror: bool = False
 
 
 class LocalizeSettings(Strict):

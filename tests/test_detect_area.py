@@ -158,3 +158,68 @@ def test_roadside_area_prints_the_site_setting(tmp_path, capsys):
     assert CameraSettings(name="C", kind="fisheye", width=320, height=240, detect_area_px=(x0, y0, x1, y1))
     assert main(["area", "--frames", str(tmp_path / "missing")]) == 2
     assert "frames folder not found" in capsys.readouterr().err
+
+
+def test_mirror_average_turns_the_mirrors_maps_back():
+    """A mirror's maps that are exactly the image's turned round (columns reversed, the x of the offsets and the
+    heading and the axis's sin 2a negated) average back to the image's own maps."""
+    from shared.inference import MIRROR_NEGATED, mirror_average
+
+    rng = np.random.default_rng(0)
+    shapes = {"heat": 1, "size": 5, "heading": 2, "vtype_prob": 4, "offset": 4, "axis": 2}
+    own = {k: rng.normal(size=(c, 6, 8)).astype(np.float32) for k, c in shapes.items()}
+    outputs = {}
+    for k, o in own.items():
+        turned = o[..., ::-1].copy()
+        for c in MIRROR_NEGATED.get(k, ()):
+            turned[c] = -turned[c]
+        outputs[k] = np.stack([o, turned])
+    back = mirror_average(outputs)
+    for k in own:
+        np.testing.assert_allclose(back[k], own[k], rtol=0, atol=1e-6)
+    # a mirror that saw the same thing unturned gives a different average wherever the x channels are not zero
+    same = mirror_average({k: np.stack([o, o]) for k, o in own.items()})
+    assert not np.allclose(same["offset"][0], own["offset"][0])
+    assert np.allclose(same["heat"], 0.5 * (own["heat"] + own["heat"][..., ::-1]))
+
+
+def test_mirrored_detection_sees_a_mirrored_frame_as_the_mirror_of_the_frame(small_recording):
+    """With `mirror`, the detections of a frame turned left to right are those of the frame turned round; the
+    network alone is not mirror-symmetric."""
+    import cv2
+
+    from sim.recording import Recording
+
+    rec = Recording(small_recording)
+    img = cv2.imread(str(rec.frames("NE")[0][1]), cv2.IMREAD_GRAYSCALE)
+    w = img.shape[1]
+    model = REPO / "models" / "detector_fp32.onnx"
+
+    mirrored = OnnxDetector(model, threads=1, score_thr=0.3, mirror=True)
+    a, b = mirrored.detect(img), mirrored.detect(np.ascontiguousarray(img[:, ::-1]))
+    assert len(a) >= 5 and len(a) == len(b)
+    ia, ib = np.argsort(a.uv[:, 1] * 1e4 + a.uv[:, 0]), np.argsort(b.uv[:, 1] * 1e4 + (w - 1 - b.uv[:, 0]))
+    np.testing.assert_allclose(a.uv[ia, 0], w - 1 - b.uv[ib, 0], atol=1e-3)
+    np.testing.assert_allclose(a.uv[ia, 1], b.uv[ib, 1], atol=1e-3)
+    np.testing.assert_allclose(a.score[ia], b.score[ib], atol=1e-5)
+    np.testing.assert_allclose(a.heading_uv[ia], b.heading_uv[ib] * [-1, 1], atol=1e-4)
+    np.testing.assert_allclose(a.box[ia][:, [0, 2]], w - 1 - b.box[ib][:, [2, 0]], atol=1e-3)
+    plain = OnnxDetector(model, threads=1, score_thr=0.3)
+    p, q = plain.detect(img), plain.detect(np.ascontiguousarray(img[:, ::-1]))
+    d = np.abs(p.uv[:, None, 0] - (w - 1 - q.uv[None, :, 0])) + np.abs(p.uv[:, None, 1] - q.uv[None, :, 1])
+    assert len(p) != len(q) or d.min(axis=1).max() > 0.01
+
+
+def test_the_detect_service_mirrors_when_its_site_says_so(tmp_path):
+    import yaml
+
+    from services.detect.__main__ import load_detector
+    from shared.settings import load_settings
+
+    site = {"site": "t", "cameras": [{"name": "NE", "kind": "fisheye", "width": 1280, "height": 960}],
+            "detect": {"model": str(REPO / "models" / "detector_fp32.onnx"), "providers": ["CPUExecutionProvider"]}}
+    (tmp_path / "site.yaml").write_text(yaml.safe_dump(site))
+    assert load_detector(load_settings(tmp_path / "site.yaml")).mirror is False
+    site["detect"]["mirror"] = True
+    (tmp_path / "site.yaml").write_text(yaml.safe_dump(site))
+    assert load_detector(load_settings(tmp_path / "site.yaml")).mirror is True
