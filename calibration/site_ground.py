@@ -3,7 +3,7 @@
 Per camera, `calibration.fit` follows the ground with a few planes fitted to that camera's own 5-20
 landmarks, and what is left of a forward-looking camera's error is the ground those planes cannot follow:
 on the simulated State/Ellsworth site, thermal cameras refitted on the TRUE terrain fall from 0.31 to
-0.20 m in-ROI (README, Calibration). The cameras of a site look at one ground, so their landmarks
+0.20 m in-ROI (docs/calibration.md). The cameras of a site look at one ground, so their landmarks
 together sample it far more densely than any camera's alone. `calibrate_site`:
 
 1. calibrates every camera on its own (`calibrate`: lens, pose, outlier rejection);
@@ -16,7 +16,7 @@ together sample it far more densely than any camera's alone. `calibrate_site`:
 4. repeats 2-3 (`iterations`) with the refitted cameras.
 
 Fisheye cameras keep their own planes: their steep rays say little about height, and refitted on the
-shared surface they did worse (0.250 -> 0.285 m in-ROI, against 0.325 -> 0.239 m for thermal; README).
+shared surface they did worse (0.250 -> 0.285 m in-ROI, against 0.325 -> 0.239 m for thermal; docs/calibration.md).
 Their landmarks still feed the surface, with the low weight of a steep ray.
 """
 

@@ -21,7 +21,7 @@ away at a time:
 A camera "sees" a vehicle as in eval/tracking.py. Objects scoring below the site's `detect.score_thr` are left out
 first, so a run detected at a lower threshold can be replayed at any higher one (environment overrides such as
 `ROADSIDE_DETECT__SCORE_THR`, `ROADSIDE_FUSE_TRACK__HIGH_SCORE` apply, as for the services). The figures tell
-which part of the pipeline to improve next; they are not the run's score (README, "The live pipeline").
+which part of the pipeline to improve next; they are not the run's score (docs/pipeline.md, "Where the MOTA goes").
 """
 
 from __future__ import annotations

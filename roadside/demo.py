@@ -48,7 +48,7 @@ class DemoConfig:
     # cameras and calibration procedure), never on the demo's own (seed 2024), with the shipped model (run 8,
     # models/README.md): one round at 0.30 / 0.33 / 0.35 / 0.36 / 0.38 / 0.39 gave MOTA 0.618 / 0.639 / 0.653 /
     # 0.656 / 0.651 / 0.602 there; tracks started at 0.36 and extended by detections down to 0.33 (fuse_track.
-    # high_score, ByteTrack's second round) 0.656, id switches 26 against 31 (README, "The live pipeline").
+    # high_score, ByteTrack's second round) 0.656, id switches 26 against 31 (docs/pipeline.md).
     score_thr: float = 0.33
     high_score: float = 0.36  # fuse_track.high_score: objects below it only extend confirmed tracks
     port_base: int = 7451

@@ -141,7 +141,7 @@ class DetectSettings(Strict):
     # less latency per frame. Off by default; turn on when detect has cores to itself (a GPU box).
     spin: bool = False
     # test-time flip: infer each frame and its left-right mirror as a batch of two and average the output maps
-    # (shared/inference.py `mirror_average`): twice the inference for better placed, surer detections (README
+    # (shared/inference.py `mirror_average`): twice the inference for better placed, surer detections (docs/pipeline.md
     # "Mirror averaging"). For a GPU, or a CPU with cores to spare
     mirror: bool = False
 
@@ -162,7 +162,7 @@ class FuseTrackSettings(Strict):
     occlusion_fallback: bool = False  # keep out-of-region objects nobody else saw (services/fuse_track/fusion.py)
     # without occlusion_fallback: such an object within this distance of its own camera may still extend a confirmed
     # track, never start one (a vehicle hidden from its region's camera keeps its track while a neighbour sees it;
-    # chosen on the validation recording, README "Hidden from its own camera"). 0: dropped, the paper's rule
+    # chosen on the validation recording, docs/pipeline.md "Hidden from its own camera"). 0: dropped, the paper's rule
     extend_range_m: float = Field(50.0, ge=0)
     gate_m: float = Field(3.0, gt=0)  # largest track-to-measurement distance
     max_age_ticks: int = Field(3, ge=1)
