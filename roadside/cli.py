@@ -623,10 +623,21 @@ def _run_tracks(args) -> int:
 
 
 def _add_viz(sub) -> None:
-    p = sub.add_parser("viz", help="turn a tracks file into a Rerun .rrd (trajectories over the site map)")
-    p.add_argument("tracks", type=Path, help="tracks JSON-lines file (fuse_track.record)")
+    p = sub.add_parser("viz", help="turn a tracks file, or the live tracks, into a Rerun .rrd (trajectories over the "
+                       "site map)")
+    p.add_argument("tracks", type=Path, nargs="?", help="tracks JSON-lines file (fuse_track.record); or --live")
     p.add_argument("--out", type=Path, required=True, help=".rrd file to write")
-    p.add_argument("--site", type=Path, help="site folder or site.yaml (its origin places lat/lon rows)")
+    p.add_argument("--site", type=Path, help="site folder or site.yaml (its origin places lat/lon rows; with --live "
+                   "also the site's name and bus)")
+    p.add_argument("--live", action="store_true", help="subscribe to the site's live tracks instead of reading a "
+                   "file, until Ctrl-C, --count or --timeout (needs --site)")
+    p.add_argument("--connect", action="append", default=[],
+                   help="with --live: Zenoh endpoint, the cabinet's router tcp/HOST:7447 (default: the site's local "
+                   "fuse_track)")
+    p.add_argument("--viewer", help="with --live: also stream to a running Rerun viewer at this URL (e.g. "
+                   "rerun+http://127.0.0.1:9876/proxy)")
+    p.add_argument("--count", type=int, help="with --live: stop after this many messages")
+    p.add_argument("--timeout", type=float, help="with --live: stop after this many seconds without tracks")
     p.add_argument("--basemap", type=Path, help="world file (YAML/JSON: image + corners) of an orthophoto")
     p.add_argument("--recording", type=Path, help="simulator recording: draw its site's ground as the map")
     p.add_argument("--frames", help="also log the camera frames of this source (recording, image folders; needs "
@@ -669,6 +680,13 @@ def _viz_frames(args):
 def _run_viz(args) -> int:
     from services.rerun_sink import tracks_file_to_rrd
 
+    if args.live:
+        return _run_viz_live(args)
+    if args.tracks is None:
+        raise ValueError("viz needs a tracks file, or --live to subscribe to the live tracks")
+    for flag in ("connect", "viewer", "count", "timeout"):
+        if getattr(args, flag):
+            raise ValueError(f"--{flag} goes with --live")
     origin = None
     if args.site:
         from shared.settings import load_settings
@@ -685,6 +703,54 @@ def _run_viz(args) -> int:
     print(json.dumps(tracks_file_to_rrd(args.tracks, args.out, site_origin=origin, basemap=basemap, frames=frames),
                      indent=1))
     return 0
+
+
+def _run_viz_live(args) -> int:
+    """`roadside viz --live`: the site's live tracks into an .rrd (and a viewer), until Ctrl-C / SIGTERM, --count or
+    --timeout; the file holds every message received before the stop."""
+    import signal
+    import threading
+
+    import rerun as rr
+
+    from services.rerun_sink import live
+    from shared.client import TrackClient
+    from shared.settings import load_settings
+
+    if args.tracks is not None or args.recording or args.frames:
+        raise ValueError("--live takes no tracks file, --recording or --frames")
+    if args.site is None:
+        raise ValueError("--live needs --site (the site's name, origin and bus)")
+    if args.count is not None and args.count < 1:
+        raise ValueError(f"--count must be >= 1, got {args.count}")
+    if args.timeout is not None and not args.timeout > 0:
+        raise ValueError(f"--timeout must be > 0, got {args.timeout}")
+    settings = load_settings(site_path(args.site))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    rec = rr.RecordingStream("roadside")
+    sinks = [rr.FileSink(str(args.out))] + ([rr.GrpcSink(args.viewer)] if args.viewer else [])
+    rec.set_sinks(*sinks)
+    rec.send_recording_name(f"{settings.site} live")
+    with TrackClient(settings.site, args.connect or None, settings.bus) as client:
+        def messages():
+            for n, tracks in enumerate(client.stream(timeout_s=args.timeout, stop=stop), 1):
+                yield tracks
+                if args.count and n >= args.count:
+                    return
+
+        try:
+            summary = live(messages(), rec, site_origin=settings.origin, basemap=args.basemap)
+        finally:
+            rec.flush()
+            rec.disconnect()
+        summary["bad_messages"] = client.bad.total
+    print(json.dumps({"site": settings.site, "rrd": str(args.out), **summary}, indent=1))
+    if not summary["messages"]:
+        print("roadside viz: no tracks received", file=sys.stderr)
+    return 0 if summary["messages"] else 1
 
 
 def _add_health(sub) -> None:

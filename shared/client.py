@@ -16,6 +16,7 @@ Bad messages are counted in `client.bad` and skipped.
 from __future__ import annotations
 
 import json
+import threading
 import time
 from collections.abc import Iterator
 
@@ -54,8 +55,10 @@ class TrackClient:
             return msg  # type: ignore[return-value]
         return None
 
-    def stream(self, timeout_s: float | None = None, poll_s: float = 0.1) -> Iterator[Tracks]:
-        """The current tracks at once, then every new message; stops after `timeout_s` without one.
+    def stream(self, timeout_s: float | None = None, poll_s: float = 0.1,
+               stop: threading.Event | None = None) -> Iterator[Tracks]:
+        """The current tracks at once, then every new message; stops after `timeout_s` without one, or within
+        `poll_s` of `stop` being set (e.g. by a signal handler: the caller's loop then ends normally).
         Live messages of the same tracker not newer than the current one (already queued when it was asked
         for) are skipped; a restarted fuse_track (another tracker id, seq from 0) is followed at once."""
         last: tuple[str, int] | None = None
@@ -64,7 +67,7 @@ class TrackClient:
             last = (current.tracker, current.seq)
             yield current
         quiet_since = time.monotonic()
-        while True:
+        while stop is None or not stop.is_set():
             got = False
             for msg in self.receiver.poll():
                 if last is not None and msg.tracker == last[0] and msg.seq <= last[1]:

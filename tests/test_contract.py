@@ -653,6 +653,28 @@ def test_client_stream_gives_the_current_tracks_then_only_newer_ones() -> None:
     assert got == [("tracker-a", 5), ("tracker-a", 6), ("tracker-b", 0), ("tracker-b", 5)]
 
 
+def test_client_stream_ends_when_told_to_stop() -> None:
+    import threading
+
+    from shared.client import TrackClient
+
+    class Quiet:  # no message ever comes
+        def poll(self) -> list[Tracks]:
+            return []
+
+        def wait(self, timeout_s: float) -> None:
+            pass
+
+    client = TrackClient.__new__(TrackClient)
+    client.latest = lambda timeout_s=2.0: make_tracks(1, seq=5, tracker="tracker-a")
+    client.receiver = Quiet()
+    stop = threading.Event()
+    stream = client.stream(timeout_s=None, poll_s=0.001, stop=stop)
+    assert next(stream).seq == 5  # the current tracks at once
+    stop.set()
+    assert list(stream) == []  # without a timeout it would wait for ever
+
+
 def test_fuse_track_refuses_implausible_objects() -> None:
     from services.fuse_track.__main__ import implausible
 

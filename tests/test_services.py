@@ -526,6 +526,69 @@ def test_a_late_client_gets_the_current_tracks_at_once(site, site_name, port_bas
     assert_clean_exit(fuse, fuse.terminate())
 
 
+def test_viz_live_records_the_live_tracks_until_count_or_sigterm(site, site_name, port_base, peer, launch, tmp_path):
+    """`roadside viz --live` subscribes like a vehicle and writes what it receives to an .rrd: it stops after
+    --count messages, or on SIGTERM with everything received before it in the file (exit 0); the summary names
+    the site and counts the messages and tracks."""
+    import threading
+
+    peer.subscribe("tracks", tracks_key(site_name), Tracks)
+    fuse = launch("fuse_track", site, *bus_sets(port_base), "fuse_track.min_hits=1")
+    assert peer.wait_alive(f"roadside/{site_name}/alive/fuse_track/*", 1, WAIT_S), fuse.log()
+    key = camera_key(site_name, CAMERA, "objects")
+    warm_up(peer, key, encode(good_objects(site_name, 0)), lambda: peer.got["tracks"], "good objects")
+    done = threading.Event()
+
+    def keep_feeding() -> None:
+        s = 1
+        while not done.is_set():
+            feed(peer, key, site_name, range(s, s + 1), pause_s=0.1)
+            s += 1
+
+    feeder = threading.Thread(target=keep_feeding, daemon=True)
+    feeder.start()
+    base = [sys.executable, "-m", "roadside", "viz", "--live", "--site", str(site),
+            "--connect", f"tcp/127.0.0.1:{port_base + 3}", "--timeout", "30"]
+    try:
+        counted = subprocess.run([*base, "--out", str(tmp_path / "count.rrd"), "--count", "3"], env=service_env(),
+                                 capture_output=True, text=True, timeout=120)
+        assert counted.returncode == 0, counted.stderr[-2000:]
+        summary = json.loads(counted.stdout)
+        assert (summary["site"], summary["messages"], summary["bad_lines"]) == (site_name, 3, 0)
+        assert summary["tracks"] >= 1 and (tmp_path / "count.rrd").stat().st_size > 1000
+
+        proc = subprocess.Popen([*base, "--out", str(tmp_path / "live.rrd")], env=service_env(),
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            assert wait_until(lambda: (tmp_path / "live.rrd").is_file()
+                              and (tmp_path / "live.rrd").stat().st_size > 1000, 60), "no tracks reached the file"
+            proc.send_signal(signal.SIGTERM)
+            out, err = proc.communicate(timeout=60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        assert proc.returncode == 0, err[-2000:]
+        summary = json.loads(out)
+        assert summary["messages"] >= 1 and summary["tracks"] >= 1 and summary["bad_messages"] == 0
+    finally:
+        done.set()
+        feeder.join(10)
+    assert_clean_exit(fuse, fuse.terminate())
+
+
+def test_viz_refuses_mixed_or_missing_sources(tmp_path, capsys):
+    from roadside.cli import main
+
+    tracks = tmp_path / "t.jsonl"
+    tracks.write_text("")
+    for argv, message in [([], "needs a tracks file, or --live"),
+                          ([str(tracks), "--count", "3"], "--count goes with --live"),
+                          (["--live"], "--live needs --site"),
+                          (["--live", str(tracks)], "--live takes no tracks file")]:
+        assert main(["viz", *argv, "--out", str(tmp_path / "x.rrd")]) == 2
+        assert message in capsys.readouterr().err
+
+
 # --- e. kill and restart: the recording keeps every line and goes on ------------------------------------------------
 
 
