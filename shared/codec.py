@@ -40,12 +40,15 @@ def _unpack_array(field: str, d: dict) -> np.ndarray:
     if set(d) != {"dtype", "shape", "data"}:
         raise DecodeError(f"field {field!r}: an array needs exactly dtype, shape, data (got {sorted(d)})")
     dt, shape, data = d["dtype"], d["shape"], d["data"]
-    if dt not in ALLOWED_DTYPES:
+    if type(dt) is not str or dt not in ALLOWED_DTYPES:  # a list or map is not hashable: test the type first
         raise DecodeError(f"field {field!r}: dtype {dt!r} is not allowed")
-    if not isinstance(shape, list) or not all(isinstance(s, int) and s >= 0 for s in shape) or len(shape) > 4:
+    # type() is int, not isinstance: True and False are ints to Python, not dimensions
+    if not isinstance(shape, list) or not all(type(s) is int and s >= 0 for s in shape) or len(shape) > 4:
         raise DecodeError(f"field {field!r}: bad shape {shape!r}")
     if not isinstance(data, bytes):
         raise DecodeError(f"field {field!r}: data must be bytes")
+    if any(s > MAX_ARRAY_ITEMS for s in shape):  # also keeps a zero-sized shape from reaching numpy's dimension limit
+        raise DecodeError(f"field {field!r}: shape {shape}: items exceed the limit of {MAX_ARRAY_ITEMS} in a dimension")
     n = math.prod(shape)
     if n > MAX_ARRAY_ITEMS:
         raise DecodeError(f"field {field!r}: {n} items exceed the limit of {MAX_ARRAY_ITEMS}")
@@ -83,8 +86,13 @@ def decode(payload: bytes | bytearray | memoryview, expect: type[Message] | None
     if raw.get("v") != (v := cls.model_fields["v"].default):
         raise DecodeError(f"schema version {raw.get('v')!r} is not supported (this build speaks v{v})")
     fields = {}
-    for name, value in raw.items():
-        fields[name] = _unpack_array(name, value) if isinstance(value, dict) else value
+    try:
+        for name, value in raw.items():
+            fields[name] = _unpack_array(name, value) if isinstance(value, dict) else value
+    except DecodeError:
+        raise
+    except Exception as exc:  # whatever else numpy makes of a crafted array: the message is bad, not the service
+        raise DecodeError(f"{kind}: field {name!r} is not a valid array ({type(exc).__name__}: {exc})") from None
     try:
         return cls(**fields)
     except ValidationError as exc:
@@ -92,5 +100,5 @@ def decode(payload: bytes | bytearray | memoryview, expect: type[Message] | None
         where = ".".join(str(p) for p in first.get("loc", ())) or kind
         raise DecodeError(f"{kind} does not validate: {where}: {first.get('msg')}"
                           f" ({exc.error_count()} error(s))") from None
-    except (TypeError, ValueError) as exc:
-        raise DecodeError(f"{kind} does not validate: {exc}") from None
+    except Exception as exc:  # a validator's arithmetic on a crafted value (OverflowError, ...): still a bad message
+        raise DecodeError(f"{kind} does not validate: {type(exc).__name__}: {exc}") from None

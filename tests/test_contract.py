@@ -241,6 +241,20 @@ def test_shape_that_does_not_match_the_bytes_is_refused() -> None:
     refused(pack(d), r"field 'uv': shape \[3, 2\] <f4 needs 24 bytes, got 16")
 
 
+@pytest.mark.parametrize("dtype", [["<f4"], {"a": 1}, 4, None])
+def test_a_dtype_that_is_not_a_string_is_refused(dtype) -> None:
+    d = raw(make_detections(1))
+    d["uv"] = {"dtype": dtype, "shape": [1, 2], "data": bytes(8)}
+    refused(pack(d), "field 'uv': dtype .* is not allowed")  # not a TypeError (unhashable) that ends the service
+
+
+@pytest.mark.parametrize("shape", [[True, 2], [0, 2**62, 2**62], [0, 2**64 - 1]])
+def test_boolean_or_giant_dimensions_are_refused(shape) -> None:
+    d = raw(make_detections(1))
+    d["uv"] = {"dtype": "<f4", "shape": shape, "data": b""}
+    refused(pack(d), "field 'uv': (bad shape|shape .* items exceed the limit)")
+
+
 @pytest.mark.parametrize("shape", [[-1, 2], "2,2", [2.0, 2], [1, 1, 1, 1, 1]])
 def test_bad_shape_is_refused(shape) -> None:
     d = raw(make_detections(1))
