@@ -15,7 +15,7 @@ import msgpack
 import numpy as np
 from pydantic import ValidationError
 
-from shared.messages import MESSAGE_TYPES, Message
+from shared.messages import MAX_STAMPS, MESSAGE_TYPES, Message
 
 ALLOWED_DTYPES = frozenset({"|u1", "|i1", "<u2", "<i2", "<i4", "<u4", "<i8", "<f4", "<f8", "|b1"})
 MAX_MESSAGE_BYTES = 48 * 1024 * 1024
@@ -85,6 +85,8 @@ def decode(payload: bytes | bytearray | memoryview, expect: type[Message] | None
         raise DecodeError(f"expected a {expect.kind} message, got {kind!r}")
     if raw.get("v") != (v := cls.model_fields["v"].default):
         raise DecodeError(f"schema version {raw.get('v')!r} is not supported (this build speaks v{v})")
+    if isinstance(raw.get("stamps"), list) and len(raw["stamps"]) > MAX_STAMPS:  # before validating each one
+        raise DecodeError(f"{kind}: {len(raw['stamps'])} stamps, more than the {MAX_STAMPS} a message may carry")
     fields = {}
     try:
         for name, value in raw.items():

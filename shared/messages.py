@@ -33,6 +33,11 @@ CAMERA_KINDS = ("pinhole", "fisheye")
 MAX_FRAME_BYTES = 32 * 1024 * 1024  # larger frames are refused (an oversized frame is bad input)
 MAX_ROWS = 4096  # detections, objects or tracks per message: more is bad input (fusion is quadratic)
 INT64_END = 2**63  # seq and times are int64 downstream (numpy); larger values are bad input
+# capture times are event times that services add ticks and watermarks to: kept below 2**62 ns (the year 2116) so
+# that arithmetic stays within int64; a later one is a broken clock, refused as bad input
+T_CAPTURE_END = 2**62
+MAX_STAMPS = 32  # a message passes four stages; a longer list is bad input, not something to copy down the line
+MIN_FRAME_SCALE = 1 / 64  # ingest decodes at 1/2, 1/4 or 1/8 at most; a smaller scale would blow pixels up
 NAME_RE = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")  # site and camera names: one key-expression chunk
 
 
@@ -60,8 +65,9 @@ class Message(BaseModel):
     v: int = SCHEMA_VERSION
     site: str
     seq: int = Field(ge=0, lt=INT64_END)
-    t_capture_ns: int = Field(ge=0, lt=INT64_END)
-    stamps: list[tuple[str, int]] = Field(default_factory=list)
+    t_capture_ns: int = Field(ge=0, lt=T_CAPTURE_END)
+    stamps: list[tuple[Annotated[str, Field(max_length=64)], Annotated[int, Field(ge=0, lt=INT64_END)]]] = Field(
+        default_factory=list, max_length=MAX_STAMPS)
 
     @field_validator("v")
     @classmethod
@@ -111,6 +117,9 @@ def _check_columns(name: str, arrays: dict[str, tuple[np.ndarray, tuple, str]]) 
             raise ValueError(f"{name}.{field} has {len(a)} rows, expected {n} like the other fields")
         if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
             raise ValueError(f"{name}.{field} contains NaN or infinite values")
+        if field == "vtype" and len(a) and not (0 <= a.min() and a.max() < len(VEHICLE_TYPES)):
+            raise ValueError(f"{name}.vtype must index VEHICLE_TYPES (0-{len(VEHICLE_TYPES) - 1}), got "
+                             f"{int(a.min()) if a.min() < 0 else int(a.max())}")
     if (n or 0) > MAX_ROWS:
         raise ValueError(f"{name} has {n} rows, more than the {MAX_ROWS} a message may carry")
     return n or 0
@@ -126,7 +135,7 @@ class Frame(CameraMessage):
     encoding: Literal["gray8", "bgr8", "jpeg"]
     width: int = Field(gt=0, le=16384)
     height: int = Field(gt=0, le=16384)
-    scale: float = Field(default=1.0, gt=0, le=1.0, allow_inf_nan=False)
+    scale: float = Field(default=1.0, ge=MIN_FRAME_SCALE, le=1.0, allow_inf_nan=False)
     data: bytes
 
     @model_validator(mode="after")
@@ -225,8 +234,8 @@ class Tracks(Message):
     score: Array
     age: Array
     hits: Array
-    cameras: list[list[str]]
-    frames: list[tuple[str, int, int, int]] = Field(default_factory=list)
+    cameras: list[Annotated[list[str], Field(max_length=64)]]
+    frames: list[tuple[str, int, int, int]] = Field(default_factory=list, max_length=MAX_ROWS)
 
     @model_validator(mode="after")
     def _columns(self) -> Tracks:

@@ -255,6 +255,38 @@ def test_boolean_or_giant_dimensions_are_refused(shape) -> None:
     refused(pack(d), "field 'uv': (bad shape|shape .* items exceed the limit)")
 
 
+def test_capture_times_past_2_pow_62_are_a_broken_clock() -> None:
+    """Services add ticks and watermarks to capture times in int64: 2**63 - 1 would overflow there."""
+    for t in (2**62, 2**63 - 1):
+        d = raw(make_objects(1))
+        d["t_capture_ns"] = t
+        refused(pack(d), "t_capture_ns")
+    assert make_objects(1, t_capture_ns=2**62 - 1).t_capture_ns == 2**62 - 1
+
+
+def test_stamps_are_capped_before_they_are_validated() -> None:
+    d = raw(make_detections(1))
+    d["stamps"] = [["x", 1]] * 100_000
+    refused(pack(d), "100000 stamps, more than the 32")
+    d["stamps"] = [["ingest", -1]]
+    refused(pack(d), "stamps")
+
+
+@pytest.mark.parametrize("scale", [5e-324, 1e-40, 1 / 65])
+def test_a_frame_scale_below_one_64th_is_refused(scale) -> None:
+    d = raw(make_frame())
+    d["scale"] = scale
+    refused(pack(d), "scale")  # detect would enlarge such a frame to infinity
+
+
+@pytest.mark.parametrize("maker", [make_detections, make_objects])
+@pytest.mark.parametrize("vtype", [5, 258, -1, 127])
+def test_a_vehicle_type_outside_the_list_is_refused(maker, vtype) -> None:
+    d = raw(maker(2))
+    d["vtype"] = arr(np.array([0, vtype], np.int16))  # an int8 cast would wrap 258 to 2, a "truck"
+    refused(pack(d), r"vtype must index VEHICLE_TYPES \(0-4\)")
+
+
 @pytest.mark.parametrize("shape", [[-1, 2], "2,2", [2.0, 2], [1, 1, 1, 1, 1]])
 def test_bad_shape_is_refused(shape) -> None:
     d = raw(make_detections(1))
