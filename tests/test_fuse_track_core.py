@@ -262,6 +262,23 @@ def test_track_reports_size_type_majority_and_cameras():
     assert state.tracker == tracker.id
 
 
+def test_a_shrinking_vehicle_missed_for_a_tick_keeps_a_finite_size():
+    """The size's rate carries area and aspect below zero when a shrinking vehicle is missed: the prediction keeps
+    them positive, as the update does (the square root of a negative area was a NaN length that ended the service)."""
+    tracker = Tracker(TrackerConfig())
+    lengths = 6 * np.exp(-np.arange(12) / 3) + 0.02
+    t_ns = 10**12
+    for length in lengths:
+        t_ns += 100 * MS
+        tracker.update(ObjectBatch.from_frame("A", t_ns, np.zeros((1, 2)), np.zeros(1), np.array([[length, length, 1.5]]),
+                                              np.zeros(1, np.int64), np.full(1, 0.9)), t_ns)
+    sizes = []
+    for _ in range(3):  # missed three times: reported while it coasts, then not
+        t_ns += 100 * MS
+        sizes.append(tracker.update(ObjectBatch.empty(), t_ns).size_lwh)
+    assert len(sizes[0]) == 1 and all(np.isfinite(s).all() and (s > 0).all() for s in sizes)
+
+
 def test_track_ids_are_unique_per_instance():
     one, two = Tracker(TrackerConfig(min_hits=1)), Tracker(TrackerConfig(min_hits=1))
     a = one.update(frame("A", 0, [[0.0, 0.0], [10.0, 0.0]]), 0)

@@ -252,6 +252,9 @@ class Tracker:
             if self._fq[0] != dt_s:
                 self._fq = (dt_s, transition(dt_s), process_noise(dt_s, self._q_var))
             self._x, self._p = kf_predict(self._x, self._p, *self._fq[1:])
+            # a shrinking size's rate carries area and aspect below zero on a tick without a measurement: keep them
+            # positive here too, not only after an update (their square roots are the reported length and width)
+            self._x[:, 2:4] = np.maximum(self._x[:, 2:4], 1e-3)
             self._age += 1
             self._since_hit += 1
         self._cameras = [[] for _ in range(len(self._ids))]
