@@ -154,7 +154,9 @@ class LocalizeSettings(Strict):
 
 
 class FuseTrackSettings(Strict):
-    tick_ms: float = Field(100.0, gt=0)
+    # at most 1 s: a tick's objects lie within tick/2 of its time, and the tracker takes objects up to its
+    # max_coast_s (1 s) from a tick's time
+    tick_ms: float = Field(100.0, gt=0, le=1000.0)
     watermark_ms: float = Field(150.0, ge=0)  # event time a tick waits for late cameras
     max_wait_ms: float = Field(300.0, gt=0)  # wall time a tick waits after its first batch
     camera_timeout_ms: float = Field(1000.0, gt=0)  # wall time without frames before a camera is not waited for

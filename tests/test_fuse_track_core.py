@@ -270,8 +270,9 @@ def test_a_shrinking_vehicle_missed_for_a_tick_keeps_a_finite_size():
     t_ns = 10**12
     for length in lengths:
         t_ns += 100 * MS
-        tracker.update(ObjectBatch.from_frame("A", t_ns, np.zeros((1, 2)), np.zeros(1), np.array([[length, length, 1.5]]),
-                                              np.zeros(1, np.int64), np.full(1, 0.9)), t_ns)
+        size = np.array([[length, length, 1.5]])
+        tracker.update(ObjectBatch.from_frame("A", t_ns, np.zeros((1, 2)), np.zeros(1), size, np.zeros(1, np.int64),
+                                              np.full(1, 0.9)), t_ns)
     sizes = []
     for _ in range(3):  # missed three times: reported while it coasts, then not
         t_ns += 100 * MS
@@ -359,6 +360,30 @@ def test_tick_closes_when_every_camera_is_past_it_and_late_items_are_dropped():
     assert buffer.late == 1
     tick1 = buffer.pop_ready(0.04) + buffer.flush()
     assert [t.items() for t in tick1] == [["a1", "b1"]]
+
+
+def test_a_camera_whose_clock_jumps_ahead_is_dropped_not_followed():
+    """One camera's clock steps an hour forward: its batches are dropped as ahead instead of closing every tick by
+    the watermark and making the other cameras late; when every camera's clock jumps, they are followed again."""
+    buffer: TickBuffer[str] = TickBuffer(["A", "B"], TickConfig(tick_ms=100, max_lead_ms=2000))
+    hour = 3600 * 1000 * MS
+    emitted = []
+    for k in range(30):
+        now = k * 0.1
+        buffer.add("A", k * 100 * MS + 10 * MS, f"a{k}", now)
+        ok = buffer.add("B", k * 100 * MS + 20 * MS + (hour if 10 <= k < 20 else 0), f"b{k}", now)
+        assert ok == (not 10 <= k < 20)
+        emitted += buffer.pop_ready(now)
+    assert buffer.ahead == 10 and buffer.late == 0 and buffer.refusal.startswith("ahead: captured 3600.")
+    assert [t.index for t in emitted] == list(range(len(emitted))) and len(emitted) >= 28  # no tick lost to it
+    assert sum("a" in " ".join(t.items()) for t in emitted) == len(emitted)  # A's batches all used
+    # both clocks jump: the first to jump waits for the other, then both are followed
+    for k in range(30, 40):
+        assert buffer.add("A", k * 100 * MS + 2 * hour, f"a{k}", k * 0.1) == (k > 30)
+        assert buffer.add("B", k * 100 * MS + 2 * hour + 10 * MS, f"b{k}", k * 0.1)
+    assert buffer.ahead == 11 and buffer.late == 0
+    with pytest.raises(ValueError, match="max_lead_ms"):
+        TickConfig(max_lead_ms=0)
 
 
 def test_watermark_closes_a_tick_without_a_late_camera():

@@ -160,7 +160,11 @@ def main(settings: Settings, stopper: Stopper) -> int:
             nonlocal seq
             for tick in closed:
                 t_closed = time.time_ns()
-                state = fuse_and_track(fusion, tracker, [b for _, _, b in tick.items()], tick.t_ref_ns)
+                try:
+                    state = fuse_and_track(fusion, tracker, [b for _, _, b in tick.items()], tick.t_ref_ns)
+                except ValueError as exc:  # what validation let through and fusion or the tracker cannot take
+                    bad(f"tick at {tick.t_ref_ns} dropped: {exc}", "tick")
+                    continue
                 msg = tracks_message(settings.site, state, tick.t_ref_ns, seq, geo,
                                      [("tick_closed", t_closed), ("fuse_track", time.time_ns())], tick_frames(tick))
                 payload = encode(msg)
@@ -186,12 +190,12 @@ def main(settings: Settings, stopper: Stopper) -> int:
                     bad(reason, o.camera)
                     continue
                 if not ticks.add(o.camera, o.t_capture_ns, (o.seq, time.time_ns(), batch), now):
-                    bad(f"late: objects of {o.camera} captured at {o.t_capture_ns} after their tick closed", o.camera)
+                    bad(f"objects of {o.camera} captured at {o.t_capture_ns} dropped, {ticks.refusal}", o.camera)
             close(ticks.pop_ready(time.monotonic()))
             receiver.wait(POLL_S)
         close(ticks.flush())
-        log.info("stopped: %d Tracks messages, %d ticks (%s), %d late, %d bad %s", seq, ticks.emitted,
-                 ticks.closed_by, ticks.late, bad.total, dict(bad.counts))
+        log.info("stopped: %d Tracks messages, %d ticks (%s), %d late, %d ahead, %d bad %s", seq, ticks.emitted,
+                 ticks.closed_by, ticks.late, ticks.ahead, bad.total, dict(bad.counts))
         queryable.undeclare()
         del tokens
     finally:

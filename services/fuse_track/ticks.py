@@ -16,7 +16,10 @@ in order, a tick as soon as one of these holds:
 
 A camera is live while it has delivered within camera_timeout_ms of wall time (cameras that never
 delivered: since the buffer's first batch); a silent camera stops being waited for and is waited
-for again as soon as it delivers. A batch for a tick already closed is late: counted and dropped.
+for again as soon as it delivers. A batch for a tick already closed is late: counted and dropped. A batch
+captured more than max_lead_ms after the newest capture time of every other live camera is ahead (a camera's
+clock jumped): counted and dropped, so that it neither closes every tick by the watermark nor makes the other
+cameras' batches late; when the other cameras' clocks jump too, theirs are no longer ahead.
 Ticks in which no camera delivered are emitted too (empty), so that tracks age; after a gap of
 more than max_empty_ticks only the last max_empty_ticks of it are emitted. Wall time `now_s` is
 always passed in (monotonic seconds), so tests are deterministic.
@@ -41,16 +44,18 @@ class TickConfig:
     """tick_ms: tick length (event time); watermark_ms: how far event time may run past a tick's end
     before it closes without the late cameras; max_wait_ms: wall time a tick waits at most after its
     first batch; camera_timeout_ms: wall time without a batch after which a camera is not waited for;
-    max_empty_ticks: the most empty ticks emitted for one gap in the stream."""
+    max_empty_ticks: the most empty ticks emitted for one gap in the stream; max_lead_ms: how far a batch's
+    capture time may run ahead of every other live camera's newest before it is dropped as ahead."""
 
     tick_ms: float = 100.0
     watermark_ms: float = 150.0
     max_wait_ms: float = 300.0
     camera_timeout_ms: float = 1000.0
     max_empty_ticks: int = 50
+    max_lead_ms: float = 2000.0
 
     def __post_init__(self) -> None:
-        for name in ("tick_ms", "max_wait_ms", "camera_timeout_ms"):
+        for name in ("tick_ms", "max_wait_ms", "camera_timeout_ms", "max_lead_ms"):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
@@ -88,14 +93,15 @@ class Tick(Generic[T]):
 class TickBuffer(Generic[T]):
     """Groups per-camera batches into event-time ticks; see the module docstring.
 
-    cameras: the cameras expected (others that deliver are added). Counters: `late` batches
-    dropped, `emitted` ticks, `empty` ticks, `closed_by` per reason.
+    cameras: the cameras expected (others that deliver are added). Counters: `late` and `ahead` batches
+    dropped, `emitted` ticks, `empty` ticks, `closed_by` per reason; `refusal`: why the last batch refused was.
     """
 
     def __init__(self, cameras: Iterable[str], config: TickConfig | None = None) -> None:
         self.config = config or TickConfig()
         self._tick_ns = round(self.config.tick_ms * 1e6)
         self._watermark_ns = round(self.config.watermark_ms * 1e6)
+        self._lead_ns = round(self.config.max_lead_ms * 1e6)
         self._last_seen_s: dict[str, float | None] = {}
         for camera in cameras:
             self._check_camera(camera)
@@ -108,6 +114,8 @@ class TickBuffer(Generic[T]):
         self._max_ns: int | None = None
         self._start_s: float | None = None
         self.late = 0
+        self.ahead = 0
+        self.refusal = ""
         self.emitted = 0
         self.empty = 0
         self.closed_by = dict.fromkeys(CLOSE_REASONS, 0)
@@ -139,7 +147,8 @@ class TickBuffer(Generic[T]):
 
     def add(self, camera: str, t_capture_ns: int, item: T, now_s: float) -> bool:
         """One camera's batch captured at t_capture_ns (ns), arriving at wall time now_s (s).
-        Returns False when it is late (its tick has closed): it is counted and dropped."""
+        Returns False when it is late (its tick has closed) or ahead (module docstring): it is counted and
+        dropped, and `refusal` says which."""
         self._check_camera(camera)
         if isinstance(t_capture_ns, bool) or not isinstance(t_capture_ns, numbers.Integral) or t_capture_ns < 0:
             raise ValueError(f"t_capture_ns must be an integer >= 0 (ns), got {t_capture_ns!r}")
@@ -147,6 +156,7 @@ class TickBuffer(Generic[T]):
         now_s = self._check_now(now_s)
         if self._start_s is None:
             self._start_s = now_s
+        others = [self._newest_ns[c] for c in self.live(now_s) if c != camera and c in self._newest_ns]
         self._last_seen_s[camera] = now_s
         prev = self._newest_ns.get(camera)
         if prev is not None and t_capture_ns > prev:
@@ -154,10 +164,16 @@ class TickBuffer(Generic[T]):
             steps.append(t_capture_ns - prev)
             del steps[:-PERIOD_HISTORY]
         self._newest_ns[camera] = max(prev if prev is not None else t_capture_ns, t_capture_ns)
+        if others and t_capture_ns > max(others) + self._lead_ns:
+            self.ahead += 1
+            self.refusal = (f"ahead: captured {(t_capture_ns - max(others)) / 1e9:.3f} s after the other cameras' "
+                            f"newest (a clock jump?)")
+            return False
         self._max_ns = t_capture_ns if self._max_ns is None else max(self._max_ns, t_capture_ns)
         k = t_capture_ns // self._tick_ns
         if self._next is not None and k < self._next:
             self.late += 1
+            self.refusal = "late: its tick has closed"
             return False
         tick = self._open.get(k)
         if tick is None:
