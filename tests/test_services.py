@@ -247,6 +247,53 @@ def test_ingest_decodes_each_camera_as_small_as_the_detector_allows():
     assert decode_scale_for(1280, 960, 2000) == 1  # never larger than the camera's image
 
 
+def jpeg_claiming(width: int, height: int) -> bytes:
+    """A small JPEG whose frame header claims another size."""
+    data = bytearray(cv2.imencode(".jpg", np.full((48, 64), 128, np.uint8))[1].tobytes())
+    i = data.find(b"\xff\xc0")  # SOF0: length, precision, height, width
+    data[i + 5:i + 9] = height.to_bytes(2, "big") + width.to_bytes(2, "big")
+    return bytes(data)
+
+
+def test_a_jpeg_header_is_read_before_the_image_is_decoded():
+    """OpenCV allocates what a header claims (65535 x 65535 makes it raise): the size is checked first."""
+    from shared.jpeg import decode_grey, jpeg_size
+
+    assert jpeg_size(jpeg_claiming(64, 48)) == (64, 48) and jpeg_size(b"\xff\xd8\xff\xe0 cut") is None
+    assert jpeg_size(b"not a jpeg") is None and jpeg_size(b"") is None
+    assert decode_grey(jpeg_claiming(64, 48), 64, 48).shape == (48, 64)
+    for w, h in [(65500, 65500), (30000, 30000), (0, 48)]:
+        with pytest.raises(ValueError, match=f"frame 7: JPEG is {w}x{h}, expected 64x48"):
+            decode_grey(jpeg_claiming(w, h), 64, 48, what="frame 7")
+    with pytest.raises(ValueError, match=r"corrupt JPEG \(5 bytes\): no frame header"):
+        decode_grey(b"\xff\xd8abc", 64, 48)
+
+
+def test_ingest_counts_an_unreadable_or_mislabelled_file_and_goes_on(tmp_path):
+    """A dangling link, a header that lies about the size, a JPEG passed through that is not the camera's size:
+    each is a reason on its frame (counted by ingest), not an exception that ends playback; file names whose time
+    lies outside 1970-2116 carry no capture time."""
+    from services.ingest.__main__ import to_frame_fields
+    from services.ingest.sources import ImageFolderSource, SourceFrame, capture_time_from_name
+    from shared.settings import CameraSettings
+
+    folder = tmp_path / "NE"
+    folder.mkdir()
+    (folder / "1700000000000000000.jpg").write_bytes(jpeg_claiming(64, 48))
+    (folder / "1700000000100000000.jpg").symlink_to(tmp_path / "gone.jpg")
+    frames = list(ImageFolderSource({"NE": folder}))
+    assert frames[0].error == "" and "cannot read" in frames[1].error and frames[1].jpeg is None
+    cam = CameraSettings(name="NE", kind="pinhole", width=64, height=48, masks="m.npz")
+    assert to_frame_fields(frames[0], cam, "gray8", 1)["width"] == 64
+    lying = SourceFrame("NE", 1, jpeg=jpeg_claiming(65500, 65500), origin="x.jpg")
+    for encoding in ("gray8", "jpeg"):
+        with pytest.raises(ValueError, match=r"x\.jpg: JPEG is 65500x65500"):
+            to_frame_fields(lying, cam, encoding, 1)
+    assert capture_time_from_name("12345678901234567890.jpg") is None  # past 2116
+    assert capture_time_from_name("1969-12-31 23-59-59-000000.jpg") is None
+    assert capture_time_from_name("2023-12-19 11-00-41-000000.jpg") == 1702983641000000000
+
+
 def test_detect_workers_infer_a_burst_side_by_side_and_publish_each_frame_once(site, site_name, small_recording,
                                                                               port_base, peer, launch):
     peer.subscribe("detections", camera_key(site_name, CAMERA, "detections"), Detections)
@@ -463,7 +510,7 @@ def test_ingest_skips_a_corrupt_jpeg_in_an_image_folder(site, site_name, small_r
     frames = peer.got["frames"]
     assert [f.seq for f in frames] == [0, 1] and [f.t_capture_ns for f in frames] == times
     assert all((f.encoding, f.width, f.height, f.scale) == ("gray8", 640, 480, 0.5) for f in frames)
-    assert re.search(rf"dropped {CAMERA} message .*{corrupt.name}: cannot decode image", ingest.log()), ingest.log()
+    assert re.search(rf"dropped {CAMERA} message .*{corrupt.name}: corrupt JPEG", ingest.log()), ingest.log()
     assert "done: 2 frames published, 2 bad" in ingest.log()
 
 

@@ -30,6 +30,7 @@ import numpy as np
 from shared.bus import BadInput, Receiver, Stopper, declare_alive, open_session
 from shared.codec import encode
 from shared.inference import OnnxDetector, available_providers
+from shared.jpeg import decode_grey
 from shared.keys import camera_key
 from shared.messages import Detections, Frame
 from shared.service import run
@@ -46,10 +47,8 @@ def frame_image(frame: Frame) -> np.ndarray:
     if frame.encoding == "bgr8":
         return cv2.cvtColor(np.frombuffer(frame.data, np.uint8).reshape(frame.height, frame.width, 3),
                             cv2.COLOR_BGR2GRAY)
-    # OpenCV raises (not returns None) for an empty buffer
-    img = cv2.imdecode(np.frombuffer(frame.data, np.uint8), cv2.IMREAD_GRAYSCALE) if frame.data else None
-    if img is None:
-        raise ValueError(f"camera {frame.camera} seq {frame.seq}: corrupt JPEG ({len(frame.data)} bytes)")
+    # the header's size is checked before decoding: OpenCV allocates what a header claims (up to 65535 x 65535)
+    img = decode_grey(frame.data, frame.width, frame.height, reduce=0, what=f"camera {frame.camera} seq {frame.seq}")
     if img.shape != (frame.height, frame.width):
         raise ValueError(f"camera {frame.camera} seq {frame.seq}: JPEG is {img.shape[1]}x{img.shape[0]}, "
                          f"frame says {frame.width}x{frame.height}")

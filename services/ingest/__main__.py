@@ -21,6 +21,7 @@ import numpy as np
 from services.ingest.sources import SourceFrame, open_source
 from shared.bus import BadInput, Receiver, Stopper, declare_alive, open_session, wait_for_peers
 from shared.codec import encode
+from shared.jpeg import decode_grey, jpeg_size
 from shared.keys import all_alive_key, all_cameras_key, camera_key
 from shared.messages import Detections, Frame
 from shared.service import run
@@ -40,14 +41,15 @@ def decode_scale_for(width: int, height: int, long_side: int) -> int:
 def to_frame_fields(sf: SourceFrame, cam: CameraSettings, encoding: str, decode_scale: int) -> dict:
     """The image part of a Frame: encoding, width, height, scale, data. ValueError for a bad image."""
     if encoding == "jpeg" and sf.jpeg is not None:
-        if sf.jpeg[:2] != b"\xff\xd8":
-            raise ValueError(f"{sf.origin}: not a JPEG")
+        size = jpeg_size(sf.jpeg)
+        if size is None:
+            raise ValueError(f"{sf.origin}: not a JPEG, or a corrupt one")
+        if size != (cam.width, cam.height):
+            raise ValueError(f"{sf.origin}: JPEG is {size[0]}x{size[1]}, camera {cam.name} is {cam.width}x{cam.height}")
         return {"encoding": "jpeg", "width": cam.width, "height": cam.height, "scale": 1.0, "data": sf.jpeg}
     if sf.jpeg is not None:
-        # OpenCV raises (not returns None) for an empty buffer
-        grey = cv2.imdecode(np.frombuffer(sf.jpeg, np.uint8), REDUCED[decode_scale]) if sf.jpeg else None
-        if grey is None:
-            raise ValueError(f"{sf.origin}: cannot decode image")
+        # the header's size first: OpenCV allocates what a header claims (up to 65535 x 65535)
+        grey = decode_grey(sf.jpeg, cam.width, cam.height, REDUCED[decode_scale], decode_scale, what=str(sf.origin))
     else:
         img = sf.image
         grey = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
@@ -163,14 +165,17 @@ def main(settings: Settings, stopper: Stopper) -> int:
                 last = t
                 pacer.wait(t)
                 try:
+                    if sf.error:
+                        raise ValueError(sf.error)
                     fields = to_frame_fields(sf, cams[sf.camera], cfg.encoding, scales[sf.camera])
-                except ValueError as exc:
-                    bad(str(exc), sf.camera)
+                    msg = Frame(site=settings.site, camera=sf.camera, seq=seq[sf.camera], t_capture_ns=t,
+                                camera_kind=cams[sf.camera].kind, **fields)  # validated: e.g. an oversized JPEG
+                except (ValueError, cv2.error) as exc:
+                    bad(f"{sf.origin}: {exc}" if isinstance(exc, cv2.error) else str(exc), sf.camera)
                     continue
                 if acks is not None:
                     acks.wait_for_room(sf.camera)
-                msg = Frame(site=settings.site, camera=sf.camera, seq=seq[sf.camera], t_capture_ns=t,
-                            camera_kind=cams[sf.camera].kind, stamps=[("ingest", time.time_ns())], **fields)
+                msg.stamps = [("ingest", time.time_ns())]  # when it leaves, after any wait for room
                 pubs[sf.camera].put(encode(msg))
                 if acks is not None:
                     acks.sent(sf.camera, msg.seq)

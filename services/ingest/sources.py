@@ -25,26 +25,32 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from shared.messages import T_CAPTURE_END
+
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
 DATETIME_RE = re.compile(r"(\d{4})-(\d{2})-(\d{2})[ _T](\d{2})[-:_](\d{2})[-:_](\d{2})(?:[-._](\d{1,9}))?")
 
 
 @dataclass
 class SourceFrame:
-    """One captured image: `jpeg` bytes (files) or a decoded `image` (video), never both."""
+    """One captured image: `jpeg` bytes (files) or a decoded `image` (video), never both; or `error`, why a file
+    could not be read (ingest counts it as bad input and goes on)."""
 
     camera: str
     t_capture_ns: int
     jpeg: bytes | None = None
     image: np.ndarray | None = None
     origin: str = ""  # file name or stream position, for error messages
+    error: str = ""
 
 
 def capture_time_from_name(name: str, tz: timezone = UTC) -> int | None:
-    """Capture time (ns since the epoch) from a file name, None when it carries none."""
+    """Capture time (ns since the epoch) from a file name, None when it carries none or one outside the times a
+    message may carry (1970 to 2116, `shared.messages.T_CAPTURE_END`)."""
     stem = Path(name).stem
     if stem.isdigit() and len(stem) >= 16:
-        return int(stem)
+        t = int(stem)
+        return t if t < T_CAPTURE_END else None
     m = DATETIME_RE.search(stem)
     if m is None:
         return None
@@ -54,7 +60,16 @@ def capture_time_from_name(name: str, tz: timezone = UTC) -> int | None:
     except ValueError:
         return None
     ns = int((frac or "0").ljust(9, "0")[:9])
-    return int(dt.timestamp()) * 1_000_000_000 + ns
+    t = int(dt.timestamp()) * 1_000_000_000 + ns
+    return t if 0 <= t < T_CAPTURE_END else None
+
+
+def _read(camera: str, t_ns: int, path: Path) -> SourceFrame:
+    """A file's frame; one that cannot be read (gone, a dangling link, no permission) carries the reason."""
+    try:
+        return SourceFrame(camera, t_ns, jpeg=path.read_bytes(), origin=str(path))
+    except OSError as exc:
+        return SourceFrame(camera, t_ns, origin=str(path), error=f"camera {camera}: cannot read {path}: {exc}")
 
 
 def _merge(streams: dict[str, list[tuple[int, Path]]]) -> list[tuple[int, str, Path]]:
@@ -75,7 +90,7 @@ class RecordingSource:
 
     def __iter__(self) -> Iterator[SourceFrame]:
         for t, cam, p in self.items:
-            yield SourceFrame(cam, t, jpeg=p.read_bytes(), origin=str(p))
+            yield _read(cam, t, p)
 
 
 class ImageFolderSource:
@@ -95,7 +110,8 @@ class ImageFolderSource:
             if any(t is None for t in times):
                 if fps is None:
                     bad = files[times.index(None)].name
-                    raise ValueError(f"camera {cam}: no capture time in file name {bad!r}; give a frame rate (fps)")
+                    raise ValueError(f"camera {cam}: no capture time (or one outside 1970-2116) in file name {bad!r}; "
+                                     f"give a frame rate (fps)")
                 t0 = time.time_ns() if start_ns is None else start_ns
                 times = [t0 + round(i * 1e9 / fps) for i in range(len(files))]
             streams[cam] = sorted(zip(times, files, strict=True))
@@ -103,11 +119,7 @@ class ImageFolderSource:
 
     def __iter__(self) -> Iterator[SourceFrame]:
         for t, cam, p in self.items:
-            try:
-                data = p.read_bytes()
-            except OSError as exc:
-                raise ValueError(f"camera {cam}: cannot read {p}: {exc}") from None
-            yield SourceFrame(cam, t, jpeg=data, origin=str(p))
+            yield _read(cam, t, p)
 
 
 class VideoSource:

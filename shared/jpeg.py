@@ -1,0 +1,58 @@
+"""JPEG headers, read before decoding: a header can claim any size up to 65535 x 65535, and OpenCV allocates
+what it claims (or raises past 2**30 pixels). Services compare the claim with what the image must be first."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+# start-of-frame markers (baseline, extended, progressive, lossless, ...); C4, C8 and CC are other segments
+_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+
+
+def jpeg_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from a JPEG's start-of-frame segment, or None when `data` has none (not a JPEG, or cut
+    before it)."""
+    if data[:2] != b"\xff\xd8":
+        return None
+    i, n = 2, len(data)
+    while i + 4 <= n:
+        if data[i] != 0xFF:
+            return None
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in (0x01, *range(0xD0, 0xD8)):  # markers without a length
+            i += 2
+            continue
+        length = int.from_bytes(data[i + 2:i + 4], "big")
+        if marker in _SOF:
+            if i + 9 > n or length < 7:
+                return None
+            height = int.from_bytes(data[i + 5:i + 7], "big")
+            width = int.from_bytes(data[i + 7:i + 9], "big")
+            return width, height
+        if marker == 0xDA or length < 2:  # image data before any frame header, or a broken length
+            return None
+        i += 2 + length
+    return None
+
+
+def decode_grey(data: bytes, width: int, height: int, flags: int = cv2.IMREAD_GRAYSCALE, reduce: int = 1,
+                what: str = "image") -> np.ndarray:
+    """A JPEG that must be `width` x `height` (each within `reduce` pixels: a camera's size, decoded at
+    1/`reduce` by `flags`) decoded to grey; ValueError naming `what` for one whose header claims another size,
+    that is corrupt, or that OpenCV refuses."""
+    size = jpeg_size(data)
+    if size is None:
+        raise ValueError(f"{what}: corrupt JPEG ({len(data)} bytes): no frame header")
+    if abs(size[0] - width) > reduce or abs(size[1] - height) > reduce:
+        raise ValueError(f"{what}: JPEG is {size[0]}x{size[1]}, expected {width}x{height}")
+    try:
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+    except cv2.error as exc:
+        raise ValueError(f"{what}: JPEG refused by the decoder ({str(exc).strip().splitlines()[-1]})") from None
+    if img is None:
+        raise ValueError(f"{what}: corrupt JPEG ({len(data)} bytes)")
+    return img
