@@ -12,6 +12,7 @@ File (`.npz`, numpy's zip of arrays, loaded without pickle):
 from __future__ import annotations
 
 import json
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -95,8 +96,8 @@ def load_masks(path: str | Path, with_latlon: bool = True) -> LookupMasks:
     try:
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in keys}
-    except (OSError, ValueError, KeyError) as exc:
-        raise ValueError(f"{path}: not a lookup masks file ({exc})") from None
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:  # a truncated file is not a zip
+        raise ValueError(f"{path}: not a lookup masks file ({type(exc).__name__}: {exc})") from None
     meta = json.loads(str(arrays["meta"]))
     if meta.get("format") != FORMAT or meta.get("version") != VERSION:
         raise ValueError(

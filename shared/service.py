@@ -10,9 +10,11 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+import zipfile
 from collections.abc import Callable
 
 import yaml
+import zenoh
 
 from shared.bus import Stopper
 from shared.settings import Settings, load_settings
@@ -64,4 +66,7 @@ def run(service: str, main: Callable[[Settings, Stopper], int], argv: list[str] 
         return main(settings, stopper)
     except ValueError as exc:
         print(f"{service}: error: {exc}", file=sys.stderr)
+        return 2
+    except (OSError, zipfile.BadZipFile, zenoh.ZError) as exc:  # a file it cannot use, an endpoint Zenoh refuses
+        print(f"{service}: error: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 2

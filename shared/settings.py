@@ -194,6 +194,17 @@ class Settings(BaseSettings):
     fuse_track: FuseTrackSettings = FuseTrackSettings()
     log_level: str = "INFO"
 
+    @field_validator("origin")
+    @classmethod
+    def _origin(cls, v: dict[str, float] | None) -> dict[str, float] | None:
+        if v is None:
+            return v
+        if not {"lat_deg", "lon_deg"} <= set(v) <= {"lat_deg", "lon_deg", "alt_m"}:
+            raise ValueError(f"origin needs lat_deg and lon_deg (and optionally alt_m), got {sorted(v)}")
+        if not all(math.isfinite(x) for x in v.values()) or abs(v["lat_deg"]) > 90 or abs(v["lon_deg"]) > 180:
+            raise ValueError(f"origin must be a finite latitude (-90..90) and longitude (-180..180), got {v}")
+        return v
+
     @classmethod
     def settings_customise_sources(cls, settings_cls, init_settings, env_settings, dotenv_settings,
                                    file_secret_settings):

@@ -493,6 +493,16 @@ def test_load_a_site_file(tmp_path) -> None:
         s.camera("SW")
 
 
+@pytest.mark.parametrize(("origin", "match"), [
+    ({"lat": 42.2, "lon": -83.7}, "origin needs lat_deg and lon_deg"),
+    ({"lat_deg": 42.2, "lon_deg": -83.7, "height": 3.0}, "origin needs lat_deg and lon_deg"),
+    ({"lat_deg": -83.7, "lon_deg": 242.2}, "origin must be a finite latitude"),
+    ({"lat_deg": float("nan"), "lon_deg": -83.7}, "origin must be a finite latitude")])
+def test_a_misspelt_or_impossible_origin_is_refused_at_load(tmp_path, origin, match) -> None:
+    with pytest.raises(ValueError, match=match):
+        load_settings(write_site(tmp_path, {**SITE_YAML, "origin": origin}))
+
+
 def test_environment_overrides_nested_fields_and_keeps_the_rest(tmp_path, monkeypatch) -> None:
     monkeypatch.setenv("ROADSIDE_BUS__PORT_BASE", "31000")
     monkeypatch.setenv("ROADSIDE_DETECT__SCORE_THR", "0.2")

@@ -523,12 +523,19 @@ def test_missing_model_masks_or_source_stop_the_service_with_one_error_line(site
     missing_source = tmp_path / "no" / "recording"
     no_masks = write_site(tmp_path / "site_without_masks", site_config(small_recording, masks="masks/gone.npz"))
     missing_masks = (tmp_path / "site_without_masks").resolve() / "masks" / "gone.npz"
+    broken = write_site(tmp_path / "site_broken_masks", site_config(small_recording, masks="masks/cut.npz"))
+    cut_masks = (tmp_path / "site_broken_masks").resolve() / "masks" / "cut.npz"
+    cut_masks.parent.mkdir(parents=True, exist_ok=True)
+    cut_masks.write_bytes(b"PK\x03\x04 a zip cut short")
     sets = bus_sets(port_base)
     runs = [
         (launch("detect", site, *sets, f"detect.model={missing_model}"), missing_model),
         (launch("localize", no_masks, *sets), missing_masks),
         (launch("fuse_track", no_masks, *sets), missing_masks),
         (launch("ingest", site, *sets, f"ingest.source={missing_source}"), missing_source),
+        (launch("localize", broken, *sets), cut_masks),
+        (launch("fuse_track", broken, *sets), cut_masks),
+        (launch("fuse_track", site, *sets, f"fuse_track.record={tmp_path}"), tmp_path),  # a folder, not a file
     ]
     for proc, path in runs:
         rc = proc.wait(WAIT_S)

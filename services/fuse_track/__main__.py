@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -65,7 +66,7 @@ def camera_positions(settings: Settings) -> tuple[dict[str, tuple[float, float]]
                 meta = json.loads(str(z["meta"]))
             masks_geo = GeoFrame.from_dict(meta["geo_origin"])
             pos = np.asarray(meta["camera"]["pose"]["position_m"], float)
-        except (OSError, ValueError, KeyError, TypeError) as exc:  # metadata without geo_origin or camera pose too
+        except (OSError, ValueError, KeyError, TypeError, zipfile.BadZipFile) as exc:  # e.g. metadata without a pose
             raise ValueError(f"{path}: not a lookup masks file ({type(exc).__name__}: {exc})") from None
         site_geo = site_geo or masks_geo
         if masks_geo != site_geo:
@@ -99,8 +100,11 @@ class Recorder:
     def __init__(self, path: Path | None) -> None:
         self.file = None
         if path is not None:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            self.file = path.open("a", buffering=1)
+            try:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                self.file = path.open("a", buffering=1)
+            except OSError as exc:
+                raise ValueError(f"cannot write the tracks recording {path}: {exc.strerror or exc}") from None
 
     def write(self, msg: Tracks) -> None:
         if self.file is not None:
