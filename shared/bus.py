@@ -59,6 +59,9 @@ def open_session(settings: Settings, service: str | None = None, client_index: i
     return zenoh.open(zenoh_config(settings.bus, service, client_index))
 
 
+FIFO_BYTES = 256 * 1024 * 1024  # what a FIFO receiver holds at most: a flood of large messages cannot exhaust memory
+
+
 class BadInput:
     """Counts rejected messages by reason and logs each reason once (then every 100th time). Reasons that
     differ only in their numbers (sequence numbers, sizes) count as one."""
@@ -67,13 +70,15 @@ class BadInput:
         self.service = service
         self.counts: Counter[str] = Counter()
 
-    def __call__(self, reason: str, where: str = "") -> None:
+    def __call__(self, reason: str, where: str = "", count: int = 1) -> None:
+        """`count` messages dropped for `reason` (several at once: a queue that overflowed)."""
         key = re.sub(r"\d+", "#", reason)[:160]
         if key not in self.counts and len(self.counts) >= MAX_REASONS:
             key = "other reasons"
-        self.counts[key] += 1
+        before = self.counts[key]
+        self.counts[key] += count
         n = self.counts[key]
-        if n == 1 or n % 100 == 0:
+        if before == 0 or before // 100 != n // 100:
             log.warning("%s: dropped %s message (%d so far with this reason): %s", self.service, where or "a", n,
                         reason)
 
@@ -86,20 +91,33 @@ class Receiver:
     """A subscriber whose samples are decoded outside Zenoh's callback. The callback only appends the
     payload to a buffer and wakes the service loop (`wait`), so an idle service sleeps instead of
     polling. `ring` > 0 keeps only the newest `ring` samples (frames: a slow consumer drops old ones);
-    otherwise a FIFO of `fifo` samples (overflow drops the oldest and is counted in `overflow`).
+    otherwise a FIFO of at most `fifo` samples and `fifo_bytes` bytes: overflow drops the oldest, counts them in
+    `overflow` and reports them to `bad` at the next `poll` (a service that falls behind says so).
     Several receivers may share one `wake` event."""
 
     def __init__(self, session: zenoh.Session, key: str, expect: type[Message] | None, bad: BadInput,
-                 ring: int = 0, fifo: int = 4096, wake: threading.Event | None = None) -> None:
+                 ring: int = 0, fifo: int = 4096, wake: threading.Event | None = None,
+                 fifo_bytes: int = FIFO_BYTES) -> None:
         self.buffer: deque[tuple[str, bytes]] = deque(maxlen=ring if ring > 0 else fifo)
         self.wake = wake or threading.Event()
         self.overflow = 0
+        self._reported = 0
         self.ring = ring > 0
+        self.bytes = 0  # held in the FIFO
+        self._lock = threading.Lock()
 
         def on_sample(sample) -> None:
-            if len(self.buffer) == self.buffer.maxlen and not self.ring:
-                self.overflow += 1
-            self.buffer.append((str(sample.key_expr), sample.payload.to_bytes()))
+            payload = sample.payload.to_bytes()
+            if self.ring:
+                self.buffer.append((str(sample.key_expr), payload))
+            else:
+                with self._lock:
+                    while self.buffer and (len(self.buffer) == self.buffer.maxlen
+                                           or self.bytes + len(payload) > fifo_bytes):
+                        self.bytes -= len(self.buffer.popleft()[1])
+                        self.overflow += 1
+                    self.buffer.append((str(sample.key_expr), payload))
+                    self.bytes += len(payload)
             self.wake.set()
 
         self.sub = session.declare_subscriber(key, on_sample)
@@ -115,9 +133,18 @@ class Receiver:
     def poll(self) -> list[Message]:
         """Every message waiting now, decoded (bad ones counted and skipped)."""
         out = []
+        if self.overflow > self._reported:
+            dropped, self._reported = self.overflow - self._reported, self.overflow
+            self.bad(f"{dropped} messages dropped unread: the service fell behind and its queue was full",
+                     self.key, count=dropped)
         while self.buffer:
             try:
-                key, payload = self.buffer.popleft()
+                if self.ring:
+                    key, payload = self.buffer.popleft()
+                else:
+                    with self._lock:
+                        key, payload = self.buffer.popleft()
+                        self.bytes -= len(payload)
             except IndexError:
                 break
             try:

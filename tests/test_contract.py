@@ -676,6 +676,33 @@ def test_bad_input_logs_each_reason_once_and_counts_them(caplog) -> None:
     assert bad.total == 7 and sorted(bad.counts.values()) == [1, 1, 5]
 
 
+def test_a_receiver_that_falls_behind_drops_the_oldest_and_reports_them(caplog) -> None:
+    from shared.bus import BadInput, Receiver
+
+    class Session:  # stands in for Zenoh: keeps the subscriber's callback
+        def declare_subscriber(self, key, callback):
+            self.callback = callback
+
+    class Sample:
+        def __init__(self, payload: bytes) -> None:
+            self.key_expr, self.payload = "k", type("P", (), {"to_bytes": lambda _: payload})()
+
+    session, bad = Session(), BadInput("test")
+    receiver = Receiver(session, "k", Detections, bad, fifo=5, fifo_bytes=10**9)
+    payloads = [encode(make_detections(1, seq=s)) for s in range(12)]
+    for p in payloads:
+        session.callback(Sample(p))
+    with caplog.at_level("WARNING"):
+        got = receiver.poll()
+    assert [m.seq for m in got] == [7, 8, 9, 10, 11] and receiver.overflow == 7 and bad.total == 7
+    assert "7 messages dropped unread: the service fell behind" in caplog.text
+    assert receiver.poll() == [] and bad.total == 7  # reported once
+    small = Receiver(session, "k", Detections, bad, fifo=100, fifo_bytes=3 * len(payloads[0]))
+    for p in payloads:
+        session.callback(Sample(p))
+    assert len(small.buffer) == 3 and small.bytes == 3 * len(payloads[0]) and small.overflow == 9
+
+
 def test_bad_input_keeps_a_bounded_number_of_reasons() -> None:
     bad = BadInput("fuse_track")
     for i in range(1000):
