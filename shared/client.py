@@ -59,8 +59,9 @@ class TrackClient:
                stop: threading.Event | None = None) -> Iterator[Tracks]:
         """The current tracks at once, then every new message; stops after `timeout_s` without one, or within
         `poll_s` of `stop` being set (e.g. by a signal handler: the caller's loop then ends normally).
-        Live messages of the same tracker not newer than the current one (already queued when it was asked
-        for) are skipped; a restarted fuse_track (another tracker id, seq from 0) is followed at once."""
+        Messages of the same tracker not newer than the last one given (queued when the current one was asked
+        for, duplicates, out of order) are skipped; a restarted fuse_track (another tracker id, seq from 0) is
+        followed at once."""
         last: tuple[str, int] | None = None
         current = self.latest()
         if current is not None:
@@ -71,8 +72,9 @@ class TrackClient:
             got = False
             for msg in self.receiver.poll():
                 if last is not None and msg.tracker == last[0] and msg.seq <= last[1]:
-                    continue
+                    continue  # a duplicate or one older than what the caller already has
                 got = True
+                last = (msg.tracker, msg.seq)
                 yield msg  # type: ignore[misc]
             if got:
                 quiet_since = time.monotonic()

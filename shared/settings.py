@@ -46,8 +46,8 @@ class BusSettings(Strict):
 class CameraSettings(Strict):
     name: str
     kind: Literal["pinhole", "fisheye"]
-    width: int = Field(gt=0)
-    height: int = Field(gt=0)
+    width: int = Field(gt=0, le=16384)  # a Frame carries at most 16384 x 16384
+    height: int = Field(gt=0, le=16384)
     masks: Path | None = None  # lookup masks file (roadside calibrate)
     source: str | None = None  # this camera's own source (folder, video, URL) when not the site source
     region_m: list[tuple[float, float]] | None = None  # fusion region polygon, site metres; default: nearest camera
@@ -69,6 +69,12 @@ class CameraSettings(Strict):
     def _region(cls, v):
         if v is not None and len(v) < 3:
             raise ValueError(f"region_m needs at least 3 points, got {len(v)}")
+        if v is not None:
+            if not all(math.isfinite(c) for p in v for c in p):
+                raise ValueError("region_m has a non-finite coordinate")
+            area = 0.5 * abs(sum(x0 * y1 - x1 * y0 for (x0, y0), (x1, y1) in zip(v, [*v[1:], v[0]], strict=True)))
+            if area < 1.0:  # points on a line, or all in one place: nothing would ever be inside it
+                raise ValueError(f"region_m encloses {area:.2g} m^2: its points lie on a line or on top of each other")
         return v
 
     @model_validator(mode="after")
@@ -114,11 +120,11 @@ class IngestSettings(Strict):
         if v != "max":
             v = v.removesuffix("x")
             try:
-                ok = float(v) > 0
+                ok = 0.01 <= float(v) <= 1000  # also refuses nan and inf
             except ValueError:
                 ok = False
             if not ok:
-                raise ValueError(f"pace must be a positive speed factor (1, 2.5, 10x) or 'max', got {v!r}")
+                raise ValueError(f"pace must be a speed factor from 0.01 to 1000 (1, 2.5, 10x) or 'max', got {v!r}")
         return v
 
 

@@ -503,6 +503,15 @@ def test_a_misspelt_or_impossible_origin_is_refused_at_load(tmp_path, origin, ma
         load_settings(write_site(tmp_path, {**SITE_YAML, "origin": origin}))
 
 
+@pytest.mark.parametrize(("region", "match"), [([[0, 0], [10, 10], [20, 20]], "on a line"),
+                                               ([[5, 5], [5, 5], [5, 5]], "on top of each other"),
+                                               ([[0, 0], [10, 0], [float("nan"), 5]], "non-finite")])
+def test_a_degenerate_fusion_region_is_refused(tmp_path, region, match) -> None:
+    cams = [{**SITE_YAML["cameras"][0], "region_m": region}, *SITE_YAML["cameras"][1:]]
+    with pytest.raises(ValueError, match=match):
+        load_settings(write_site(tmp_path, {**SITE_YAML, "cameras": cams}))
+
+
 def test_environment_overrides_nested_fields_and_keeps_the_rest(tmp_path, monkeypatch) -> None:
     monkeypatch.setenv("ROADSIDE_BUS__PORT_BASE", "31000")
     monkeypatch.setenv("ROADSIDE_DETECT__SCORE_THR", "0.2")
@@ -533,9 +542,9 @@ def test_environment_override_is_validated(tmp_path, monkeypatch) -> None:
         load_settings(write_site(tmp_path, SITE_YAML))
 
 
-@pytest.mark.parametrize("pace", ["0", "-1", "fast", "nan", ""])
+@pytest.mark.parametrize("pace", ["0", "-1", "fast", "nan", "", "1e-7", "inf", "5000x"])
 def test_bad_pace_is_refused(tmp_path, pace: str) -> None:
-    with pytest.raises(ValueError, match=r"ingest\.pace: .*pace must be a positive speed factor"):
+    with pytest.raises(ValueError, match=r"ingest\.pace: .*pace must be a speed factor from 0\.01 to 1000"):
         load_settings(write_site(tmp_path, {**SITE_YAML, "ingest": {"pace": pace}}))
 
 
@@ -734,6 +743,9 @@ def test_client_stream_gives_the_current_tracks_then_only_newer_ones() -> None:
     got = [(t.tracker, t.seq) for t in client.stream(timeout_s=0.05, poll_s=0.001)]
     # a restarted fuse_track (another tracker) starts again at seq 0 and is followed at once
     assert got == [("tracker-a", 5), ("tracker-a", 6), ("tracker-b", 0), ("tracker-b", 5)]
+    # after the current one, duplicates and stragglers of the tracker followed are skipped too
+    client.receiver = Queue([[make_tracks(1, seq=s, tracker="tracker-b") for s in (6, 6, 4, 7)]])
+    assert [t.seq for t in client.stream(timeout_s=0.05, poll_s=0.001)] == [5, 6, 7]
 
 
 def test_client_stream_ends_when_told_to_stop() -> None:
