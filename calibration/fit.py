@@ -58,6 +58,11 @@ class CalibConfig:
         for name in ("pixel_sigma_px", "map_sigma_m", "outlier_sigma"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if not (math.isfinite(self.fov_deg) and 0 < self.fov_deg < 360):
+            raise ValueError(f"fov_deg must be a field of view between 0 and 360 degrees, got {self.fov_deg}")
+        if self.image_circle is not None:
+            if not (all(math.isfinite(x) for x in self.image_circle) and self.image_circle[2] > 0):
+                raise ValueError(f"image circle must be a finite centre and a radius > 0 (px), got {self.image_circle}")
 
     @property
     def wanted_segments(self) -> int:

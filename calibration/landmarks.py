@@ -57,21 +57,29 @@ def load_landmarks(path: str | Path) -> tuple[Landmarks, dict]:
     if not path.is_file():
         raise ValueError(f"landmark file not found: {path}")
     header: dict = {}
-    if path.suffix.lower() == ".csv":
-        with path.open(newline="") as f:
-            rows = list(csv.DictReader(f))
-        missing = {"id", "u", "v", "lat", "lon"} - set(rows[0].keys() if rows else [])
-        if missing:
-            raise ValueError(f"{path}: CSV header lacks column(s) {', '.join(sorted(missing))}")
-    else:
-        try:
-            data = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{path}: not valid JSON: {exc}") from None
-        if not isinstance(data, dict) or not isinstance(data.get("landmarks"), list):
-            raise ValueError(f"{path}: expected an object with a 'landmarks' list")
-        rows = data["landmarks"]
-        header = {k: data[k] for k in ("camera", "kind", "width", "height") if k in data}
+    try:
+        if path.suffix.lower() == ".csv":
+            with path.open(newline="", encoding="utf-8-sig") as f:  # -sig: a spreadsheet's byte-order mark
+                rows = list(csv.DictReader(f))
+            missing = {"id", "u", "v", "lat", "lon"} - set(rows[0].keys() if rows else [])
+            if missing:
+                raise ValueError(f"{path}: CSV header lacks column(s) {', '.join(sorted(missing))}")
+        else:
+            try:
+                data = json.loads(path.read_text(encoding="utf-8"))
+            except json.JSONDecodeError as exc:
+                raise ValueError(f"{path}: not valid JSON: {exc}") from None
+            if not isinstance(data, dict) or not isinstance(data.get("landmarks"), list):
+                raise ValueError(f"{path}: expected an object with a 'landmarks' list")
+            rows = data["landmarks"]
+            header = {k: data[k] for k in ("camera", "kind", "width", "height") if k in data}
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not a UTF-8 text file ({exc.reason} at byte {exc.start})") from None
+    for k in ("width", "height"):
+        if k in header and (isinstance(header[k], bool) or not isinstance(header[k], int) or header[k] <= 0):
+            raise ValueError(f"{path}: {k} must be a whole number of pixels > 0, got {header[k]!r}")
+    if "kind" in header and header["kind"] not in ("pinhole", "fisheye"):
+        raise ValueError(f"{path}: kind must be pinhole or fisheye, got {header['kind']!r}")
     return landmarks_from_rows(rows, str(path)), header
 
 
@@ -80,6 +88,8 @@ def landmarks_from_rows(rows: list[dict], where: str) -> Landmarks:
     `where` (a file name) starts every error message."""
     ids, uv, latlon, seg = [], [], [], []
     for n, row in enumerate(rows, 1):
+        if not isinstance(row, dict):
+            raise ValueError(f"{where}: landmark entry {n} must be an object with id, u, v, lat, lon, got {row!r}")
         lid = str(row.get("id", f"#{n}")).strip()
         try:
             vals = [float(row[k]) for k in ("u", "v", "lat", "lon")]
@@ -91,10 +101,20 @@ def landmarks_from_rows(rows: list[dict], where: str) -> Landmarks:
         uv.append(vals[:2])
         latlon.append(vals[2:])
         s = row.get("segment")
-        seg.append(int(s) if s not in (None, "") else -1)
+        try:
+            seg.append(-1 if s in (None, "") else _whole(s))
+        except (TypeError, ValueError):
+            raise ValueError(f"{where}: landmark {lid!r}: segment must be a whole number, got {s!r}") from None
     return Landmarks(
         tuple(ids), np.array(uv, float).reshape(-1, 2), np.array(latlon, float).reshape(-1, 2), np.array(seg, int)
     )
+
+
+def _whole(x) -> int:
+    """An int from an int or a string of one ("2", " 3 "); TypeError or ValueError otherwise (2.5, [1], True)."""
+    if isinstance(x, bool) or not isinstance(x, int | str):
+        raise TypeError(x)
+    return int(x)
 
 
 def validate_landmarks(

@@ -78,10 +78,16 @@ class LookupMasks:
     def save(self, path: str | Path) -> Path:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
+        if path.is_dir():
+            raise ValueError(f"masks file {path} is a folder")
         tmp = path.with_name(path.name + ".partial")
-        with tmp.open("wb") as f:
-            np.savez(f, lat=self.lat, lon=self.lon, xy=self.xy, valid=self.valid, meta=np.array(json.dumps(self.meta)))
-        tmp.replace(path)
+        try:
+            with tmp.open("wb") as f:
+                np.savez(f, lat=self.lat, lon=self.lon, xy=self.xy, valid=self.valid,
+                         meta=np.array(json.dumps(self.meta)))
+            tmp.replace(path)
+        finally:
+            tmp.unlink(missing_ok=True)  # nothing half-written is left behind
         return path
 
 
@@ -98,7 +104,12 @@ def load_masks(path: str | Path, with_latlon: bool = True) -> LookupMasks:
             arrays = {k: z[k] for k in keys}
     except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:  # a truncated file is not a zip
         raise ValueError(f"{path}: not a lookup masks file ({type(exc).__name__}: {exc})") from None
-    meta = json.loads(str(arrays["meta"]))
+    try:
+        meta = json.loads(str(arrays["meta"]))
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not a lookup masks file (its metadata is not JSON: {exc})") from None
+    if not isinstance(meta, dict):
+        raise ValueError(f"{path}: not a lookup masks file (its metadata is a {type(meta).__name__}, not an object)")
     if meta.get("format") != FORMAT or meta.get("version") != VERSION:
         raise ValueError(
             f"{path}: format {meta.get('format')!r} v{meta.get('version')!r}, expected {FORMAT!r} v{VERSION}"

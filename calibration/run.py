@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -10,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.fit import CalibConfig, calibrate
-from calibration.landmarks import load_landmarks, validate_landmarks
+from calibration.landmarks import FAR_FROM_OTHERS_M, load_landmarks, validate_landmarks
 from calibration.masks import build_masks, calibrated_area, default_roi
 from calibration.report import build_report, plot_residuals, summary_text
 from calibration.site_ground import calibrate_site
@@ -59,8 +60,28 @@ def _other_camera(path: Path, kind: str, circle, fov_deg: float) -> tuple:
     return lm, cfg
 
 
+def _near_landmarks(what: str, lat: float, lon: float, lm) -> None:
+    """ValueError unless (lat, lon) is a position on Earth within FAR_FROM_OTHERS_M of the landmarks (a swapped
+    latitude and longitude, or another site's point)."""
+    if not (math.isfinite(lat) and math.isfinite(lon) and -90 <= lat <= 90 and -180 <= lon <= 180):
+        raise ValueError(f"{what} ({lat}, {lon}) is not a latitude and longitude")
+    med = np.median(lm.latlon, axis=0)
+    d = float(np.hypot(*GeoFrame(float(med[0]), float(med[1])).to_enu(np.array([lat]), np.array([lon]), 0.0)[0, :2]))
+    if d > FAR_FROM_OTHERS_M:
+        raise ValueError(f"{what} ({lat}, {lon}) is {d / 1000:.1f} km from the landmarks (latitude and longitude "
+                         f"swapped, or another site's?)")
+
+
+def _writable_file(what: str, path: Path | None) -> None:
+    if path is not None and path.is_dir():
+        raise ValueError(f"{what} {path} is a folder, not a file")
+
+
 def run_calibration(job: CalibrateJob) -> dict:
+    """Fit, then write the masks, the report and the plot; every input is checked before anything is written."""
     lm, header = load_landmarks(job.landmarks)
+    if header.get("kind") not in (None, job.kind):
+        raise ValueError(f"{job.landmarks} is for a {header['kind']} camera, not --kind {job.kind}")
     width = job.width or header.get("width")
     height = job.height or header.get("height")
     if not width or not height:
@@ -70,10 +91,25 @@ def run_calibration(job: CalibrateJob) -> dict:
     )
     validate_landmarks(lm, cfg.width, cfg.height, cfg.circle if cfg.kind == "fisheye" else None)
     if job.origin is not None:
+        _near_landmarks("--origin", job.origin[0], job.origin[1], lm)
         geo = GeoFrame(*job.origin)
     else:
         med = np.median(lm.latlon, axis=0)
         geo = GeoFrame(float(med[0]), float(med[1]))
+    if job.roi is not None and "center_latlon" in job.roi:
+        _near_landmarks("the ROI centre", *map(float, job.roi["center_latlon"]), lm)
+        if not (math.isfinite(job.roi["radius_m"]) and job.roi["radius_m"] > 0):
+            raise ValueError(f"the ROI radius must be > 0 m, got {job.roi['radius_m']}")
+    report_path = job.report or job.out.with_suffix(".report.json")
+    for what, path in (("--out", job.out), ("--report", report_path), ("--plot", job.plot)):
+        _writable_file(what, path)
+    image = None
+    if job.plot and job.image:
+        import cv2
+
+        image = cv2.imread(str(job.image))
+        if image is None:
+            raise ValueError(f"cannot read image {job.image}")
     t0 = time.perf_counter()
     if job.shared_ground:
         if cfg.kind == "fisheye":
@@ -82,16 +118,22 @@ def run_calibration(job: CalibrateJob) -> dict:
                              "without --shared-ground, and give its landmarks to the pinhole cameras' runs")
         others = [(str(path), *_other_camera(path, kind, circle, job.fov_deg))
                   for path, kind, circle in job.shared_ground]
+        for path, other, _ in others:  # one site: another site's file would bend its ground surface
+            far = np.median(other.latlon, axis=0)
+            _near_landmarks(f"--shared-ground {path} (its landmarks' median)", float(far[0]), float(far[1]), lm)
         cal = calibrate_site([(str(job.landmarks), lm, cfg), *others], geo)[str(job.landmarks)]
     else:
         cal = calibrate(lm, cfg, geo)
     t_fit = time.perf_counter() - t0
+    if len(cal.rejected) >= 3 and 3 * len(cal.rejected) > len(lm):  # a third: not a few slips, a wrong file
+        raise ValueError(f"{len(cal.rejected)} of {len(lm)} landmarks disagree with the rest beyond what clicking and "
+                         f"map errors explain: latitude and longitude swapped, pixels from another camera or image "
+                         f"size, or the wrong --kind? ({', '.join(i for i, _ in cal.rejected[:5])} ...)")
     xy = lm.to_local(geo)
     area = calibrated_area(cal, xy)
     t0 = time.perf_counter()
     masks = build_masks(cal, lm.digest(), area, {"landmarks_file": str(job.landmarks)})
     t_masks = time.perf_counter() - t0
-    masks.save(job.out)
     roi = _roi_local(job.roi, geo) or default_roi(cal)
     report = build_report(cal, lm, cfg, roi)
     report.update(
@@ -106,17 +148,13 @@ def run_calibration(job: CalibrateJob) -> dict:
             "ground": cal.ground.to_dict() if cal.ground is not None else "planes",
         }
     )
-    report_path = job.report or job.out.with_suffix(".report.json")
-    report_path.write_text(json.dumps(report, indent=1))
+    masks.save(job.out)
+    report_path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = report_path.with_name(report_path.name + ".partial")
+    tmp.write_text(json.dumps(report, indent=1))
+    tmp.replace(report_path)
     report["report"] = str(report_path)
     report["summary"] = summary_text(report)
     if job.plot:
-        image = None
-        if job.image:
-            import cv2
-
-            image = cv2.imread(str(job.image))
-            if image is None:
-                raise ValueError(f"cannot read image {job.image}")
         plot_residuals(cal, lm, image, str(job.plot))
     return report

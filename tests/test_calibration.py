@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -275,11 +277,69 @@ def test_missing_and_malformed_files(tmp_path):
         load_landmarks(tmp_path / "bad.csv")
 
 
+def test_malformed_entries_and_header_fields_are_named(tmp_path):
+    rows = _rows()
+    for bad_rows, header, message in [
+        ([*rows, "oops"], {}, "landmark entry 6 must be an object"),
+        ([{**rows[0], "segment": [1]}, *rows[1:]], {}, "landmark 'P0': segment must be a whole number"),
+        ([{**rows[0], "segment": "1.0"}, *rows[1:]], {}, "landmark 'P0': segment must be a whole number"),
+        (rows, {"width": [1280]}, "width must be a whole number of pixels > 0"),
+        (rows, {"height": "960px"}, "height must be a whole number of pixels > 0"),
+        (rows, {"kind": "spherical"}, "kind must be pinhole or fisheye"),
+    ]:
+        path = tmp_path / "lm.json"
+        path.write_text(json.dumps({"width": 640, "height": 480, **header, "landmarks": bad_rows}))
+        with pytest.raises(ValueError, match=re.escape(f"{path}: ") + ".*" + re.escape(message)):
+            load_landmarks(path)
+    bom = tmp_path / "excel.csv"  # a spreadsheet's UTF-8 byte-order mark before the header
+    bom.write_bytes("id,u,v,lat,lon\n".encode("utf-8-sig") + "".join(
+        f"{r['id']},{r['u']},{r['v']},{r['lat']},{r['lon']}\n" for r in rows).encode())
+    assert load_landmarks(bom)[0].ids == tuple(r["id"] for r in rows)
+    (tmp_path / "latin.csv").write_bytes(b"id,u,v,lat,lon\n\xe9,1,2,3,4\n")
+    with pytest.raises(ValueError, match=r"latin\.csv: not a UTF-8 text file"):
+        load_landmarks(tmp_path / "latin.csv")
+
+
+def test_calibrate_checks_every_input_before_it_writes(tmp_path):
+    """A swapped origin or ROI centre, a file for another kind of camera, a folder for an output, an unreadable
+    image for the plot, a swapped lat/lon column: refused, and masks already there are left as they were."""
+    from calibration.run import CalibrateJob, run_calibration
+
+    cam = _fisheye()
+    lm = _synthetic_landmarks(cam, 12, np.random.default_rng(6), 40.0, pixel_sigma=1.0, map_sigma=0.05)
+    rows = [{"id": i, "u": float(u), "v": float(v), "lat": float(a), "lon": float(b)}
+            for i, (u, v), (a, b) in zip(lm.ids, lm.uv, lm.latlon, strict=True)]
+    path = tmp_path / "lm.json"
+    path.write_text(json.dumps({"kind": "fisheye", "width": 1280, "height": 960, "landmarks": rows}))
+    out = tmp_path / "masks.npz"
+    out.write_bytes(b"the previous masks")
+    circle = (639.5, 479.5, cam.image_circle_radius_px())
+    job = CalibrateJob(path, "fisheye", out, image_circle=circle, segments=1)
+    (tmp_path / "folder").mkdir()
+    for change, message in [
+        ({"origin": (-83.739, 42.2294, 265.0)}, "--origin .* km from the landmarks"),
+        ({"roi": {"center_latlon": [-83.739, 42.2294], "radius_m": 25.0}}, "the ROI centre .* km from the landmarks"),
+        ({"kind": "pinhole"}, "is for a fisheye camera, not --kind pinhole"),
+        ({"report": tmp_path / "folder"}, "--report .* is a folder"),
+        ({"plot": tmp_path / "p.png", "image": tmp_path / "missing.png"}, "cannot read image"),
+        ({"fov_deg": -5.0}, "fov_deg must be a field of view between 0 and 360"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            run_calibration(dataclasses.replace(job, **change))
+    swapped = [{**r, "lat": r["lon"], "lon": r["lat"]} for r in rows]  # in range, and still close together
+    path.write_text(json.dumps({"kind": "fisheye", "width": 1280, "height": 960, "landmarks": swapped}))
+    with pytest.raises(ValueError, match="latitude and longitude swapped"):
+        run_calibration(job)
+    assert out.read_bytes() == b"the previous masks" and not list(tmp_path.glob("*.partial"))
+
+
 def test_config_errors_name_the_parameter():
     with pytest.raises(ValueError, match="kind must be pinhole or fisheye"):
         CalibConfig("spherical", 10, 10)
     with pytest.raises(ValueError, match="segments must be in"):
         CalibConfig("fisheye", 10, 10, segments=0)
+    with pytest.raises(ValueError, match="image circle must be a finite centre and a radius > 0"):
+        CalibConfig("fisheye", 10, 10, image_circle=(5.0, 5.0, float("nan")))
     assert math.isclose(CalibConfig("fisheye", 1280, 960).circle[2], 480.0)
 
 
