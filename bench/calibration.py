@@ -18,7 +18,6 @@ ground surface fitted to every camera's landmarks, the pinhole and thermal camer
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
 from pathlib import Path
@@ -31,6 +30,7 @@ from calibration.landmarks import landmarks_from_rows
 from calibration.masks import build_masks, calibrated_area
 from calibration.site_ground import calibrate_site
 from shared.ground import ground_lookup
+from shared.jsonio import dumps
 from sim.landmarks import pick_landmarks
 from sim.render import CameraRenderer, ShadowCaster, build_world, sample_environment
 from sim.site import load_site
@@ -168,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
     out["rows"] = [{k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()} for r in rows]
     out["site_ground_rows"] = [{k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}
                                for r in site_rows]
-    print(json.dumps(out, indent=1))
+    print(dumps(out, indent=1))
     return 0
 
 

@@ -49,6 +49,7 @@ import yaml
 from calibration.fit import CalibConfig, Calibration, calibrate
 from calibration.landmarks import Landmarks, validate_landmarks
 from shared.geo import GeoFrame
+from shared.jsonio import dumps
 
 SYNTHETIC_ORIGIN = GeoFrame(45.0, 0.0)  # where local metric offsets are placed to become lat/lon
 GPKG_ENVELOPE_DOUBLES = {0: 0, 1: 4, 2: 6, 3: 6, 4: 8}  # GeoPackage binary header: envelope code -> doubles
@@ -587,7 +588,7 @@ def real_data_rows(data_root: Path, settings: RealBenchSettings | None = None) -
 
 
 def main(settings: RealBenchSettings, data_root: Path) -> int:
-    print(json.dumps(real_data_rows(data_root, settings), indent=1))
+    print(dumps(real_data_rows(data_root, settings), indent=1))
     return 0
 
 

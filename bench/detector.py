@@ -30,6 +30,7 @@ import numpy as np
 import onnxruntime as ort
 
 from shared.decode import CONFIG_KEY
+from shared.jsonio import dumps
 from training.export import INPUT_NAME, export_onnx
 from training.model import Detector, DetectorConfig, count_macs
 
@@ -158,7 +159,7 @@ def gpu_name() -> str | None:
 def main(argv: list[str] | None = None) -> int:
     settings = _parse(argv)
     with tempfile.TemporaryDirectory() as tmp:
-        print(json.dumps(run(settings, Path(tmp)), indent=1))
+        print(dumps(run(settings, Path(tmp)), indent=1))
     return 0
 
 

@@ -56,6 +56,8 @@ def read_objects(path: str | Path) -> list[dict]:
         missing = [k for k in OBJECT_KEYS if not isinstance(row, dict) or k not in row]
         if missing:
             raise ValueError(f"{path}:{i}: missing {', '.join(missing)}")
+        if not all(isinstance(row[k], list) for k in ("score", "xy", "yaw", "size_lwh", "vtype")):
+            raise ValueError(f"{path}:{i}: score, xy, yaw, size_lwh and vtype must be lists")
         n = len(row["score"])
         if any(len(row[k]) != n for k in ("xy", "yaw", "size_lwh", "vtype")):
             raise ValueError(f"{path}:{i}: xy, yaw, size_lwh, vtype and score must have one entry per object")
@@ -171,7 +173,14 @@ def budget(demo_dir: str | Path, scenarios: Sequence[str] = SCENARIOS, gate_m: f
         raise ValueError(f"unknown scenario(s) {', '.join(unknown)}; choose from {', '.join(SCENARIOS)}")
     settings = load_settings(demo / "site" / "site.yaml")
     summary = demo / "summary.json"
-    rec_dir = Path(json.loads(summary.read_text())["recording"]) if summary.is_file() else demo / "recording"
+    rec_dir = demo / "recording"
+    if summary.is_file():
+        try:
+            rec = json.loads(summary.read_text())["recording"]
+        except (json.JSONDecodeError, KeyError, TypeError):
+            raise ValueError(f"{summary}: not a demo summary with a 'recording'") from None
+        # as the demo wrote it (relative to where it ran), else relative to the demo folder
+        rec_dir = next((p for p in (Path(rec), demo / Path(rec).name) if p.is_dir()), Path(rec))
     recording = Recording(rec_dir)
     rows = [_select(r, np.asarray(r["score"], np.float64) >= settings.detect.score_thr,
                     np.asarray(r["xy"], np.float64).reshape(-1, 2)) for r in read_objects(demo / "objects.jsonl")]

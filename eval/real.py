@@ -49,9 +49,15 @@ def ground_distance(masks: LookupMasks) -> np.ndarray:
 def load_labels(path: str | Path, width: int, height: int, held_out_from: time | None = None) -> dict:
     """{frame name: (N, 2) float64 pixels} from a label file; ValueError naming the file, frame and label."""
     path = Path(path)
+    def unique_keys(pairs: list) -> dict:
+        keys = [k for k, _ in pairs]
+        if twice := sorted({k for k in keys if keys.count(k) > 1}):
+            raise ValueError(f"{path}: {twice[0]!r} is given twice (the second would replace the first)")
+        return dict(pairs)
+
     try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
+        doc = json.loads(path.read_text(), object_pairs_hook=unique_keys)
+    except (FileNotFoundError, IsADirectoryError):
         raise ValueError(f"label file not found: {path}") from None
     except json.JSONDecodeError as exc:
         raise ValueError(f"{path}: not valid JSON: {exc}") from None
@@ -59,6 +65,11 @@ def load_labels(path: str | Path, width: int, height: int, held_out_from: time |
         raise ValueError(f"{path}: expected {{\"camera\": ..., \"frames\": {{name: [[u, v], ...]}}}}")
     out = {}
     for name, points in doc["frames"].items():
+        if not isinstance(points, list) or not all(
+                isinstance(p, list) and len(p) == 2 and all(isinstance(c, int | float) and not isinstance(c, bool)
+                                                            for c in p) for p in points):
+            raise ValueError(f"{path}: frame {name!r}: labels must be a list of [u, v] pixel pairs, got "
+                             f"{json.dumps(points)[:80]}")
         t = capture_time_from_name(name)
         if t is None:
             raise ValueError(f"{path}: frame {name!r} has no capture time in its name")

@@ -710,5 +710,7 @@ def handoff_without_truth(tracks: str | Path | Iterable, camera_xy_m: Mapping[st
             used_s.add(sk)
             broken += 1
     total = kept + broken
+    if not paths:
+        raise ValueError(f"no tracks in {tracks}" if isinstance(tracks, str | Path) else "no tracks to measure")
     return {"tracks": len(paths), "crossings_kept": kept, "crossings_broken": broken,
             "handoff_kept_fraction": kept / total if total else float("nan")}

@@ -3,10 +3,21 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
+
+from shared.jsonio import dumps
+
+
+def _finite_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
+    return v
 
 
 def _positive_float(text: str) -> float:
@@ -14,8 +25,8 @@ def _positive_float(text: str) -> float:
         v = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not v > 0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    if not (v > 0 and math.isfinite(v)):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
     return v
 
 
@@ -30,7 +41,7 @@ def _add_sim(sub) -> None:
     p.add_argument("--weather", default="auto", help="auto | clear | overcast | dusk | fog | rain")
     p.add_argument("--workers", type=int, default=2, help="render processes")
     p.add_argument("--max-vehicles", type=int, default=100, help="most moving vehicles at once")
-    p.add_argument("--demand-scale", type=float, default=1.0, help="scale the site's traffic demand")
+    p.add_argument("--demand-scale", type=_finite_float, default=1.0, help="scale the site's traffic demand")
     p.add_argument("--type-weights", type=_type_weights, default=None, metavar="TYPE=W,...",
                    help="multiply vehicle types' shares of the mix, e.g. bus=4,truck=3 (types: car, suv_van, truck, "
                         "bus, motorcycle)")
@@ -74,7 +85,7 @@ def _run_sim(args) -> int:
     if args.contact_sheet:
         contact_sheet(args.out, args.contact_sheet)
         summary["contact_sheet"] = str(args.contact_sheet)
-    print(json.dumps(summary, indent=1))
+    print(dumps(summary, indent=1))
     return 0
 
 
@@ -110,8 +121,8 @@ def _floats(n: int):
             vals = tuple(float(x) for x in text.split(","))
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected {n} comma-separated numbers, got {text!r}") from None
-        if len(vals) != n:
-            raise argparse.ArgumentTypeError(f"expected {n} comma-separated numbers, got {text!r}")
+        if len(vals) != n or not all(math.isfinite(v) for v in vals):
+            raise argparse.ArgumentTypeError(f"expected {n} comma-separated finite numbers, got {text!r}")
         return vals
 
     return parse
@@ -129,12 +140,13 @@ def _add_calibrate(sub) -> None:
     p.add_argument("--report", type=Path, help="report JSON (default: next to --out)")
     p.add_argument("--segments", type=int, help="ground segments (default 2 pinhole range bands, 4 fisheye sectors)")
     p.add_argument("--image-circle", type=_floats(3), help="fisheye image circle CX,CY,RADIUS in pixels")
-    p.add_argument("--fov-deg", type=float, default=188.0, help="fisheye field of view at the image circle's edge")
+    p.add_argument("--fov-deg", type=_finite_float, default=188.0,
+                   help="fisheye field of view at the image circle's edge")
     p.add_argument("--origin", type=_floats(3), help="site frame origin LAT,LON,ALT (default: the landmarks' median)")
     p.add_argument(
         "--roi-center", type=_floats(2), help="ROI centre LAT,LON (default: the camera, 25 m fisheye / 200 m)"
     )
-    p.add_argument("--roi-radius", type=float, default=25.0, help="ROI radius in metres (with --roi-center)")
+    p.add_argument("--roi-radius", type=_finite_float, default=25.0, help="ROI radius in metres (with --roi-center)")
     p.add_argument("--plot", type=Path, help="draw residual arrows to this PNG")
     p.add_argument("--image", type=Path, help="camera frame to draw the plot on")
     p.add_argument("--shared-ground", type=_shared_ground, action="append", default=[],
@@ -208,7 +220,7 @@ def _add_train(sub) -> None:
                    help="predict the heading's axis too (training/model.py); with --init, adds it to that model")
     p.add_argument("--beta-heading", type=_positive_float,
                    help="weight of the heading term (default 0.01, the paper's)")
-    p.add_argument("--beta-box", type=float, default=0.0,
+    p.add_argument("--beta-box", type=_finite_float, default=0.0,
                    help="extra weight of the 2D box (width, height, centre offset); default 0, the paper's loss")
     p.add_argument("--fisheye-rotation", choices=["any", "quarter", "off"], default="any",
                    help="augmentation: turn fisheye crops about the principal point by any angle (2D boxes "
@@ -251,7 +263,7 @@ def _run_train(args) -> int:
                       model=DetectorConfig(stride=args.stride, axis_head=args.axis_head),
                       loss=LossConfig(topk_fraction=None if args.no_topk else 0.01, beta_box=args.beta_box,
                                       **({} if args.beta_heading is None else {"beta_heading": args.beta_heading})))
-    print(json.dumps(train(cfg), indent=1))
+    print(dumps(train(cfg), indent=1))
     return 0
 
 
@@ -284,7 +296,7 @@ def _add_eval(sub) -> None:
                    "of the footage played through the pipeline instead of a model's detections)")
     p.add_argument("--recording", type=Path, help="simulator recording (detector)")
     p.add_argument("--every", type=int, default=1, help="use every n-th frame (detector)")
-    p.add_argument("--score-thr", type=float, help="lowest score kept (default: 0.05 for detector, as AP needs "
+    p.add_argument("--score-thr", type=_finite_float, help="lowest score kept (default: 0.05 for detector, as AP needs "
                    "the low ones; the detect service's 0.3 for real)")
     p.add_argument("--site", type=Path, default=Path("deploy/sites/state_ellsworth"),
                    help="site folder with labels/ and masks/ (real), or its site.yaml's cameras (handoff)")
@@ -297,7 +309,7 @@ def _add_eval(sub) -> None:
     p.add_argument("--near-m", type=_positive_float, default=25.0,
                    help="detector: the near-camera metrics count vehicles and detections within this many metres "
                         "of the camera on the ground (its region, as fusion uses it)")
-    p.add_argument("--near-score", type=float, default=0.3,
+    p.add_argument("--near-score", type=_finite_float, default=0.3,
                    help="detector: the lowest score of a detection the near-camera metrics count (the detect "
                         "service's threshold)")
     p.add_argument("--mirror", action="store_true",
@@ -319,7 +331,7 @@ def _run_eval(args) -> int:
 
         result = budget(args.demo, args.scenario or SCENARIOS,
                         log=None if args.json else lambda m: print(m, file=sys.stderr))
-        print(json.dumps(result, indent=1))
+        print(dumps(result, indent=1))
         return 0
     if args.what == "handoff":
         from eval.tracking import handoff_without_truth
@@ -329,7 +341,7 @@ def _run_eval(args) -> int:
         if args.tracks is None:
             raise ValueError("eval handoff needs --tracks")
         positions, _ = camera_positions(load_settings(args.site))
-        print(json.dumps({"tracks_file": str(args.tracks), **handoff_without_truth(args.tracks, positions)}, indent=1))
+        print(dumps({"tracks_file": str(args.tracks), **handoff_without_truth(args.tracks, positions)}, indent=1))
         return 0
     if args.what == "real" and args.tracks is not None:
         if args.model is not None:
@@ -371,7 +383,8 @@ def _run_eval(args) -> int:
 
     if args.recording is None:
         raise ValueError("eval detector needs --recording")
-    det = OnnxDetector(args.model, threads=args.threads, score_thr=args.score_thr or 0.05, mirror=args.mirror)
+    thr = 0.05 if args.score_thr is None else args.score_thr  # 0 is a threshold too
+    det = OnnxDetector(args.model, threads=args.threads, score_thr=thr, mirror=args.mirror)
     result = evaluate(args.recording, det.detect, every=args.every, fisheye_area_deg=args.fisheye_area_deg,
                       near_m=args.near_m, near_score=args.near_score)
     line = ("{name:8s} ap50 {ap50} loc {loc_err_m} m yaw {yaw_err_deg} deg size {size_err_m} m ({frames} frames); "
@@ -387,7 +400,7 @@ def _print_eval(args, result: dict, per_key: str, line: str) -> int:
     if not args.json:
         for name, r in {"overall": result["overall"], **result[per_key]}.items():
             print(line.format(name=name, **r), file=sys.stderr)
-    print(json.dumps(result, indent=1))
+    print(dumps(result, indent=1))
     return 0
 
 
@@ -402,7 +415,7 @@ def _add_autolabel(sub) -> None:
     p.add_argument("--truth", type=Path, help="simulator recording of these frames: score the labels against it")
     p.add_argument("--teacher", type=Path, help="detector ONNX model whose detections away from the labels become "
                    "ignore regions: parked and waiting vehicles, which the background model cannot see")
-    p.add_argument("--teacher-thr", type=float, default=0.1, help="teacher detections at least this confident")
+    p.add_argument("--teacher-thr", type=_finite_float, default=0.1, help="teacher detections at least this confident")
     p.add_argument("--ignore-small", action="store_true",
                    help="foreground regions too small for a vehicle become ignore regions instead of being dropped")
 
@@ -414,8 +427,9 @@ def _add_static(sub) -> None:
     p.add_argument("--frames", type=Path, required=True, help="one camera's frames (capture time in the names)")
     p.add_argument("--until", help="only frames before this time of day HH:MM:SS (leave a held-out slice alone)")
     p.add_argument("--every", type=int, default=4, help="use every n-th frame (default 4)")
-    p.add_argument("--score-thr", type=float, default=0.3, help="detections at least this confident (detect's)")
-    p.add_argument("--min-fraction", type=float, default=0.5, help="report places detected in this share of frames")
+    p.add_argument("--score-thr", type=_finite_float, default=0.3, help="detections at least this confident (detect's)")
+    p.add_argument("--min-fraction", type=_finite_float, default=0.5,
+                   help="report places detected in this share of frames")
     p.add_argument("--crops", type=Path, help="folder: write the image around each place (spot_<k>.png) to look at")
 
 
@@ -424,8 +438,8 @@ def _add_area(sub) -> None:
                                     "circle): its cameras[].detect_area_px")
     p.add_argument("--frames", type=Path, required=True, help="one camera's frames (a folder of images)")
     p.add_argument("--every", type=int, default=60, help="use every n-th frame (default 60)")
-    p.add_argument("--level", type=float, default=40.0, help="grey level above which a pixel shows something")
-    p.add_argument("--share", type=float, default=0.02,
+    p.add_argument("--level", type=_finite_float, default=40.0, help="grey level above which a pixel shows something")
+    p.add_argument("--share", type=_finite_float, default=0.02,
                    help="a column (row) belongs to the area when more than this share of its pixels do")
 
 
@@ -441,7 +455,7 @@ def _run_area(args) -> int:
     if not paths:
         raise ValueError(f"{args.frames}: no images")
     area, (w, h), n = image_area(read_frames(paths), args.level, args.share)
-    print(json.dumps({"frames_folder": str(args.frames), "frames": n, "width": w, "height": h,
+    print(dumps({"frames_folder": str(args.frames), "frames": n, "width": w, "height": h,
                       "detect_area_px": list(area), "share_of_image": round((area[2] - area[0]) * (area[3] - area[1])
                                                                             / (w * h), 3)}, indent=1))
     return 0
@@ -466,7 +480,7 @@ def _run_static(args) -> int:
         last = cv2.imread(str(paths[-1]), cv2.IMREAD_GRAYSCALE)
         for k, spot in enumerate(result["spots"]):
             cv2.imwrite(str(args.crops / f"spot_{k}.png"), crop(last, spot["uv"]))
-    print(json.dumps({"frames_folder": str(args.frames), "until": args.until, **result}, indent=1))
+    print(dumps({"frames_folder": str(args.frames), "until": args.until, **result}, indent=1))
     return 0
 
 
@@ -500,8 +514,8 @@ def _run_autolabel(args) -> int:
                               log=lambda m: print(m, file=sys.stderr), teacher=teacher)
     if args.truth:
         report["score"] = score_labels(args.out / "labels.json", args.truth)
-        (args.out / "report.json").write_text(json.dumps(report, indent=1))
-    print(json.dumps(report, indent=1))
+        (args.out / "report.json").write_text(dumps(report, indent=1))
+    print(dumps(report, indent=1))
     return 0
 
 
@@ -528,7 +542,7 @@ def _add_composite(sub) -> None:
                    "of the camera")
     p.add_argument("--teacher", type=Path, help="detector ONNX model whose detections on the background become "
                    "ignore regions: vehicles standing through the whole slice are in the background")
-    p.add_argument("--teacher-thr", type=float, default=0.5, help="teacher detections at least this confident")
+    p.add_argument("--teacher-thr", type=_finite_float, default=0.5, help="teacher detections at least this confident")
 
 
 def _run_composite(args) -> int:
@@ -540,7 +554,7 @@ def _run_composite(args) -> int:
     teacher = _teacher(args.teacher, cfg.teacher_thr)
     report = composite_camera(args.frames, args.masks, args.out, args.camera, until, cfg,
                               log=lambda m: print(m, file=sys.stderr), teacher=teacher, placements=args.placements)
-    print(json.dumps(report, indent=1))
+    print(dumps(report, indent=1))
     return 0
 
 
@@ -596,7 +610,7 @@ def _add_tracks(sub) -> None:
                    help="Zenoh endpoint: the cabinet's router tcp/HOST:7447 (default: the local fuse_track)")
     p.add_argument("--port-base", type=int, default=7451, help="embedded default's first service port")
     p.add_argument("--count", type=int, help="stop after this many messages")
-    p.add_argument("--timeout", type=float, help="stop after this many seconds without tracks")
+    p.add_argument("--timeout", type=_finite_float, help="stop after this many seconds without tracks")
     p.add_argument("--json", action="store_true", help="one JSON line per message")
 
 
@@ -609,7 +623,7 @@ def _run_tracks(args) -> int:
         for tracks in client.stream(timeout_s=args.timeout):
             rows = tracks.rows()
             if args.json:
-                print(json.dumps({"t_ns": tracks.t_capture_ns, "seq": tracks.seq, "tracks": rows}), flush=True)
+                print(dumps({"t_ns": tracks.t_capture_ns, "seq": tracks.seq, "tracks": rows}), flush=True)
             else:
                 print(f"t={tracks.t_capture_ns / 1e9:.2f} s  {len(rows)} tracks", flush=True)
                 for r in rows:
@@ -637,7 +651,7 @@ def _add_viz(sub) -> None:
     p.add_argument("--viewer", help="with --live: also stream to a running Rerun viewer at this URL (e.g. "
                    "rerun+http://127.0.0.1:9876/proxy)")
     p.add_argument("--count", type=int, help="with --live: stop after this many messages")
-    p.add_argument("--timeout", type=float, help="with --live: stop after this many seconds without tracks")
+    p.add_argument("--timeout", type=_finite_float, help="with --live: stop after this many seconds without tracks")
     p.add_argument("--basemap", type=Path, help="world file (YAML/JSON: image + corners) of an orthophoto")
     p.add_argument("--recording", type=Path, help="simulator recording: draw its site's ground as the map")
     p.add_argument("--frames", help="also log the camera frames of this source (recording, image folders; needs "
@@ -700,7 +714,7 @@ def _run_viz(args) -> int:
         basemap = site_basemap(args.recording)
         origin = origin or Recording(args.recording).meta["site"]["origin"]
     frames = _viz_frames(args) if args.frames else None
-    print(json.dumps(tracks_file_to_rrd(args.tracks, args.out, site_origin=origin, basemap=basemap, frames=frames),
+    print(dumps(tracks_file_to_rrd(args.tracks, args.out, site_origin=origin, basemap=basemap, frames=frames),
                      indent=1))
     return 0
 
@@ -747,7 +761,7 @@ def _run_viz_live(args) -> int:
             rec.flush()
             rec.disconnect()
         summary["bad_messages"] = client.bad.total
-    print(json.dumps({"site": settings.site, "rrd": str(args.out), **summary}, indent=1))
+    print(dumps({"site": settings.site, "rrd": str(args.out), **summary}, indent=1))
     if not summary["messages"]:
         print("roadside viz: no tracks received", file=sys.stderr)
     return 0 if summary["messages"] else 1
@@ -757,7 +771,7 @@ def _add_health(sub) -> None:
     p = sub.add_parser("health", help="exit 0 when a service's liveliness token is on the bus")
     p.add_argument("--site", required=True, type=Path)
     p.add_argument("--service", required=True, choices=["ingest", "detect", "localize", "fuse_track"])
-    p.add_argument("--timeout", type=float, default=3.0)
+    p.add_argument("--timeout", type=_finite_float, default=3.0)
 
 
 def _run_health(args) -> int:

@@ -27,6 +27,7 @@ import yaml
 
 from shared.bus import BadInput, Receiver, zenoh_config
 from shared.geo import GeoFrame
+from shared.jsonio import dumps
 from shared.keys import all_cameras_key, tracks_key
 from shared.messages import Objects, Tracks
 from shared.settings import BusSettings, DetectSettings
@@ -449,7 +450,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
         "rerun": {k: viz.get(k) for k in ("rrd", "messages", "bad_lines", "tracks")},
         "tracks_file": str(tracks_path),
     }
-    (cfg.out / "summary.json").write_text(json.dumps(summary, indent=1, default=float))
+    (cfg.out / "summary.json").write_text(dumps(summary, indent=1))
     return summary
 
 

@@ -81,6 +81,9 @@ def test_read_objects_names_the_bad_line(tmp_path: Path):
     path.write_text(json.dumps(short) + "\n")
     with pytest.raises(ValueError, match="one entry per object"):
         read_objects(path)
+    path.write_text(json.dumps({**row([[0.0, 0.0]]), "score": 0.9}) + "\n")
+    with pytest.raises(ValueError, match=r"objects.jsonl:1: score, xy, yaw, size_lwh and vtype must be lists"):
+        read_objects(path)
     with pytest.raises(ValueError, match="objects file not found"):
         read_objects(tmp_path / "missing.jsonl")
 
@@ -125,6 +128,23 @@ def test_budget_takes_away_one_error_at_a_time(demo: Path):
     assert s["no_false_alarms"]["recall"] == 0.0  # the false alarm goes, the vehicles stay 2 m off
     assert s["true_positions_no_false_alarms"]["mota"] == 1.0
     assert s["truth"]["mota"] == 1.0 and s["truth"]["traj_err_in_roi_m"] < 0.1
+
+
+def test_budget_finds_the_recording_of_a_demo_folder_run_from_elsewhere(demo: Path, small_recording: Path,
+                                                                        tmp_path: Path, monkeypatch):
+    """summary.json names the recording as the demo saw it (relative to where it ran): a moved demo folder, or one
+    given by an absolute path from another directory, still finds its own recording."""
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    for name in ("site", "objects.jsonl"):
+        (moved / name).symlink_to(demo / name)
+    (moved / "recording").symlink_to(small_recording)
+    (moved / "summary.json").write_text(json.dumps({"recording": "out/demo/recording"}))
+    monkeypatch.chdir(tmp_path)
+    assert budget(moved, ["as_run"])["scenarios"]["as_run"]["recall"] == 0.0
+    (moved / "summary.json").write_text(json.dumps({"mota": 0.5}))
+    with pytest.raises(ValueError, match="not a demo summary with a 'recording'"):
+        budget(moved, ["as_run"])
 
 
 def test_budget_rejects_an_unknown_scenario(demo: Path):

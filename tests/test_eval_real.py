@@ -183,6 +183,13 @@ def test_bad_labels_name_the_problem(tmp_path):
     path.write_text(json.dumps({"frames": {"2023-12-19 11-00-41-000000.jpg": [[10, 10], [400, 10]]}}))
     with pytest.raises(ValueError, match=r"label 1 \(400.0, 10.0\) is outside the 320x240 image"):
         load_labels(path, W, H)
+    for labels in (None, 5, [{"u": 1, "v": 2}], [[639, 77, 805, 120]], [[1, "2"]]):
+        path.write_text(json.dumps({"frames": {"2023-12-19 11-00-41-000000.jpg": labels}}))
+        with pytest.raises(ValueError, match=r"11-00-41-000000\.jpg': labels must be a list of \[u, v\] pixel pairs"):
+            load_labels(path, W, H)
+    path.write_text('{"frames": {"2023-12-19 11-00-41-000000.jpg": [], "2023-12-19 11-00-41-000000.jpg": []}}')
+    with pytest.raises(ValueError, match=r"11-00-41-000000\.jpg' is given twice"):
+        load_labels(path, W, H)
     path.write_text("{")
     with pytest.raises(ValueError, match=r"l\.json: not valid JSON"):
         load_labels(path, W, H)

@@ -341,3 +341,13 @@ def test_handoff_without_truth_counts_kept_and_broken_crossings():
     assert handoff_without_truth(rows, cams, max_gap_s=0.3)["crossings_broken"] == 0
     with pytest.raises(ValueError, match="cameras' ground positions"):
         handoff_without_truth(rows, {})
+    with pytest.raises(ValueError, match="no tracks to measure"):  # not a NaN fraction of nothing
+        handoff_without_truth([], cams)
+
+
+def test_json_documents_for_other_programs_have_no_nan():
+    from shared.jsonio import dumps, strict
+
+    doc = {"a": float("nan"), "b": [np.float32(1.5), np.inf, np.int64(3)], "c": np.array([1.0, np.nan]), "d": "x"}
+    assert strict(doc) == {"a": None, "b": [1.5, None, 3], "c": [1.0, None], "d": "x"}
+    assert json.loads(dumps(doc)) == strict(doc)
