@@ -220,6 +220,10 @@ GOOD = {"id": 5, "image_id": 1, "category_id": 1, "bbox": [10, 20, 30, 25]}
         ({"image_id": 99}, "annotation 5: image_id 99 is not in images"),
         ({"category_id": 42}, "category_id 42 is not in categories"),
         ({"bbox": None, "drop": "bbox"}, "annotation 5: missing bbox"),
+        ({"bbox": [0.1, 0.2, 0.3, 0.25]}, "every bbox lies within 0-1: COCO boxes are in pixels"),
+        ({"bbox": [200, 20, 30, 25]}, r"bbox \[200, 20, 30, 25\] lies outside the 80x60 image"),
+        ({"image_id": [1]}, r"image_id must be a number or a string, got \[1\]"),
+        ({"category_id": {"a": 1}}, "category_id must be a number or a string"),
     ],
 )
 def test_coco_bad_annotation_names_the_file(tmp_path, change, message):
@@ -229,6 +233,21 @@ def test_coco_bad_annotation_names_the_file(tmp_path, change, message):
     with pytest.raises(ValueError, match=message) as err:
         samples_from_coco(path)
     assert str(path) in str(err.value)
+
+
+def test_coco_duplicate_ids_are_refused_not_merged(tmp_path):
+    """A repeated category id would turn cars into trucks, a repeated annotation id count a vehicle twice."""
+    path = _coco_folder(tmp_path, [GOOD], categories=[{"id": 1, "name": "car"}, {"id": 1, "name": "truck"}])
+    with pytest.raises(ValueError, match="category id 1 appears twice"):
+        samples_from_coco(path)
+    path = _coco_folder(tmp_path, [GOOD, {**GOOD, "bbox": [40, 20, 30, 25]}])
+    with pytest.raises(ValueError, match="annotation id 5 appears twice"):
+        samples_from_coco(path)
+    doc = json.loads(path.read_text())
+    doc["images"][0]["width"] = [80]
+    path.write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match="image 1: width must be a whole number of pixels"):
+        samples_from_coco(path)
 
 
 def test_coco_bad_files_name_the_file(tmp_path):

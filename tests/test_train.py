@@ -133,6 +133,35 @@ def test_background_workers_feed_the_training_and_a_dead_worker_stops_it(small_r
         torch.set_num_threads(threads)
 
 
+def test_a_file_that_is_not_a_checkpoint_is_named(tmp_path):
+    (tmp_path / "model.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match=r"model\.pt: not a roadside detector checkpoint"):
+        load_detector(tmp_path / "model.pt")
+    torch.save({"weights": 1}, tmp_path / "other.pt")
+    with pytest.raises(ValueError, match=r"other\.pt: not a roadside detector checkpoint \(KeyError"):
+        load_detector(tmp_path / "other.pt")
+    with pytest.raises(ValueError, match="model file not found"):
+        load_detector(tmp_path / "none.pt")
+
+
+def test_a_run_that_fails_on_its_data_keeps_the_previous_log(small_recording, tmp_path):
+    import cv2
+    import numpy as np
+
+    cv2.imwrite(str(tmp_path / "a.png"), np.full((64, 64), 90, np.uint8))
+    (tmp_path / "ann.json").write_text(json.dumps({
+        "images": [{"id": 1, "file_name": "a.png"}], "categories": [{"id": 1, "name": "car"}],
+        "annotations": [{"id": 1, "image_id": 1, "category_id": 1, "bbox": [10, 10, 20, 12]}]}))
+    (tmp_path / "a.png").write_bytes(b"\x89PNG cut short")  # found only when the batch is made
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "train_log.jsonl").write_text('{"step": 50}\n')
+    with pytest.raises(ValueError, match="cannot decode"):
+        train(TrainConfig(coco=(str(tmp_path / "ann.json"),), out=str(out), steps=2, batch_size=1, crop=64,
+                          model=TINY, threads=1), log=lambda _m: None)
+    assert (out / "train_log.jsonl").read_text() == '{"step": 50}\n'
+
+
 def test_train_config_names_a_bad_device_or_worker_count(tmp_path):
     with pytest.raises(ValueError, match="device must be cpu, cuda or cuda:N, got 'tpu'"):
         TrainConfig(recordings=("r",), device="tpu")

@@ -343,35 +343,66 @@ def samples_from_coco(
         if not isinstance(doc.get(key), list):
             raise ValueError(f"{json_path}: missing or not a list: {key!r}")
 
+    def an_id(value: object, what: str) -> object:
+        if isinstance(value, bool) or not isinstance(value, int | str):
+            raise ValueError(f"{json_path}: {what} must be a number or a string, got {value!r}")
+        return value
+
     categories: dict[object, str] = {}
     for k, cat in enumerate(doc["categories"]):
         if not isinstance(cat, dict) or "id" not in cat or "name" not in cat:
             raise ValueError(f"{json_path}: categories[{k}] needs 'id' and 'name', got {cat!r}")
+        if an_id(cat["id"], f"categories[{k}] id") in categories:
+            raise ValueError(f"{json_path}: category id {cat['id']!r} appears twice")
         categories[cat["id"]] = cat["name"]
 
     images: dict[object, dict] = {}
     for k, img in enumerate(doc["images"]):
         if not isinstance(img, dict) or "id" not in img or "file_name" not in img:
             raise ValueError(f"{json_path}: images[{k}] needs 'id' and 'file_name', got {img!r}")
-        if img["id"] in images:
+        if an_id(img["id"], f"images[{k}] id") in images:
             raise ValueError(f"{json_path}: image id {img['id']!r} appears twice")
+        for key in ("width", "height"):
+            v = img.get(key)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v <= 0):
+                raise ValueError(f"{json_path}: image {img['id']!r}: {key} must be a whole number of pixels > 0, "
+                                 f"got {v!r}")
         images[img["id"]] = img
 
     per_image: dict[object, dict[str, list]] = {i: _empty_labels() for i in images}
+    annotation_ids: set[object] = set()
     for k, ann in enumerate(doc["annotations"]):
         if not isinstance(ann, dict):
             raise ValueError(f"{json_path}: annotations[{k}] must be an object, got {ann!r}")
+        if "id" in ann:
+            if an_id(ann["id"], f"annotations[{k}] id") in annotation_ids:
+                raise ValueError(f"{json_path}: annotation id {ann['id']!r} appears twice (the vehicle would count "
+                                 "twice)")
+            annotation_ids.add(ann["id"])
         where = f"{json_path}: annotation {ann.get('id', f'#{k}')}"
         missing = [key for key in ("image_id", "category_id", "bbox") if key not in ann]
         if missing:
             raise ValueError(f"{where}: missing {', '.join(missing)}")
+        an_id(ann["image_id"], f"annotation {ann.get('id', f'#{k}')} image_id")
+        an_id(ann["category_id"], f"annotation {ann.get('id', f'#{k}')} category_id")
         if ann["image_id"] not in images:
             raise ValueError(f"{where}: image_id {ann['image_id']!r} is not in images")
         if ann["category_id"] not in categories:
             raise ValueError(f"{where}: category_id {ann['category_id']!r} is not in categories")
         vtype = _coco_type(categories[ann["category_id"]], ann["category_id"], where)
-        for key, value in _coco_vehicle(ann, vtype, where).items():
+        vehicle = _coco_vehicle(ann, vtype, where)
+        img = images[ann["image_id"]]
+        if img.get("width") and img.get("height"):
+            x0, y0, x1, y1 = vehicle["box"]
+            if x1 <= -0.5 or y1 <= -0.5 or x0 >= img["width"] - 0.5 or y0 >= img["height"] - 0.5:
+                raise ValueError(f"{where}: bbox {ann['bbox']!r} lies outside the {img['width']}x{img['height']} "
+                                 "image")
+        for key, value in vehicle.items():
             per_image[ann["image_id"]][key].append(value)
+    boxes = [np.asarray(ann["bbox"], float) for ann in doc["annotations"]]
+    if boxes and all(b[0] + b[2] <= 1.0 and b[1] + b[3] <= 1.0 for b in boxes):
+        raise ValueError(f"{json_path}: every bbox lies within 0-1: COCO boxes are in pixels, not normalised "
+                         "coordinates")
 
     refs = []
     for image_id, img in images.items():

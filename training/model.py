@@ -239,9 +239,15 @@ def save_detector(model: Detector, path: str | Path) -> None:
 
 def load_detector(path: str | Path) -> Detector:
     """Read a file written by save_detector; the model is returned in eval mode."""
-    ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    model = Detector(DetectorConfig(**ckpt["config"]))
-    model.load_state_dict(ckpt["state_dict"])
+    if not Path(path).is_file():
+        raise ValueError(f"model file not found: {path}")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        model = Detector(DetectorConfig(**ckpt["config"]))
+        model.load_state_dict(ckpt["state_dict"])
+    except Exception as exc:  # torch raises unpickling, zip, key and shape errors of its own kinds
+        raise ValueError(f"{path}: not a roadside detector checkpoint ({type(exc).__name__}: "
+                         f"{str(exc).strip().splitlines()[0][:200] if str(exc).strip() else ''})") from None
     return model.eval()
 
 

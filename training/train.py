@@ -288,38 +288,42 @@ def train(cfg: TrainConfig, log=print) -> dict:
         return step >= total or (budget_s is not None and time.perf_counter() - t_start >= budget_s)
 
     try:
-        with open(out / "train_log.jsonl", "w") as log_file:
-            for arrays in batches:
-                if done():
-                    break
-                images, targets = to_tensors(*arrays, device)
-                lr = lr_now()
-                for g in opt.param_groups:
-                    g["lr"] = lr
-                loss, parts = detector_loss(model(images), targets, cfg.loss, cfg.model.stride)
-                if not torch.isfinite(loss):
-                    raise FloatingPointError(f"loss became {loss.item()} at step {step}: lower the learning rate")
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(params, 5.0)
-                opt.step()
-                step += 1
-                if step == WARMUP_STEPS:
-                    if budget_s is not None:
-                        per_step = (time.perf_counter() - t_start) / WARMUP_STEPS
-                        log(f"[train] {per_step:.2f} s per step: about {int(budget_s / per_step)} steps "
-                            f"in {cfg.minutes:g} min (the schedule follows the clock)")
-                if step % cfg.log_every == 0 or done():
-                    rec = {"step": step, "lr": lr, "s": time.perf_counter() - t_start,
-                           **{k: round(v, 6) for k, v in parts.items()}}
-                    log_file.write(json.dumps(rec) + "\n")
-                    log_file.flush()
-                    log(f"[train] step {step} loss {parts['total']:.4f} heat {parts['heat']:.4f}")
-                if step % 500 == 0:
-                    save_detector(model, out / "model.pt")
+        log_file = None  # opened after the first step: a run that fails on its data keeps the last log
+        for arrays in batches:
+            if done():
+                break
+            images, targets = to_tensors(*arrays, device)
+            lr = lr_now()
+            for g in opt.param_groups:
+                g["lr"] = lr
+            loss, parts = detector_loss(model(images), targets, cfg.loss, cfg.model.stride)
+            if not torch.isfinite(loss):
+                raise RuntimeError(f"loss became {loss.item()} at step {step}: lower the learning rate")
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(params, 5.0)
+            opt.step()
+            step += 1
+            if step == WARMUP_STEPS:
+                if budget_s is not None:
+                    per_step = (time.perf_counter() - t_start) / WARMUP_STEPS
+                    log(f"[train] {per_step:.2f} s per step: about {int(budget_s / per_step)} steps "
+                        f"in {cfg.minutes:g} min (the schedule follows the clock)")
+            if step % cfg.log_every == 0 or done():
+                rec = {"step": step, "lr": lr, "s": time.perf_counter() - t_start,
+                       **{k: round(v, 6) for k, v in parts.items()}}
+                if log_file is None:
+                    log_file = open(out / "train_log.jsonl", "w")  # closed in finally
+                log_file.write(json.dumps(rec) + "\n")
+                log_file.flush()
+                log(f"[train] step {step} loss {parts['total']:.4f} heat {parts['heat']:.4f}")
+            if step % 500 == 0:
+                save_detector(model, out / "model.pt")
     finally:
         if background is not None:
             background.close()
+        if log_file is not None:
+            log_file.close()
     model.eval()
     save_detector(model, out / "model.pt")
     summary = {
