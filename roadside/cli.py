@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from shared.jsonio import dumps
+from shared.messages import check_name
 
 
 def _finite_float(text: str) -> float:
@@ -508,7 +509,13 @@ def _run_autolabel(args) -> int:
     from training.autolabel import AutolabelConfig, autolabel_camera, score_labels
 
     until = _time_of_day(args.until)
+    check_name("camera", args.camera)  # it names files: no '/'
     cfg = AutolabelConfig(roi_m=args.roi_m, teacher_thr=args.teacher_thr, ignore_small=args.ignore_small)
+    if args.truth:  # checked before any output is written
+        from sim.recording import Recording
+
+        if args.camera not in Recording(args.truth).cameras:
+            raise ValueError(f"--truth {args.truth} has no camera {args.camera!r}")
     teacher = _teacher(args.teacher, cfg.teacher_thr)
     report = autolabel_camera(args.frames, args.masks, args.out, args.camera, until, cfg,
                               log=lambda m: print(m, file=sys.stderr), teacher=teacher)
@@ -549,6 +556,7 @@ def _run_composite(args) -> int:
     from training.composite import CompositeConfig, composite_camera
 
     until = _time_of_day(args.until)
+    check_name("camera", args.camera)  # it names files: no '/'
     cfg = CompositeConfig(sim_site=args.sim_site, seconds=args.seconds, hz=args.hz, seed=args.seed,
                           roi_m=args.roi_m, demand_scale=args.demand_scale, teacher_thr=args.teacher_thr)
     teacher = _teacher(args.teacher, cfg.teacher_thr)
@@ -661,10 +669,9 @@ def _add_viz(sub) -> None:
 
 
 def _viz_frames(args):
-    """(camera, t_ns, grey image, detections) of every n-th frame of each camera of --frames."""
-    import cv2
-    import numpy as np
-
+    """(camera, t_ns, grey image, detections) of every n-th frame of each camera of --frames; the flags, the site,
+    the model and the source are checked at once (before any output is written), the frames read as they are
+    taken."""
     from services.ingest.sources import open_source
     from shared.inference import OnnxDetector
     from shared.settings import load_settings
@@ -676,11 +683,20 @@ def _viz_frames(args):
     settings = load_settings(site_path(args.site))
     cams = [c.name for c in settings.cameras]
     det = OnnxDetector(args.model, threads=2, score_thr=settings.detect.score_thr)
+    return _viz_frame_rows(args, settings, det, open_source(str(args.frames), cams, {}))
+
+
+def _viz_frame_rows(args, settings, det, source):
+    import cv2
+    import numpy as np
+
     seen: dict[str, int] = {}
-    for sf in open_source(str(args.frames), cams, {}):
+    for sf in source:
         k = seen[sf.camera] = seen.get(sf.camera, -1) + 1
         if k % args.frames_every:
             continue
+        if sf.error:
+            raise ValueError(sf.error)
         grey = sf.image
         if grey is None:
             grey = cv2.imdecode(np.frombuffer(sf.jpeg, np.uint8), cv2.IMREAD_GRAYSCALE)
@@ -834,6 +850,9 @@ def main(argv: list[str] | None = None) -> int:
         return runners[args.job](args)
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
         print(f"roadside {args.job}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a file it cannot read or write: a folder where a file belongs, no permission, a full disk
+        print(f"roadside {args.job}: error: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"roadside {args.job}: interrupted", file=sys.stderr)

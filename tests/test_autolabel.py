@@ -186,3 +186,10 @@ def test_cli_writes_the_report(scene, tmp_path, capsys):
     assert main(["autolabel", "--frames", str(frames), "--masks", str(masks), "--camera", "CAM",
                  "--out", str(tmp_path / "o"), "--until", "noon"]) == 2
     assert "--until must be a time of day" in capsys.readouterr().err
+    before = (tmp_path / "o" / "labels.json").read_bytes()
+    for flags, message in [(["--camera", "CAM", "--truth", str(tmp_path / "none")], "not a recording"),
+                           (["--camera", "../CAM"], "camera name must be 1-64 letters")]:
+        assert main(["autolabel", "--frames", str(frames), "--masks", str(masks), *flags,
+                     "--out", str(tmp_path / "o"), "--until", "11:00:02"]) == 2
+        assert message in capsys.readouterr().err
+    assert (tmp_path / "o" / "labels.json").read_bytes() == before  # checked before anything was written

@@ -219,6 +219,30 @@ def test_basemap_world_file_with_lat_lon_corners(tmp_path: Path) -> None:
         Basemap.from_world_file(world)
     with pytest.raises(FileNotFoundError, match=r"nowhere\.yaml"):
         Basemap.from_world_file(tmp_path / "nowhere.yaml")
+    world.write_text("image: [unclosed")
+    with pytest.raises(ValueError, match=r"ortho\.yaml is not valid YAML or JSON"):
+        Basemap.from_world_file(world, origin)
+    world.write_text(json.dumps({"image": "ortho.png", "top_left": corners[0, :2].tolist(),
+                                 "bottom_right": corners[1, :2].tolist(), "origin": {"lat": 42.2, "lon": -83.7}}))
+    with pytest.raises(ValueError, match=r"ortho\.yaml: origin must be \{lat_deg, lon_deg"):
+        Basemap.from_world_file(world)
+
+
+def test_a_failed_conversion_leaves_an_existing_rrd_as_it_was(tracks_file: Path, tmp_path: Path) -> None:
+    out = tmp_path / "old.rrd"
+    out.write_bytes(b"an earlier recording")
+
+    def frames():
+        raise ValueError("the frames' source broke")
+        yield
+
+    with pytest.raises(ValueError, match="source broke"):
+        tracks_file_to_rrd(tracks_file, out, frames=frames())
+    assert out.read_bytes() == b"an earlier recording" and not list(tmp_path.glob("*.partial"))
+    with pytest.raises(ValueError, match="is a folder"):
+        tracks_file_to_rrd(tracks_file, tmp_path)
+    tracks_file_to_rrd(tracks_file, out)
+    assert out.stat().st_size > 1000
 
 
 def test_basemap_four_corner_file_with_its_image_beside_it_or_a_folder(tmp_path: Path) -> None:

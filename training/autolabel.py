@@ -394,7 +394,8 @@ def autolabel_camera(frames_dir: str | Path, masks_path: str | Path, out_dir: st
         grey = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
         shown = np.where(view.roi, grey, np.uint8(round(float(grey[view.roi].mean())))).astype(np.uint8)
         name = f"images/{camera}_{path.stem.replace(' ', '_')}.png"
-        cv2.imwrite(str(out_dir / name), shown)
+        if not cv2.imwrite(str(out_dir / name), shown):
+            raise ValueError(f"cannot write {out_dir / name}")
         images.append({"id": i, "file_name": name, "width": ws, "height": hs, "camera": camera, "kind": "fisheye"
                        if masks.meta.get("kind") == "fisheye" else masks.meta.get("kind", "pinhole"),
                        "t_ns": t_ns, "principal_point": [c + COCO_PIXEL_OFFSET for c in view.principal_point],

@@ -266,7 +266,8 @@ def composite_camera(frames_dir: str | Path, masks_path: str | Path, out_dir: st
         grey = cv2.resize(cv2.cvtColor(res.image, cv2.COLOR_BGR2GRAY), (ws, hs), interpolation=cv2.INTER_AREA)
         shown = np.where(view.roi, grey, fill).astype(np.uint8)
         name = f"images/{camera}_{i:05d}.png"
-        cv2.imwrite(str(out_dir / name), shown)
+        if not cv2.imwrite(str(out_dir / name), shown):
+            raise ValueError(f"cannot write {out_dir / name}")
         images.append({"id": i, "file_name": name, "width": ws, "height": hs, "camera": camera, "kind": cam.kind,
                        "t_ns": int(round(t * 1e9)),
                        "principal_point": [c + o for c in view.principal_point]})

@@ -118,7 +118,11 @@ class Basemap:
             path = found[0]
         if not path.is_file():
             raise FileNotFoundError(f"basemap world file not found: {path}")
-        spec = yaml.safe_load(path.read_text())
+        try:
+            spec = yaml.safe_load(path.read_text())
+        except (yaml.YAMLError, UnicodeDecodeError) as exc:
+            raise ValueError(f"basemap world file {path} is not valid YAML or JSON: "
+                             f"{str(exc).strip().splitlines()[0]}") from None
         corners4 = isinstance(spec, Mapping) and all(k in spec for k in CORNER_KEYS)
         if not isinstance(spec, Mapping) or ("image" not in spec and not corners4):
             raise ValueError(f"basemap world file {path} must be a mapping with an 'image' key, or the corners "
@@ -133,7 +137,7 @@ class Basemap:
             image = load_image(image_path)
         if corners4:
             if "origin" in spec:
-                origin = GeoFrame.from_dict(spec["origin"])
+                origin = _origin(spec["origin"], path)
             if not isinstance(origin, GeoFrame):
                 raise ValueError(f"basemap world file {path} gives lat/lon corners but no site origin")
             ll = np.array([_latlon(spec[k], k) for k in ("tl", "tr", "br", "bl")])
@@ -144,13 +148,21 @@ class Basemap:
         if "top_left" not in spec or "bottom_right" not in spec:
             raise ValueError(f"basemap world file {path} needs either 'extent_m' or 'top_left' and 'bottom_right'")
         if "origin" in spec:
-            origin = GeoFrame.from_dict(spec["origin"])
+            origin = _origin(spec["origin"], path)
         if origin is None:
             raise ValueError(
                 f"basemap world file {path} gives lat/lon corners but no site origin "
                 "(add 'origin' to the file or pass the site origin)"
             )
         return cls.from_corners(image, spec["top_left"], spec["bottom_right"], origin, max_side_px=max_side_px)
+
+
+def _origin(value: object, path: Path) -> GeoFrame:
+    try:
+        return GeoFrame.from_dict(value)
+    except (KeyError, TypeError, AttributeError) as exc:
+        raise ValueError(f"basemap world file {path}: origin must be {{lat_deg, lon_deg[, alt_m]}}, got {value!r} "
+                         f"({type(exc).__name__}: {exc})") from None
 
 
 def load_image(path: str | Path) -> np.ndarray:

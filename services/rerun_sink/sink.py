@@ -430,12 +430,16 @@ def tracks_file_to_rrd(
         raise FileNotFoundError(f"tracks file not found: {tracks_path}")
     origin = _as_origin(site_origin)
     bm = _as_basemap(basemap, origin)
+    if out_rrd.is_dir():
+        raise ValueError(f"{out_rrd} is a folder, not an .rrd file")
     out_rrd.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out_rrd.with_name(out_rrd.name + ".partial")  # an existing file is replaced only by a complete one
     rec = rr.RecordingStream(application_id)
-    rec.save(out_rrd)
+    rec.save(tmp)
     bad = _BadLines()
     lines = 0
     sink: TrackSink | None = None
+    done = False
     try:
         rec.send_recording_name(tracks_path.name)
         with tracks_path.open(encoding="utf-8", errors="replace") as f:
@@ -456,9 +460,14 @@ def tracks_file_to_rrd(
         for frame in frames or ():
             sink.log_frame(*frame)
         rec.send_blueprint(sink.blueprint())
+        done = True
     finally:
         rec.flush()
         rec.disconnect()
+        if done:
+            tmp.replace(out_rrd)
+        else:
+            tmp.unlink(missing_ok=True)
     return {"tracks_file": str(tracks_path), "rrd": str(out_rrd), "lines": lines, **_counts(sink, bad)}
 
 
