@@ -54,6 +54,10 @@ def build_report(cal: Calibration, lm: Landmarks, cfg: CalibConfig, roi: dict, l
                 loo[i] = float(np.linalg.norm(p[0] - xy[i]))
     inl = cal.inliers
     warnings = list(cal.warnings)
+    if (lm.segment >= 0).any():
+        warnings.append("the landmarks' segment column is not used: the ground segments are "
+                        + ("sectors around the nadir" if cfg.kind == "fisheye" else "range bands from the camera")
+                        + " (--segments sets how many)")
     gap = angular_coverage_deg(xy[inl & in_roi], np.asarray(roi.get("center_m", xy[inl].mean(0))))
     if "radius_m" in roi and gap > 150:
         warnings.append(

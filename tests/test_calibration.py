@@ -331,6 +331,11 @@ def test_calibrate_checks_every_input_before_it_writes(tmp_path):
     with pytest.raises(ValueError, match="latitude and longitude swapped"):
         run_calibration(job)
     assert out.read_bytes() == b"the previous masks" and not list(tmp_path.glob("*.partial"))
+    path.write_text(json.dumps({"kind": "fisheye", "width": 1280, "height": 960,
+                                "landmarks": [{**r, "segment": k % 2} for k, r in enumerate(rows)]}))
+    report = run_calibration(job)  # a user's segment column is said to be unused, not silently dropped
+    assert any("segment column is not used" in w for w in report["warnings"])
+    assert load_masks(out).valid.any()
 
 
 def test_config_errors_name_the_parameter():
