@@ -166,8 +166,10 @@ def test_cli_unknown_site_is_one_clear_line(tmp_path):
 def test_cli_negative_duration_is_refused(tmp_path):
     r = _cli("sim", "--site", "state_ellsworth", "--seconds", "-3", "--out", str(tmp_path / "x"))
     assert r.returncode == 2
-    assert "--seconds" in r.stderr and "must be > 0" in r.stderr
+    assert "--seconds" in r.stderr and "must be a finite number > 0" in r.stderr
     assert not (tmp_path / "x").exists()
+    r = _cli("sim", "--site", "state_ellsworth", "--seconds", "inf", "--out", str(tmp_path / "x"))
+    assert r.returncode == 2 and "must be a finite number > 0, got inf" in r.stderr
 
 
 @pytest.mark.parametrize("weights, message", [("bus=x", "expected TYPE=WEIGHT"),
