@@ -110,6 +110,15 @@ def landmarks_from_rows(rows: list[dict], where: str) -> Landmarks:
     )
 
 
+def median_latlon(latlon: np.ndarray) -> np.ndarray:
+    """(2,) the median latitude and longitude of (N, 2) points, the longitudes taken around the first one's (a
+    site on the antimeridian has landmarks at 179.9996 and -179.9998 degrees, whose plain median is 0)."""
+    latlon = np.asarray(latlon, float).reshape(-1, 2)
+    lon0 = latlon[0, 1]
+    lon = np.median((latlon[:, 1] - lon0 + 180.0) % 360.0 - 180.0) + lon0
+    return np.array([np.median(latlon[:, 0]), (lon + 180.0) % 360.0 - 180.0])
+
+
 def _whole(x) -> int:
     """An int from an int or a string of one ("2", " 3 "); TypeError or ValueError otherwise (2.5, [1], True)."""
     if isinstance(x, bool) or not isinstance(x, int | str):
@@ -142,7 +151,7 @@ def validate_landmarks(
                 raise ValueError(f"landmark {lid!r}: pixel ({u:.1f}, {v:.1f}) is outside the fisheye image circle")
     if len(lm) < 4:
         raise ValueError(f"need at least 4 landmarks, got {len(lm)}")
-    med = np.median(lm.latlon, axis=0)
+    med = median_latlon(lm.latlon)
     geo = GeoFrame(float(med[0]), float(med[1]))
     xy = lm.to_local(geo)
     for lid, p in zip(lm.ids, xy, strict=True):

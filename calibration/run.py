@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.fit import CalibConfig, calibrate
-from calibration.landmarks import FAR_FROM_OTHERS_M, load_landmarks, validate_landmarks
+from calibration.landmarks import FAR_FROM_OTHERS_M, load_landmarks, median_latlon, validate_landmarks
 from calibration.masks import build_masks, calibrated_area, default_roi
 from calibration.report import build_report, plot_residuals, summary_text
 from calibration.site_ground import calibrate_site
@@ -65,7 +65,7 @@ def _near_landmarks(what: str, lat: float, lon: float, lm) -> None:
     latitude and longitude, or another site's point)."""
     if not (math.isfinite(lat) and math.isfinite(lon) and -90 <= lat <= 90 and -180 <= lon <= 180):
         raise ValueError(f"{what} ({lat}, {lon}) is not a latitude and longitude")
-    med = np.median(lm.latlon, axis=0)
+    med = median_latlon(lm.latlon)
     d = float(np.hypot(*GeoFrame(float(med[0]), float(med[1])).to_enu(np.array([lat]), np.array([lon]), 0.0)[0, :2]))
     if d > FAR_FROM_OTHERS_M:
         raise ValueError(f"{what} ({lat}, {lon}) is {d / 1000:.1f} km from the landmarks (latitude and longitude "
@@ -94,7 +94,7 @@ def run_calibration(job: CalibrateJob) -> dict:
         _near_landmarks("--origin", job.origin[0], job.origin[1], lm)
         geo = GeoFrame(*job.origin)
     else:
-        med = np.median(lm.latlon, axis=0)
+        med = median_latlon(lm.latlon)
         geo = GeoFrame(float(med[0]), float(med[1]))
     if job.roi is not None and "center_latlon" in job.roi:
         _near_landmarks("the ROI centre", *map(float, job.roi["center_latlon"]), lm)
@@ -119,7 +119,7 @@ def run_calibration(job: CalibrateJob) -> dict:
         others = [(str(path), *_other_camera(path, kind, circle, job.fov_deg))
                   for path, kind, circle in job.shared_ground]
         for path, other, _ in others:  # one site: another site's file would bend its ground surface
-            far = np.median(other.latlon, axis=0)
+            far = median_latlon(other.latlon)
             _near_landmarks(f"--shared-ground {path} (its landmarks' median)", float(far[0]), float(far[1]), lm)
         cal = calibrate_site([(str(job.landmarks), lm, cfg), *others], geo)[str(job.landmarks)]
     else:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 from pathlib import Path
@@ -594,14 +595,16 @@ def _run_up(args) -> int:
     from roadside.launcher import Launcher, UpConfig
 
     sets = list(args.set)
+    # --set values are YAML: a path is passed quoted (a JSON string is YAML), or " #" would start a comment
     if args.source:
-        sets.append(f"ingest.source={Path(args.source).resolve() if '://' not in args.source else args.source}")
+        source = args.source if "://" in args.source else str(Path(args.source).resolve())
+        sets.append(f"ingest.source={json.dumps(source)}")
     if args.pace:
         sets.append(f"ingest.pace={args.pace}")
     if args.loop:
         sets.append("ingest.loop=true")
     if args.record:
-        sets.append(f"fuse_track.record={args.record.resolve()}")
+        sets.append(f"fuse_track.record={json.dumps(str(args.record.resolve()))}")
     site = site_path(args.site)
     from shared.service import parse_sets
     from shared.settings import load_settings

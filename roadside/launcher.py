@@ -2,9 +2,10 @@
 
 Starts fuse_track, localize, detect, then ingest (`python -m services.<name> --site ... --set ...`),
 each with its own process group. A service that dies is restarted after `restart_delay_s` (like
-compose's `restart: unless-stopped`); ingest finishing its source (exit 0) ends the run: the others
-get `drain_s` to finish the frames in flight, then SIGTERM. Ctrl-C or SIGTERM stops everything
-cleanly (SIGTERM, then SIGKILL after `stop_timeout_s`).
+compose's `restart: unless-stopped`), the delay doubling (up to `max_restart_delay_s`) while it keeps dying
+within `stable_s` of its start, so that one that cannot run does not spin; ingest finishing its source (exit 0)
+ends the run: the others get `drain_s` to finish the frames in flight, then SIGTERM. Ctrl-C, SIGTERM or SIGHUP
+(a closed terminal) stops everything cleanly (SIGTERM, then SIGKILL after `stop_timeout_s`).
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ class UpConfig:
     sets: list[str] = field(default_factory=list)  # section.field=value overrides for every service
     restart: bool = True
     restart_delay_s: float = 1.0
+    max_restart_delay_s: float = 30.0
+    stable_s: float = 10.0  # a service that ran this long before dying is restarted after restart_delay_s again
     drain_s: float = 3.0
     stop_timeout_s: float = 5.0
     log_dir: Path | None = None  # each service's stderr to <log_dir>/<service>.log (else inherited)
@@ -42,6 +45,8 @@ class Launcher:
         self.cfg = cfg
         self.procs: dict[str, subprocess.Popen] = {}
         self.restarts: dict[str, int] = dict.fromkeys(cfg.services, 0)
+        self.started_at: dict[str, float] = {}
+        self.quick_failures: dict[str, int] = dict.fromkeys(cfg.services, 0)  # deaths in a row soon after start
         self.stopping = False
         self.peak_rss_mb: dict[str, float] = {}
         self.cpu_s: dict[str, float] = {}  # CPU seconds (user + system) of each service's current process
@@ -78,7 +83,22 @@ class Launcher:
             if err is not None:
                 err.close()  # the child has its own copy; the parent would leak one per (re)start
         self.procs[service] = proc
+        self.started_at[service] = time.monotonic()
         return proc
+
+    def restart_delay(self, service: str) -> float:
+        """Seconds to wait before restarting a service that just died: doubling while it dies soon after start."""
+        if time.monotonic() - self.started_at.get(service, 0.0) < self.cfg.stable_s:
+            self.quick_failures[service] += 1
+        else:
+            self.quick_failures[service] = 0
+        return min(self.cfg.restart_delay_s * 2 ** max(self.quick_failures[service] - 1, 0),
+                   self.cfg.max_restart_delay_s)
+
+    def wait_unless_stopping(self, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while not self.stopping and time.monotonic() < end:
+            time.sleep(min(0.1, max(end - time.monotonic(), 0)))
 
     def stop(self, service: str) -> int | None:
         proc = self.procs.get(service)
@@ -104,7 +124,9 @@ class Launcher:
         def on_signal(*_):
             self.stopping = True
 
-        old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        # SIGHUP too: a closed terminal or a dropped ssh session must not leave the services (in their own
+        # sessions) running and holding the bus ports
+        old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
         status = 0
         try:
             for s in self.cfg.services:
@@ -128,7 +150,12 @@ class Launcher:
                         status = rc or 1
                         self.stopping = True
                         break
-                    time.sleep(self.cfg.restart_delay_s)
+                    delay = self.restart_delay(s)
+                    if delay > self.cfg.restart_delay_s:
+                        log(f"[up] {s} keeps dying soon after it starts: next start in {delay:g} s")
+                    self.wait_unless_stopping(delay)
+                    if self.stopping:  # Ctrl-C during the wait: no new process to kill at once
+                        break
                     self.restarts[s] += 1
                     self.start(s)
                     log(f"[up] restarted {s} (pid {self.procs[s].pid}, restart {self.restarts[s]})")

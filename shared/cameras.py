@@ -198,7 +198,9 @@ class Camera:
         if self.kind == "fisheye":
             rd = np.hypot(xd, yd)
             theta = self._solve_theta(rd)
-            valid = theta <= self._theta_limit + 1e-9
+            # where the lens map folds back (a strong negative k1), Newton's steps stop on a theta whose image is
+            # elsewhere: such a pixel has no ray of this model
+            valid = (theta <= self._theta_limit + 1e-9) & (np.abs(self._distort_theta(theta) - rd) < 1e-6)
             with np.errstate(divide="ignore", invalid="ignore"):
                 s = np.where(rd > 1e-12, np.sin(theta) / np.maximum(rd, 1e-300), 1.0)
             rays = np.stack([xd * s, yd * s, np.cos(theta)], axis=-1)
@@ -215,6 +217,12 @@ class Camera:
         """(N, 2) pixels -> ((N, 3) unit world-frame ray directions from `pose.position_m`, valid)."""
         rays, valid = self.unproject_cam(uv)
         return self.pose.to_world_dirs(rays), valid
+
+    def _distort_theta(self, theta: np.ndarray) -> np.ndarray:
+        """The fisheye radial map: theta (rad) -> distorted radius on the normalised image plane."""
+        k1, k2, k3, k4 = self.dist
+        t2 = theta * theta
+        return theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
 
     def _solve_theta(self, rd: np.ndarray) -> np.ndarray:
         """Invert the fisheye radial map by Newton's method (vectorised)."""
@@ -335,6 +343,8 @@ def select_cameras(cameras: list[Camera], which: str, owner: str) -> list[Camera
         chosen = [c for c in cameras if c.modality == which]
     else:
         names = [n.strip() for n in which.split(",") if n.strip()]
+        if twice := sorted({n for n in names if names.count(n) > 1}):
+            raise ValueError(f"{owner}: camera {twice[0]} is named twice in {which!r}")
         by_name = {c.name: c for c in cameras}
         unknown = [n for n in names if n not in by_name]
         if unknown:

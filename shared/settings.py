@@ -94,7 +94,12 @@ class CameraSettings(Strict):
                 raise ValueError(f"exclude_px[{i}] needs at least 3 points, got {len(poly)}")
             if not all(math.isfinite(c) for pt in poly for c in pt):
                 raise ValueError(f"exclude_px[{i}] has a coordinate that is not a finite number")
+            if not all(abs(c) <= MAX_EXCLUDE_PX for pt in poly for c in pt):  # the filling's fixed point overflows
+                raise ValueError(f"exclude_px[{i}] reaches beyond {MAX_EXCLUDE_PX} px: keep it near the image")
         return v
+
+
+MAX_EXCLUDE_PX = 1_000_000  # exclusion polygons are filled in 28.4 fixed point (calibration/masks.py `excluded`)
 
 
 class IngestSettings(Strict):

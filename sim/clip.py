@@ -10,6 +10,8 @@ import math
 import multiprocessing as mp
 import os
 import shutil
+import signal
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -62,6 +64,8 @@ class ClipConfig:
             raise ValueError(f"--seconds must be at most 3600, got {self.seconds}")
         if not (math.isfinite(self.hz) and 0 < self.hz <= MAX_HZ):
             raise ValueError(f"--hz must be in (0, {MAX_HZ}], got {self.hz}")
+        if self.seconds * self.hz < 1:
+            raise ValueError(f"--seconds {self.seconds:g} at --hz {self.hz:g} is not one frame per camera")
         if self.seed < 0:
             raise ValueError(f"--seed must be >= 0, got {self.seed}")
         if self.workers < 1:
@@ -191,7 +195,22 @@ def _prepare_output(out: Path, overwrite: bool) -> Path:
 
 
 def simulate_clip(cfg: ClipConfig, log: Callable[[str], None] = lambda s: None) -> dict:
-    """Simulate and write one recording. Returns a summary (frames, timings)."""
+    """Simulate and write one recording. Returns a summary (frames, timings). SIGTERM (a supervisor, `timeout`)
+    stops it as Ctrl-C does: the render workers are stopped and the partial output removed."""
+    if threading.current_thread() is not threading.main_thread():
+        return _simulate_clip(cfg, log)
+
+    def on_term(signum, _frame):
+        raise SystemExit(128 + signum)
+
+    old = signal.signal(signal.SIGTERM, on_term)
+    try:
+        return _simulate_clip(cfg, log)
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+def _simulate_clip(cfg: ClipConfig, log: Callable[[str], None]) -> dict:
     cfg.validate()
     site = load_site(cfg.site)
     cams = select_cameras(site, cfg.cameras)
@@ -242,16 +261,22 @@ def simulate_clip(cfg: ClipConfig, log: Callable[[str], None] = lambda s: None) 
                 child_conn.close()
                 procs.append((p, parent_conn))
             errors = []
-            for p, conn in procs:
-                try:
-                    status, payload = conn.recv()
-                except EOFError:
-                    status, payload = "error", "render worker died"
-                p.join()
-                if status == "ok":
-                    stats.extend(payload)
-                else:
-                    errors.append(payload)
+            try:
+                for p, conn in procs:
+                    try:
+                        status, payload = conn.recv()
+                    except EOFError:
+                        status, payload = "error", "render worker died"
+                    p.join()
+                    if status == "ok":
+                        stats.extend(payload)
+                    else:
+                        errors.append(payload)
+            finally:  # stopped (SIGTERM, Ctrl-C) or failed: no worker goes on rendering into a removed folder
+                for p, _ in procs:
+                    if p.is_alive():
+                        p.terminate()
+                        p.join(5)
             if errors:
                 raise RuntimeError(f"rendering failed: {errors[0]}")
         stats.sort(key=lambda s: [c.name for c in cams].index(s["camera"]))

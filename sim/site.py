@@ -7,6 +7,7 @@ its terrain, parking rows, buildings, tree and pedestrian counts, and its camera
 from __future__ import annotations
 
 import math
+from datetime import datetime
 from pathlib import Path
 from typing import Literal
 
@@ -17,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from shared.cameras import Camera, Pose
 from shared.geo import GeoFrame
 from shared.ground import Terrain
+from shared.messages import check_name
 
 SITES_DIR = Path(__file__).resolve().parent / "sites"
 
@@ -182,6 +184,14 @@ class SiteSpec(_Model):
         names = [c.name for c in self.cameras]
         if len(set(names)) != len(names):
             raise ValueError(f"camera names must be unique, got {names}")
+        for n in names:  # they name folders and files of the recording
+            check_name("camera", n)
+        try:
+            start = datetime.fromisoformat(self.utc_start.replace("Z", "+00:00"))
+        except ValueError:
+            raise ValueError(f"utc_start must be an ISO date and time, got {self.utc_start!r}") from None
+        if start.tzinfo is None:  # else it would be read in the machine's own time zone
+            raise ValueError(f"utc_start must give its time zone (Z for UTC), got {self.utc_start!r}")
         if not self.cameras:
             raise ValueError("a site needs at least one camera")
         Terrain.from_dict(self.terrain)

@@ -123,7 +123,13 @@ class ImageFolderSource:
 
 
 class VideoSource:
-    """A video file or a live stream (rtsp://, http://...) of one camera, through OpenCV."""
+    """A video file or a live stream (rtsp://, http://...) of one camera, through OpenCV. A live stream that drops
+    is opened again, every `RECONNECT_S` seconds doubling up to `RECONNECT_MAX_S`, for as long as ingest runs; each
+    failed attempt yields a frame carrying the reason (ingest counts and logs it), so a camera that goes down is
+    reported and comes back by itself instead of ending the playback."""
+
+    RECONNECT_S = 0.5
+    RECONNECT_MAX_S = 5.0
 
     def __init__(self, url: str, camera: str, fps: float | None = None) -> None:
         self.url, self.camera = url, camera
@@ -138,10 +144,21 @@ class VideoSource:
 
     def __iter__(self) -> Iterator[SourceFrame]:
         n = 0
+        wait_s = self.RECONNECT_S
         while True:
             ok, img = self.cap.read()
             if not ok:
-                break
+                if not self.live:
+                    break
+                yield SourceFrame(self.camera, time.time_ns(), origin=self.url,
+                                  error=f"camera {self.camera}: stream {self.url} lost; opening it again in "
+                                        f"{wait_s:g} s")
+                self.cap.release()
+                time.sleep(wait_s)
+                wait_s = min(2 * wait_s, self.RECONNECT_MAX_S)
+                self.cap = cv2.VideoCapture(self.url)  # a failed open fails the next read: the wait doubles
+                continue
+            wait_s = self.RECONNECT_S
             if self.live:
                 t = time.time_ns()
             else:
@@ -197,12 +214,16 @@ def open_source(source: str, cameras: list[str], camera_sources: dict[str, str |
 
 
 class MergedSource:
-    """Several sources merged in capture-time order."""
+    """Several sources merged in capture-time order; live streams in the order their frames arrive, each read in
+    its own thread, so that one camera that stalls or reconnects does not hold up the others."""
 
     def __init__(self, parts: list) -> None:
         self.parts = parts
 
     def __iter__(self) -> Iterator[SourceFrame]:
+        if all(getattr(p, "live", False) for p in self.parts):
+            yield from self._arrivals()
+            return
         import heapq
 
         iters = [iter(p) for p in self.parts]
@@ -219,3 +240,26 @@ class MergedSource:
             if nxt is not None:
                 heapq.heappush(heap, (nxt.t_capture_ns, i, nxt))
 
+    def _arrivals(self) -> Iterator[SourceFrame]:
+        import queue
+        import threading
+
+        frames: queue.Queue = queue.Queue(maxsize=8 * len(self.parts))
+        ended = object()
+
+        def pump(part) -> None:
+            try:
+                for f in part:
+                    frames.put(f)
+            finally:
+                frames.put(ended)
+
+        for part in self.parts:  # daemons: ingest stops by leaving this generator, and they end with the process
+            threading.Thread(target=pump, args=(part,), daemon=True, name="stream").start()
+        running = len(self.parts)
+        while running:
+            f = frames.get()
+            if f is ended:
+                running -= 1
+                continue
+            yield f
