@@ -114,6 +114,10 @@ def load_masks(path: str | Path, with_latlon: bool = True) -> LookupMasks:
         raise ValueError(
             f"{path}: format {meta.get('format')!r} v{meta.get('version')!r}, expected {FORMAT!r} v{VERSION}"
         )
+    try:  # every reader places the masks by their origin
+        GeoFrame.from_dict(meta["geo_origin"])
+    except (KeyError, TypeError, AttributeError, ValueError) as exc:
+        raise ValueError(f"{path}: the masks' metadata has no valid geo_origin ({type(exc).__name__}: {exc})") from None
     h, w = arrays["valid"].shape
     if (with_latlon and arrays["lat"].shape != (h, w)) or arrays["xy"].shape != (h, w, 2):
         raise ValueError(f"{path}: array shapes disagree")

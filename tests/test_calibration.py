@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from calibration.fit import CalibConfig, calibrate
-from calibration.landmarks import Landmarks, load_landmarks, validate_landmarks
+from calibration.landmarks import Landmarks, landmarks_from_rows, load_landmarks, validate_landmarks
 from shared.cameras import Camera, Pose
 from shared.geo import GeoFrame
 from shared.ground import Bump, Terrain, ground_lookup
@@ -405,6 +405,25 @@ def test_bad_masks_files_are_named(tmp_path):
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
     with pytest.raises(ValueError, match="not a lookup masks file"):
         load_masks(tmp_path / "junk.npz")
+    z = np.zeros((2, 2))
+    for meta, message in [("[1, 2]", "its metadata is a list"), ("{not json", "its metadata is not JSON"),
+                          (json.dumps({"format": "roadside-lookup-masks", "version": 1}), "no valid geo_origin")]:
+        np.savez(tmp_path / "m.npz", lat=z, lon=z, xy=np.zeros((2, 2, 2)), valid=z.astype(bool), meta=np.array(meta))
+        with pytest.raises(ValueError, match=re.escape(str(tmp_path / "m.npz")) + ".*" + message):
+            load_masks(tmp_path / "m.npz")
+
+
+def test_landmarks_across_the_antimeridian_are_one_site():
+    from calibration.landmarks import median_latlon
+
+    latlon = np.array([[-16.5, 179.9998], [-16.5002, -179.9999], [-16.5001, 179.9997], [-16.5003, -179.9998]])
+    med = median_latlon(latlon)
+    assert med[0] == pytest.approx(-16.50015) and abs(abs(med[1]) - 180.0) < 3e-4  # not 0, the other side of Earth
+    pixels = [(100, 100), (500, 120), (520, 400), (90, 380)]
+    rows = [{"id": f"A{i}", "u": u, "v": v, "lat": la, "lon": lo}
+            for i, ((u, v), (la, lo)) in enumerate(zip(pixels, latlon, strict=True))]
+    lm = landmarks_from_rows(rows, "x")
+    validate_landmarks(lm, 640, 480)  # not "3530 km from the others"
 
 
 def test_cli_calibrate_writes_masks_report_and_plot(tmp_path):

@@ -145,6 +145,20 @@ def test_fisheye_beyond_fov_invalid() -> None:
     assert not valid.any()
 
 
+@pytest.mark.parametrize("dist", [(-0.2, 0.0, 0.0, 0.0), FISHEYE_DIST])
+def test_a_fisheye_pixel_is_valid_only_where_its_ray_projects_back_onto_it(dist) -> None:
+    """Where the lens map folds back (a strong negative k1) Newton's method stops on a ray whose image is
+    elsewhere; and the corners outside the image circle have no ray at all: such pixels are invalid, every valid
+    one round-trips."""
+    cam = _fisheye(dist=dist)
+    v, u = np.mgrid[0:cam.height:7, 0:cam.width:7]
+    uv = np.stack([u.ravel(), v.ravel()], 1).astype(float)
+    rays, valid = cam.unproject_cam(uv)
+    back, ok = cam.project_cam(rays[valid] * 5.0)
+    assert valid.any() and not valid.all() and ok.all()
+    assert np.abs(back - uv[valid]).max() < 1e-3
+
+
 def test_pinhole_behind_camera_invalid() -> None:
     cam = _pinhole()
     dirs = _cam_dirs(np.random.default_rng(5), 100, 91.0, 179.0)

@@ -493,6 +493,12 @@ def test_load_a_site_file(tmp_path) -> None:
         s.camera("SW")
 
 
+def test_an_exclusion_polygon_reaching_far_beyond_the_image_is_refused(tmp_path) -> None:
+    cams = [{**SITE_YAML["cameras"][0], "exclude_px": [[[0, 0], [1e9, 0], [0, 1e9]]]}, *SITE_YAML["cameras"][1:]]
+    with pytest.raises(ValueError, match=r"exclude_px\[0\] reaches beyond 1000000 px"):
+        load_settings(write_site(tmp_path, {**SITE_YAML, "cameras": cams}))
+
+
 @pytest.mark.parametrize(("origin", "match"), [
     ({"lat": 42.2, "lon": -83.7}, "origin needs lat_deg and lon_deg"),
     ({"lat_deg": 42.2, "lon_deg": -83.7, "height": 3.0}, "origin needs lat_deg and lon_deg"),

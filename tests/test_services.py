@@ -16,6 +16,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import cv2
@@ -716,9 +717,11 @@ def test_roadside_up_plays_a_source_to_the_end_and_stops_every_service(site, sma
 
 
 @pytest.mark.slow
-def test_roadside_up_stops_cleanly_on_sigterm(site, small_recording, port_base, tmp_path):
-    """With a looping source the pipeline runs until told to stop: SIGTERM stops all four services and
-    `roadside up` exits 0 with no process left."""
+@pytest.mark.parametrize("stop", [signal.SIGTERM, signal.SIGHUP])
+def test_roadside_up_stops_cleanly_on_sigterm(site, small_recording, port_base, tmp_path, stop):
+    """With a looping source the pipeline runs until told to stop: SIGTERM (or SIGHUP, a closed terminal: the
+    services in their own sessions would otherwise keep running and holding the ports) stops all four services
+    and `roadside up` exits 0 with no process left."""
     cmd = [sys.executable, "-m", "roadside", "up", "--site", str(site), "--pace", "1", "--loop",
            "--log-dir", str(tmp_path / "logs"), "--set", f"bus.port_base={port_base}"]
     proc = subprocess.Popen(cmd, env=service_env(), stderr=subprocess.PIPE, text=True)
@@ -727,13 +730,57 @@ def test_roadside_up_stops_cleanly_on_sigterm(site, small_recording, port_base, 
         kids = _children(proc.pid)
         assert wait_until(lambda: (tmp_path / "logs" / "ingest.log").is_file()
                           and "source" in (tmp_path / "logs" / "ingest.log").read_text(), 90)
-        proc.send_signal(signal.SIGTERM)
+        proc.send_signal(stop)
         assert proc.wait(60) == 0
         assert all(not k.is_running() or k.status() == "zombie" for k in kids)
         assert "[up] stopped" in proc.stderr.read()
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+def test_a_service_that_keeps_dying_is_restarted_ever_more_slowly(tmp_path):
+    """Restarted after restart_delay_s, the delay doubling (to max_restart_delay_s) while it dies soon after its
+    start, back to restart_delay_s once it has run stable_s; a stop during the wait starts nothing."""
+    from roadside.launcher import Launcher, UpConfig
+
+    (tmp_path / "site.yaml").write_text("site: x\n")
+    launcher = Launcher(UpConfig(site=tmp_path, restart_delay_s=1.0, max_restart_delay_s=5.0, stable_s=10.0))
+    launcher.started_at["detect"] = time.monotonic()
+    assert [launcher.restart_delay("detect") for _ in range(5)] == [1.0, 2.0, 4.0, 5.0, 5.0]
+    launcher.started_at["detect"] = time.monotonic() - 60  # it ran a minute before it died
+    assert launcher.restart_delay("detect") == 1.0
+    launcher.stopping = True
+    t0 = time.monotonic()
+    launcher.wait_unless_stopping(30.0)
+    assert time.monotonic() - t0 < 1.0
+
+
+def test_paths_given_to_roadside_up_are_not_read_as_yaml(tmp_path, monkeypatch):
+    """`--record "run #2/tracks.jsonl"`: a YAML comment started at ' #' recorded to 'run'."""
+    import roadside.launcher as launcher_mod
+    from roadside.cli import main
+
+    got = {}
+
+    class Stub:
+        def __init__(self, cfg) -> None:
+            got["sets"] = cfg.sets
+
+        def run(self, log=None) -> int:
+            return 0
+
+    monkeypatch.setattr(launcher_mod, "Launcher", Stub)
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "site.yaml").write_text(yaml.safe_dump({"site": "x", "cameras": [
+        {"name": "NE", "kind": "fisheye", "width": 64, "height": 48, "masks": "m.npz"}]}))
+    record = tmp_path / "run #2" / "tracks: final.jsonl"
+    assert main(["up", "--site", str(site), "--record", str(record), "--source", str(tmp_path / "footage #2")]) == 0
+    from shared.service import parse_sets
+
+    sets = parse_sets(got["sets"])
+    assert sets["fuse_track"]["record"] == str(record) and sets["ingest"]["source"] == str(tmp_path / "footage #2")
 
 
 def test_exclusion_polygons_take_their_pixels_out_of_the_calibrated_area():

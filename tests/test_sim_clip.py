@@ -244,3 +244,27 @@ def test_bad_clip_config_values_are_named():
             cfg.validate()
     with pytest.raises(ValueError, match="unknown camera"):
         clip_mod.select_cameras(load_site("state_ellsworth"), "NE,XX")
+    with pytest.raises(ValueError, match="camera NE is named twice"):
+        clip_mod.select_cameras(load_site("state_ellsworth"), "NE,SW,NE")
+    cfg = ClipConfig(site="state_ellsworth", out=Path("/tmp/unused"), seconds=1.0, hz=0.5)
+    with pytest.raises(ValueError, match="is not one frame per camera"):
+        cfg.validate()
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    ({"camera_name": "../../escaped"}, "camera name must be 1-64 letters"),
+    ({"camera_name": ""}, "camera name must be 1-64 letters"),
+    ({"utc_start": "2024-06-12T19:00:00"}, "utc_start must give its time zone"),
+    ({"utc_start": "noon"}, "utc_start must be an ISO date and time")])
+def test_a_site_file_whose_cameras_would_write_elsewhere_or_whose_clock_is_local_is_refused(tmp_path, change,
+                                                                                            message):
+    import yaml
+
+    spec = yaml.safe_load((Path(clip_mod.__file__).parent / "sites" / "intersection.yaml").read_text())
+    if "camera_name" in change:
+        spec["cameras"][0]["name"] = change["camera_name"]
+    else:
+        spec["utc_start"] = change["utc_start"]
+    (tmp_path / "site.yaml").write_text(yaml.safe_dump(spec))
+    with pytest.raises(ValueError, match=message):
+        load_site(tmp_path / "site.yaml")
