@@ -45,14 +45,16 @@ def decode_grey(data: bytes, width: int, height: int, flags: int = cv2.IMREAD_GR
     1/`reduce` by `flags`) decoded to grey; ValueError naming `what` for one whose header claims another size,
     that is corrupt, or that OpenCV refuses."""
     size = jpeg_size(data)
-    if size is None:
+    if size is None and (not data or data[:2] == b"\xff\xd8"):
         raise ValueError(f"{what}: corrupt JPEG ({len(data)} bytes): no frame header")
-    if abs(size[0] - width) > reduce or abs(size[1] - height) > reduce:
+    if size is not None and (abs(size[0] - width) > reduce or abs(size[1] - height) > reduce):
         raise ValueError(f"{what}: JPEG is {size[0]}x{size[1]}, expected {width}x{height}")
+    # another format (PNG, BMP image folders) or no data: decoded as it comes, its size checked by the caller
     try:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
     except cv2.error as exc:
         raise ValueError(f"{what}: JPEG refused by the decoder ({str(exc).strip().splitlines()[-1]})") from None
     if img is None:
-        raise ValueError(f"{what}: corrupt JPEG ({len(data)} bytes)")
+        raise ValueError(f"{what}: corrupt JPEG ({len(data)} bytes)" if size is not None or not data
+                         else f"{what}: cannot decode image ({len(data)} bytes)")
     return img

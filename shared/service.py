@@ -67,6 +67,9 @@ def run(service: str, main: Callable[[Settings, Stopper], int], argv: list[str] 
     except ValueError as exc:
         print(f"{service}: error: {exc}", file=sys.stderr)
         return 2
-    except (OSError, zipfile.BadZipFile, zenoh.ZError) as exc:  # a file it cannot use, an endpoint Zenoh refuses
+    except zipfile.BadZipFile as exc:
         print(f"{service}: error: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 2
+    except (OSError, zenoh.ZError) as exc:  # a router not up yet, a full disk: may pass, so 1 (restarted), not 2
+        print(f"{service}: error: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 1

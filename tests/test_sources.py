@@ -73,3 +73,25 @@ def test_live_cameras_are_read_side_by_side(camera_url):
         p.RECONNECT_S = 0.05
     got = _take(iter(MergedSource(parts)), good=2 * FRAMES_PER_CONNECTION)
     assert {f.camera for f in got if not f.error} == {"NE", "SW"}
+
+
+def test_a_video_file_given_by_url_ends_and_png_folders_still_play(tmp_path):
+    """Only stream schemes are reopened: a file:// video ends like a file; a PNG image folder decodes (the JPEG
+    header check does not apply to it)."""
+    from services.ingest.__main__ import to_frame_fields
+    from services.ingest.sources import ImageFolderSource
+    from shared.settings import CameraSettings
+
+    path = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48))
+    for k in range(5):
+        writer.write(np.full((48, 64, 3), 40 * k, np.uint8))
+    writer.release()
+    source = VideoSource(f"file://{path}", "NE")
+    assert not source.live and len(list(source)) == 5
+    folder = tmp_path / "NE"
+    folder.mkdir()
+    cv2.imwrite(str(folder / "1700000000000000000.png"), np.full((48, 64), 90, np.uint8))
+    frame = next(iter(ImageFolderSource({"NE": folder})))
+    cam = CameraSettings(name="NE", kind="pinhole", width=64, height=48, masks="m.npz")
+    assert to_frame_fields(frame, cam, "gray8", 1)["width"] == 64

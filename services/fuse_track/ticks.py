@@ -52,7 +52,7 @@ class TickConfig:
     max_wait_ms: float = 300.0
     camera_timeout_ms: float = 1000.0
     max_empty_ticks: int = 50
-    max_lead_ms: float = 2000.0
+    max_lead_ms: float = 60000.0  # above the event time a live camera's 1 s of silence spans at playback speeds
 
     def __post_init__(self) -> None:
         for name in ("tick_ms", "max_wait_ms", "camera_timeout_ms", "max_lead_ms"):

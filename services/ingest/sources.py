@@ -27,6 +27,8 @@ import numpy as np
 
 from shared.messages import T_CAPTURE_END
 
+# a live camera's stream: reopened when it drops (a file:// URL or a finite video over HTTP ends)
+STREAM_SCHEMES = ("rtsp", "rtsps", "rtmp", "udp", "tcp", "srt", "http", "https")
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
 DATETIME_RE = re.compile(r"(\d{4})-(\d{2})-(\d{2})[ _T](\d{2})[-:_](\d{2})[-:_](\d{2})(?:[-._](\d{1,9}))?")
 
@@ -133,13 +135,15 @@ class VideoSource:
 
     def __init__(self, url: str, camera: str, fps: float | None = None) -> None:
         self.url, self.camera = url, camera
-        self.live = "://" in url
+        self.live = url.split("://")[0].lower() in STREAM_SCHEMES if "://" in url else False
         if not self.live and not Path(url).is_file():
             raise ValueError(f"camera {camera}: video file not found: {url}")
         self.cap = cv2.VideoCapture(url)
         if not self.cap.isOpened():
             raise ValueError(f"camera {camera}: OpenCV cannot open {url}")
         self.fps = fps or self.cap.get(cv2.CAP_PROP_FPS) or 10.0
+        if self.live and url.lower().startswith(("http://", "https://")) and self.cap.get(cv2.CAP_PROP_FRAME_COUNT) > 0:
+            self.live = False  # a video file served over HTTP: it ends, it is not reopened
         self.t0_ns = time.time_ns()
 
     def __iter__(self) -> Iterator[SourceFrame]:
