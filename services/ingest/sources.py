@@ -136,7 +136,7 @@ class VideoSource:
     def __init__(self, url: str, camera: str, fps: float | None = None) -> None:
         self.url, self.camera = url, camera
         self.live = url.split("://")[0].lower() in STREAM_SCHEMES if "://" in url else False
-        if not self.live and not Path(url).is_file():
+        if "://" not in url and not Path(url).is_file():
             raise ValueError(f"camera {camera}: video file not found: {url}")
         self.cap = cv2.VideoCapture(url)
         if not self.cap.isOpened():
