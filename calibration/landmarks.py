@@ -119,6 +119,12 @@ def median_latlon(latlon: np.ndarray) -> np.ndarray:
     return np.array([np.median(latlon[:, 0]), (lon + 180.0) % 360.0 - 180.0])
 
 
+def median_frame(latlon: np.ndarray) -> GeoFrame:
+    """The site frame at the points' median latitude and longitude (`median_latlon`)."""
+    med = median_latlon(latlon)
+    return GeoFrame(float(med[0]), float(med[1]))
+
+
 def _whole(x) -> int:
     """An int from an int or a string of one ("2", " 3 "); TypeError or ValueError otherwise (2.5, [1], True)."""
     if isinstance(x, bool) or not isinstance(x, int | str):
@@ -151,8 +157,7 @@ def validate_landmarks(
                 raise ValueError(f"landmark {lid!r}: pixel ({u:.1f}, {v:.1f}) is outside the fisheye image circle")
     if len(lm) < 4:
         raise ValueError(f"need at least 4 landmarks, got {len(lm)}")
-    med = median_latlon(lm.latlon)
-    geo = GeoFrame(float(med[0]), float(med[1]))
+    geo = median_frame(lm.latlon)
     xy = lm.to_local(geo)
     for lid, p in zip(lm.ids, xy, strict=True):
         d = float(np.hypot(*p))

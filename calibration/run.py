@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.fit import CalibConfig, calibrate
-from calibration.landmarks import FAR_FROM_OTHERS_M, load_landmarks, median_latlon, validate_landmarks
+from calibration.landmarks import FAR_FROM_OTHERS_M, load_landmarks, median_frame, median_latlon, validate_landmarks
 from calibration.masks import build_masks, calibrated_area, default_roi
 from calibration.report import build_report, plot_residuals, summary_text
 from calibration.site_ground import calibrate_site
@@ -65,8 +65,7 @@ def _near_landmarks(what: str, lat: float, lon: float, lm) -> None:
     latitude and longitude, or another site's point)."""
     if not (math.isfinite(lat) and math.isfinite(lon) and -90 <= lat <= 90 and -180 <= lon <= 180):
         raise ValueError(f"{what} ({lat}, {lon}) is not a latitude and longitude")
-    med = median_latlon(lm.latlon)
-    d = float(np.hypot(*GeoFrame(float(med[0]), float(med[1])).to_enu(np.array([lat]), np.array([lon]), 0.0)[0, :2]))
+    d = float(np.hypot(*median_frame(lm.latlon).to_enu(np.array([lat]), np.array([lon]), 0.0)[0, :2]))
     if d > FAR_FROM_OTHERS_M:
         raise ValueError(f"{what} ({lat}, {lon}) is {d / 1000:.1f} km from the landmarks (latitude and longitude "
                          f"swapped, or another site's?)")
@@ -94,8 +93,7 @@ def run_calibration(job: CalibrateJob) -> dict:
         _near_landmarks("--origin", job.origin[0], job.origin[1], lm)
         geo = GeoFrame(*job.origin)
     else:
-        med = median_latlon(lm.latlon)
-        geo = GeoFrame(float(med[0]), float(med[1]))
+        geo = median_frame(lm.latlon)
     if job.roi is not None and "center_latlon" in job.roi:
         _near_landmarks("the ROI centre", *map(float, job.roi["center_latlon"]), lm)
         if not (math.isfinite(job.roi["radius_m"]) and job.roi["radius_m"] > 0):
@@ -151,8 +149,11 @@ def run_calibration(job: CalibrateJob) -> dict:
     masks.save(job.out)
     report_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = report_path.with_name(report_path.name + ".partial")
-    tmp.write_text(json.dumps(report, indent=1))
-    tmp.replace(report_path)
+    try:
+        tmp.write_text(json.dumps(report, indent=1))
+        tmp.replace(report_path)
+    finally:
+        tmp.unlink(missing_ok=True)
     report["report"] = str(report_path)
     report["summary"] = summary_text(report)
     if job.plot:

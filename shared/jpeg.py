@@ -41,19 +41,19 @@ def jpeg_size(data: bytes) -> tuple[int, int] | None:
 
 def decode_grey(data: bytes, width: int, height: int, flags: int = cv2.IMREAD_GRAYSCALE, reduce: int = 1,
                 what: str = "image") -> np.ndarray:
-    """A JPEG that must be `width` x `height` (each within `reduce` pixels: a camera's size, decoded at
-    1/`reduce` by `flags`) decoded to grey; ValueError naming `what` for one whose header claims another size,
-    that is corrupt, or that OpenCV refuses."""
+    """An image that must be `width` x `height` (each within `reduce` pixels: a camera's size, decoded at
+    1/`reduce` by `flags`) decoded to grey; ValueError naming `what` for a JPEG whose header claims another size,
+    an empty or corrupt file, or one OpenCV refuses. Other formats (PNG, BMP) are decoded without the header check:
+    their callers check the decoded size."""
     size = jpeg_size(data)
     if size is None and (not data or data[:2] == b"\xff\xd8"):
         raise ValueError(f"{what}: corrupt JPEG ({len(data)} bytes): no frame header")
     if size is not None and (abs(size[0] - width) > reduce or abs(size[1] - height) > reduce):
         raise ValueError(f"{what}: JPEG is {size[0]}x{size[1]}, expected {width}x{height}")
-    # another format (PNG, BMP image folders) or no data: decoded as it comes, its size checked by the caller
     try:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
     except cv2.error as exc:
-        raise ValueError(f"{what}: JPEG refused by the decoder ({str(exc).strip().splitlines()[-1]})") from None
+        raise ValueError(f"{what}: image refused by the decoder ({str(exc).strip().splitlines()[-1]})") from None
     if img is None:
         raise ValueError(f"{what}: corrupt JPEG ({len(data)} bytes)" if size is not None or not data
                          else f"{what}: cannot decode image ({len(data)} bytes)")
