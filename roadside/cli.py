@@ -215,15 +215,25 @@ def _add_train(sub) -> None:
     p.add_argument("--every", type=int, default=1, help="use every n-th frame")
     p.add_argument("--center", choices=["bottom", "box"], default="bottom", help="box: the 2D-box-centre ablation")
     p.add_argument("--no-topk", action="store_true", help="ablation: plain mean squared heat-map loss")
+    p.add_argument("--heat-loss", choices=["mse", "focal"],
+                   help="heat-map loss: mse (the paper's squared error with TopK, the default) or focal (CenterNet's "
+                        "penalty-reduced focal loss; training/loss.py); with --init, the checkpoint's")
     p.add_argument("--stride", type=int, default=4, choices=[1, 2, 4])
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--init", help="model.pt to start from (fine-tuning); its network settings are kept")
     p.add_argument("--axis-head", action="store_true",
                    help="predict the heading's axis too (training/model.py); with --init, adds it to that model")
     p.add_argument("--beta-heading", type=_positive_float,
-                   help="weight of the heading term (default 0.01, the paper's)")
-    p.add_argument("--beta-box", type=_finite_float, default=0.0,
-                   help="extra weight of the 2D box (width, height, centre offset); default 0, the paper's loss")
+                   help="weight of the heading term (default 0.01, the paper's; with --init, the checkpoint's)")
+    p.add_argument("--beta-size", type=_positive_float,
+                   help="weight of the size term (default 0.01, the paper's; with --init, the checkpoint's)")
+    p.add_argument("--beta-vtype", type=_positive_float,
+                   help="weight of the type term (default 0.01, the paper's; with --init, the checkpoint's)")
+    p.add_argument("--beta-offset", type=_positive_float,
+                   help="weight of the sub-cell offset term (default 0.1; with --init, the checkpoint's)")
+    p.add_argument("--beta-box", type=_finite_float,
+                   help="extra weight of the 2D box (width, height, centre offset); default 0, the paper's loss "
+                        "(with --init, the checkpoint's)")
     p.add_argument("--fisheye-rotation", choices=["any", "quarter", "off"], default="any",
                    help="augmentation: turn fisheye crops about the principal point by any angle (2D boxes "
                         "approximated), by multiples of 90 degrees (boxes exact) or not at all")
@@ -246,6 +256,29 @@ def _add_train(sub) -> None:
 UNLIMITED_STEPS = 10**9  # with --minutes alone the clock ends the run
 
 
+LOSS_FLAGS = ("heat_loss", "beta_size", "beta_heading", "beta_vtype", "beta_offset", "beta_box")
+
+
+def _train_loss(args, loss_config):
+    """The run's LossConfig: the paper's defaults, or with --init the settings that checkpoint was trained with
+    (fine-tuning keeps its loss), then whatever the command line gives."""
+    from training.model import checkpoint_loss
+
+    base = {}
+    if args.init is not None and Path(args.init).is_file():
+        base = checkpoint_loss(args.init) or {}
+        if base:
+            print(f"[train] loss settings of {args.init}: {base} (flags given here replace them)")
+    given = {("heat" if name == "heat_loss" else name): getattr(args, name) for name in LOSS_FLAGS
+             if getattr(args, name) is not None}
+    if args.no_topk:
+        given["topk_fraction"] = None
+    try:
+        return loss_config(**{**base, **given})
+    except TypeError as exc:  # a checkpoint written by a later version with settings this one lacks
+        raise ValueError(f"{args.init}: loss settings {base} are not this version's ({exc})") from None
+
+
 def _run_train(args) -> int:
     try:
         from training.train import TrainConfig, train
@@ -263,8 +296,7 @@ def _run_train(args) -> int:
                       train_only=tuple(h.strip() for h in args.train_only.split(",") if h.strip()),
                       augment=AugmentConfig(fisheye_rotation=args.fisheye_rotation, focus_by_size=args.focus_by_size),
                       model=DetectorConfig(stride=args.stride, axis_head=args.axis_head),
-                      loss=LossConfig(topk_fraction=None if args.no_topk else 0.01, beta_box=args.beta_box,
-                                      **({} if args.beta_heading is None else {"beta_heading": args.beta_heading})))
+                      loss=_train_loss(args, LossConfig))
     print(dumps(train(cfg), indent=1))
     return 0
 

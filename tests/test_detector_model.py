@@ -16,7 +16,7 @@ from torch import nn
 from torch.utils.data import default_collate
 
 from shared.decode import BOX_SCALE_PX, Detections, cell_centres, decode, model_stride, peak_mask
-from training.loss import LossConfig, detector_loss, heat_loss
+from training.loss import LossConfig, detector_loss, focal_heat_loss, heat_loss
 from training.model import Detector, DetectorConfig, count_macs, load_detector, save_detector
 from training.sample import VEHICLE_TYPES, Sample
 from training.targets import MIN_SIGMA_CELLS, build_targets, gaussian_sigma_px
@@ -288,6 +288,39 @@ def test_topk_picks_exactly_the_top_fraction():
     assert heat_loss(pred, target, ignore, None).item() == pytest.approx(err.mean(), rel=1e-6)
     ignore.view(-1)[torch.argmax(pred)] = True  # the worst pixel is ignored: the next 10 count
     assert heat_loss(pred, target, ignore, 0.01).item() == pytest.approx(err[1:11].mean(), rel=1e-6)
+
+
+def test_focal_heat_loss_by_hand():
+    """CenterNet's focal loss: peaks -(1-p)^2 log p, elsewhere -(1-y)^4 p^2 log(1-p), over the number of peaks;
+    ignored cells count neither way."""
+    pred = torch.tensor([[[0.9, 0.5, 0.2], [0.1, 0.6, 0.3]]])
+    target = torch.tensor([[[1.0, 0.5, 0.0], [0.0, 1.0, 0.2]]])
+    ignore = torch.tensor([[[False, False, False], [False, False, True]]])
+    p, y = pred.numpy()[0], target.numpy()[0]
+    pos = -(1 - p[0, 0]) ** 2 * np.log(p[0, 0]) - (1 - p[1, 1]) ** 2 * np.log(p[1, 1])
+    neg = sum(-((1 - y[r, c]) ** 4) * p[r, c] ** 2 * np.log(1 - p[r, c]) for r, c in [(0, 1), (0, 2), (1, 0)])
+    assert focal_heat_loss(pred, target, ignore).item() == pytest.approx((pos + neg) / 2, rel=1e-5)
+    # a map without peaks is divided by one, not zero; a perfect map costs (almost) nothing
+    no_peak = torch.zeros(1, 2, 3)
+    assert focal_heat_loss(torch.full((1, 2, 3), 0.5), no_peak, ignore.clone().fill_(False)).item() == pytest.approx(
+        6 * -(0.5**2) * np.log(0.5), rel=1e-5)
+    assert focal_heat_loss(target.clamp(max=1.0) * (target >= 1), target, ignore).item() < 0.02
+    # a confident miss costs far more than a hesitant one (the squared error's sigmoid gradient vanishes there)
+    miss, unsure = pred.clone(), pred.clone()
+    miss[0, 0, 0], unsure[0, 0, 0] = 0.01, 0.4
+    assert focal_heat_loss(miss, target, ignore) > focal_heat_loss(unsure, target, ignore) + 1.0
+
+
+def test_loss_config_heat_choice():
+    torch.manual_seed(0)
+    images, targets = batch_of([synthetic_sample()], 4)
+    out = Detector(TINY)(images)
+    _, mse = detector_loss(out, targets, LossConfig(heat="mse"), 4)
+    _, focal = detector_loss(out, targets, LossConfig(heat="focal"), 4)
+    assert focal["heat"] == pytest.approx(focal_heat_loss(out["heat"][:, 0], targets["heat"], targets["ignore"]).item())
+    assert focal["heat"] != pytest.approx(mse["heat"]) and focal["size"] == mse["size"]
+    with pytest.raises(ValueError, match="heat must be one of"):
+        LossConfig(heat="l1")
 
 
 def batch_of(samples: list[Sample], stride: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:

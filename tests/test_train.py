@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from dataclasses import replace
+from dataclasses import asdict, replace
 
 import pytest
 
@@ -187,4 +187,41 @@ def test_workers_are_stopped_even_where_the_parent_catches_sigterm(small_recordi
         assert multiprocessing.active_children() == []
     finally:
         signal.signal(signal.SIGTERM, previous)
+        torch.set_num_threads(threads)
+
+
+def test_fine_tuning_keeps_the_loss_the_checkpoint_was_trained_with(small_recording, tmp_path, capsys):
+    """model.pt records its loss settings; `roadside train --init` takes them, the flags given replace them, and
+    a checkpoint without them (older files) falls back to the paper's loss."""
+    from roadside.cli import main
+    from training.loss import LossConfig
+    from training.model import checkpoint_loss, save_detector
+
+    threads = torch.get_num_threads()
+    try:
+        train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "a"), steps=1, batch_size=2, crop=64,
+                          model=TINY, threads=1, loss=LossConfig(heat="focal", beta_offset=0.7)), log=lambda _m: None)
+        ckpt = tmp_path / "a" / "model.pt"
+        assert checkpoint_loss(ckpt)["heat"] == "focal" and checkpoint_loss(ckpt)["beta_offset"] == 0.7
+
+        def fine_tune(out: str, *flags: str) -> dict:
+            argv = ["train", "--recording", str(small_recording), "--init", str(ckpt), "--out", str(tmp_path / out),
+                    "--steps", "1", "--batch-size", "2", "--crop", "64", *flags]
+            assert main(argv) == 0
+            return json.loads((tmp_path / out / "train.json").read_text())["config"]["loss"]
+
+        kept = fine_tune("b")
+        assert kept["heat"] == "focal" and kept["beta_offset"] == 0.7 and kept["beta_size"] == 0.01
+        assert "loss settings of" in capsys.readouterr().out
+        changed = fine_tune("c", "--heat-loss", "mse", "--beta-size", "0.2", "--no-topk")
+        assert (changed["heat"], changed["beta_size"], changed["beta_offset"], changed["topk_fraction"]) == \
+            ("mse", 0.2, 0.7, None)
+        save_detector(load_detector(ckpt), tmp_path / "old.pt")  # no loss recorded
+        assert checkpoint_loss(tmp_path / "old.pt") is None
+        ckpt = tmp_path / "old.pt"
+        assert fine_tune("d") == json.loads(json.dumps(asdict(LossConfig())))
+        (tmp_path / "bad.pt").write_bytes(b"x")
+        with pytest.raises(ValueError, match=r"bad\.pt: not a roadside detector checkpoint"):
+            checkpoint_loss(tmp_path / "bad.pt")
+    finally:
         torch.set_num_threads(threads)

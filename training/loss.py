@@ -29,7 +29,11 @@ import torch.nn.functional as F
 
 from training.model import SIZE_EPS
 
-WEIGHT_FLOOR = 1e-6  # keeps a term at 0 (not NaN) for a batch without any weighted cell
+WEIGHT_FLOOR = 1e-6
+HEAT_LOSSES = ("mse", "focal")
+FOCAL_ALPHA = 2.0
+FOCAL_BETA = 4.0
+FOCAL_CLAMP = 1e-4  # keeps a term at 0 (not NaN) for a batch without any weighted cell
 
 
 @dataclass(frozen=True)
@@ -44,10 +48,13 @@ class LossConfig:
     beta_vtype: float = 0.01
     beta_offset: float = 0.1
     beta_box: float = 0.0
+    heat: str = "mse"
 
     def __post_init__(self) -> None:
         if self.topk_fraction is not None and not 0 < self.topk_fraction <= 1:
             raise ValueError(f"topk_fraction must be in (0, 1] or None, got {self.topk_fraction}")
+        if self.heat not in HEAT_LOSSES:
+            raise ValueError(f"heat must be one of {HEAT_LOSSES}, got {self.heat!r}")
         for name in ("beta_size", "beta_heading", "beta_vtype", "beta_offset", "beta_box"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
@@ -66,6 +73,18 @@ def heat_loss(pred: torch.Tensor, target: torch.Tensor, ignore: torch.Tensor,
     return torch.topk(err, k, sorted=False).values.mean()
 
 
+def focal_heat_loss(pred: torch.Tensor, target: torch.Tensor, ignore: torch.Tensor) -> torch.Tensor:
+    """CenterNet's penalty-reduced focal loss over the non-ignored cells, divided by the number of peak cells
+    (target == 1, at least one). pred, target (B, h, w) float; ignore (B, h, w) bool."""
+    p = pred.clamp(FOCAL_CLAMP, 1 - FOCAL_CLAMP)
+    keep = ~ignore
+    pos = (target >= 1.0) & keep
+    neg = (target < 1.0) & keep
+    pos_loss = -(torch.log(p) * (1 - p) ** FOCAL_ALPHA)[pos].sum()
+    neg_loss = -(torch.log(1 - p) * p**FOCAL_ALPHA * (1 - target) ** FOCAL_BETA)[neg].sum()
+    return (pos_loss + neg_loss) / pos.sum().clamp(min=1)
+
+
 def _weighted(err: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
     """sum(weight * err) / sum(weight) for per-cell err and weight (B, h, w)."""
     return (weight * err).sum() / weight.sum().clamp(min=WEIGHT_FLOOR)
@@ -82,7 +101,10 @@ def detector_loss(outputs: dict[str, torch.Tensor], targets: dict[str, torch.Ten
     cfg = config or LossConfig()
     weight = targets["weight"]
     topk = None if cfg.topk_fraction is None else min(1.0, cfg.topk_fraction * stride * stride)
-    heat = heat_loss(outputs["heat"][:, 0], targets["heat"], targets["ignore"], topk)
+    if cfg.heat == "focal":
+        heat = focal_heat_loss(outputs["heat"][:, 0], targets["heat"], targets["ignore"])
+    else:
+        heat = heat_loss(outputs["heat"][:, 0], targets["heat"], targets["ignore"], topk)
     size_mask = targets["size_mask"].to(weight.dtype)
     log_err = (torch.log(outputs["size"]) - torch.log(targets["size"].clamp(min=SIZE_EPS))) ** 2
     size = _weighted((log_err * size_mask).sum(dim=1), weight * (size_mask.sum(dim=1) > 0))

@@ -231,10 +231,22 @@ class ExportWrapper(nn.Module):
         return (out["heat"], out["size"], out["heading"], e / e.sum(dim=1, keepdim=True), out["offset"], *extra)
 
 
-def save_detector(model: Detector, path: str | Path) -> None:
-    """Write the config and weights to one file."""
-    state = {k: v.detach().cpu() for k, v in model.state_dict().items()}  # loadable without a GPU
-    torch.save({"config": asdict(model.config), "state_dict": state}, path)
+def save_detector(model: Detector, path: str | Path, loss: dict | None = None) -> None:
+    """Write the config and weights to one file, with the loss settings it was trained with (`loss`, the fields
+    of training.loss.LossConfig) when given: fine-tuning takes them from there (`checkpoint_loss`)."""
+    state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}  # loadable without a GPU
+    torch.save({"config": asdict(model.config), "state_dict": state, **({"loss": loss} if loss else {})}, path)
+
+
+def checkpoint_loss(path: str | Path) -> dict | None:
+    """The loss settings recorded in a file written by save_detector, None for a file without them (older
+    checkpoints: the paper's loss and betas unless the run said otherwise)."""
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises unpickling and zip errors of its own kinds
+        raise ValueError(f"{path}: not a roadside detector checkpoint ({type(exc).__name__})") from None
+    loss = ckpt.get("loss") if isinstance(ckpt, dict) else None
+    return dict(loss) if isinstance(loss, dict) else None
 
 
 def load_detector(path: str | Path) -> Detector:

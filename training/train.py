@@ -32,7 +32,7 @@ from shared.cameras import select_cameras
 from shared.inference import input_scale
 from sim.recording import Recording
 from training.augment import AugmentConfig, augment
-from training.data import DEFAULT_CACHE_BYTES, Batcher, SampleRef, samples_from_coco, samples_from_recording
+from training.data import Batcher, SampleRef, default_cache_bytes, samples_from_coco, samples_from_recording
 from training.loss import LossConfig, detector_loss
 from training.model import Detector, DetectorConfig, count_macs, load_detector, save_detector
 from training.sample import Sample
@@ -265,14 +265,16 @@ def train(cfg: TrainConfig, log=print) -> dict:
     aug = partial(augment, out_hw=(cfg.crop, cfg.crop), config=cfg.augment)
     if cfg.workers:  # started before CUDA is touched: forked workers must not inherit a CUDA context
         background = BackgroundBatches(refs, aug, cfg.batch_size, cfg.seed, cfg.model.stride, cfg.center,
-                                       cfg.workers, DEFAULT_CACHE_BYTES // cfg.workers)
+                                       cfg.workers, default_cache_bytes() // cfg.workers)
         batches = iter(background)
     else:
         background = None
         batcher = Batcher(refs, aug, cfg.batch_size, rng)
         batches = (batch_arrays(samples, cfg.model.stride, cfg.center)
                    for _ in iter(int, 1) for samples in batcher)  # endless epochs
-    model.to(device)
+    # channels-last activations: oneDNN's convolutions skip a layout reorder per layer (measured on this 2-core
+    # CPU: 0.60 -> 0.35 s per step of 12 crops of 256x256)
+    model.to(device, memory_format=torch.channels_last)
     params = trainable(model, cfg.train_only, log)
     opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
     total = cfg.steps
@@ -293,6 +295,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
             if done():
                 break
             images, targets = to_tensors(*arrays, device)
+            images = images.contiguous(memory_format=torch.channels_last)
             lr = lr_now()
             for g in opt.param_groups:
                 g["lr"] = lr
@@ -318,14 +321,14 @@ def train(cfg: TrainConfig, log=print) -> dict:
                 log_file.flush()
                 log(f"[train] step {step} loss {parts['total']:.4f} heat {parts['heat']:.4f}")
             if step % 500 == 0:
-                save_detector(model, out / "model.pt")
+                save_detector(model, out / "model.pt", asdict(cfg.loss))
     finally:
         if background is not None:
             background.close()
         if log_file is not None:
             log_file.close()
     model.eval()
-    save_detector(model, out / "model.pt")
+    save_detector(model, out / "model.pt", asdict(cfg.loss))
     summary = {
         "steps": step,
         "seconds": round(time.perf_counter() - t_start, 1),
