@@ -46,12 +46,13 @@ class DemoConfig:
     model: Path = DEFAULT_MODEL
     pace: str = "max"
     # chosen by fused MOTA on a validation recording of the roundabout (seed 77, 60 s at 10 Hz, the same
-    # cameras and calibration procedure), never on the demo's own (seed 2024), with the shipped model (run 8,
-    # models/README.md): one round at 0.30 / 0.33 / 0.35 / 0.36 / 0.38 / 0.39 gave MOTA 0.618 / 0.639 / 0.653 /
-    # 0.656 / 0.651 / 0.602 there; tracks started at 0.36 and extended by detections down to 0.33 (fuse_track.
-    # high_score, ByteTrack's second round) 0.656, id switches 26 against 31 (docs/pipeline.md).
-    score_thr: float = 0.33
-    high_score: float = 0.36  # fuse_track.high_score: objects below it only extend confirmed tracks
+    # cameras and calibration procedure), never on the demo's own (seed 2024), with the shipped model (run 11,
+    # models/README.md), detections at 0.2 rescored offline (`roadside eval budget --scenario as_run`): tracks
+    # started at 0.33 and extended by detections down to 0.30 (fuse_track.high_score, ByteTrack's second round)
+    # gave MOTA 0.749; 0.30 / 0.32 0.749, 0.32 / 0.34 0.749, 0.28 / 0.33 0.743, 0.27 / 0.30 0.737, 0.30 / 0.34
+    # 0.733, 0.36 / 0.40 0.712, 0.33 / 0.36 0.700, 0.40 / 0.43 0.685 (docs/pipeline.md).
+    score_thr: float = 0.30
+    high_score: float = 0.33  # fuse_track.high_score: objects below it only extend confirmed tracks
     port_base: int = 7451
     baseline_frames: int = 120
     # identities kept across camera regions are scored over the ground within this distance of a camera, not the
