@@ -221,6 +221,9 @@ def _add_train(sub) -> None:
     p.add_argument("--stride", type=int, default=4, choices=[1, 2, 4])
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--init", help="model.pt to start from (fine-tuning); its network settings are kept")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the interrupted run in --out from its resume.pt (saved every 500 steps): the same "
+                        "command again with --resume; the schedule and a --minutes budget go on from where it was")
     p.add_argument("--axis-head", action="store_true",
                    help="predict the heading's axis too (training/model.py); with --init, adds it to that model")
     p.add_argument("--beta-heading", type=_positive_float,
@@ -291,7 +294,8 @@ def _run_train(args) -> int:
     cfg = TrainConfig(recordings=tuple(args.recording), coco=tuple(args.coco), out=args.out,
                       steps=args.steps or (UNLIMITED_STEPS if args.minutes else 4000),
                       minutes=args.minutes, batch_size=args.batch_size, crop=args.crop, lr=args.lr, every=args.every,
-                      center=args.center, seed=args.seed, init=args.init, add_axis_head=args.axis_head,
+                      center=args.center, seed=args.seed, init=args.init, resume=args.resume,
+                      add_axis_head=args.axis_head,
                       input_long_side=args.input_long_side, device=args.device, workers=args.workers,
                       train_only=tuple(h.strip() for h in args.train_only.split(",") if h.strip()),
                       augment=AugmentConfig(fisheye_rotation=args.fisheye_rotation, focus_by_size=args.focus_by_size),

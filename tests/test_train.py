@@ -225,3 +225,54 @@ def test_fine_tuning_keeps_the_loss_the_checkpoint_was_trained_with(small_record
             checkpoint_loss(tmp_path / "bad.pt")
     finally:
         torch.set_num_threads(threads)
+
+
+def test_an_interrupted_run_resumes_on_its_schedule(small_recording, tmp_path):
+    """A run stopped after its save at step 4 resumes there with its weights and optimizer state: the learning
+    rates after the resume are those of the uninterrupted schedule, the log keeps its records up to step 4 once,
+    and a resume with other settings, or without a resume file, is refused with a message naming why."""
+    from training.train import RESUME_FILE
+
+    threads = torch.get_num_threads()
+    base = dict(recordings=(str(small_recording),), steps=8, batch_size=2, crop=64, model=TINY, threads=1,
+                log_every=1, save_every=4, seed=3)
+
+    class Stop(Exception):
+        pass
+
+    def stop_at_step_6(msg: str) -> None:
+        if msg.startswith("[train] step 6 "):
+            raise Stop
+
+    try:
+        train(TrainConfig(out=str(tmp_path / "whole"), **base), log=lambda _m: None)
+        out = tmp_path / "cut"
+        with pytest.raises(Stop):
+            train(TrainConfig(out=str(out), **base), log=stop_at_step_6)
+        saved = torch.load(out / RESUME_FILE, weights_only=True)
+        assert saved["step"] == 4 and saved["optimizer"]["state"]  # Adam's moments came along
+        msgs = []
+        summary = train(TrainConfig(out=str(out), resume=True, **base), log=msgs.append)
+        assert summary["steps"] == 8
+        assert any("resuming" in m and "at step 4" in m for m in msgs)
+        log = [json.loads(line) for line in (out / "train_log.jsonl").read_text().splitlines()]
+        whole = [json.loads(line) for line in (tmp_path / "whole" / "train_log.jsonl").read_text().splitlines()]
+        assert [r["step"] for r in log] == list(range(1, 9))
+        assert [r["lr"] for r in log] == pytest.approx([r["lr"] for r in whole])
+        def losses(records: list[dict]) -> list[dict]:
+            return [{k: v for k, v in r.items() if k != "s"} for r in records]
+
+        assert losses(log[:4]) == losses(whole[:4])  # the same seed: the same first four steps, kept as they were
+        assert log[4]["s"] > log[3]["s"]  # the time already spent goes on counting
+        assert load_detector(out / "model.pt").config == load_detector(tmp_path / "whole" / "model.pt").config
+
+        with pytest.raises(ValueError, match=r"resume: lr differ.*lr was 0\.002"):
+            train(TrainConfig(out=str(out), resume=True, lr=1e-3, **base), log=lambda _m: None)
+        with pytest.raises(FileNotFoundError, match=r"resume: no .*new.*resume\.pt"):
+            train(TrainConfig(out=str(tmp_path / "new"), resume=True, **base), log=lambda _m: None)
+        (tmp_path / "bad").mkdir()
+        (tmp_path / "bad" / RESUME_FILE).write_bytes(b"not a checkpoint")
+        with pytest.raises(ValueError, match=r"resume\.pt: not a resume file"):
+            train(TrainConfig(out=str(tmp_path / "bad"), resume=True, **base), log=lambda _m: None)
+    finally:
+        torch.set_num_threads(threads)

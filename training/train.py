@@ -11,6 +11,11 @@ steps) and `train.json` (the settings, data and timing).
 CPU-only); `workers` > 0 prepares the augmented batches in that many background processes, which a GPU needs
 to be kept busy. With workers the order in which their batches arrive is not reproducible; with
 `workers=0` (the default) a seed reproduces the run on the CPU.
+
+Every `save_every` steps the run also writes `resume.pt` (weights, optimizer state, step, training time spent):
+the same settings again with `resume` continue an interrupted run where that file left it, on the same schedule
+(`train_log.jsonl` keeps its records up to that step). The batches drawn after a resume are not those the
+interrupted run would have drawn.
 """
 
 from __future__ import annotations
@@ -62,6 +67,8 @@ class TrainConfig:
     device: str = "cpu"  # "cpu", "cuda" or "cuda:N"
     workers: int = 0  # background processes preparing batches (0: in this process, reproducible)
     log_every: int = 25
+    save_every: int = 500  # steps between the saves of model.pt and resume.pt
+    resume: bool = False  # continue the run in `out` from its resume.pt (the same settings; see the module doc)
     # heads to train, the rest frozen (weights and batch-norm statistics): e.g. ("offset",) sharpens the
     # localization of a trained model without touching what it detects; () trains everything
     train_only: tuple[str, ...] = ()
@@ -72,7 +79,7 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if not self.recordings and not self.coco:
             raise ValueError("no training data: give at least one recording or COCO annotation file")
-        for name in ("steps", "batch_size", "crop", "threads", "log_every", "every"):
+        for name in ("steps", "batch_size", "crop", "threads", "log_every", "every", "save_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.workers < 0:
@@ -228,6 +235,47 @@ def trainable(model: Detector, heads: tuple[str, ...], log=print) -> list[torch.
     return params
 
 
+RESUME_FILE = "resume.pt"
+# settings that must be those of the interrupted run for its resume to continue the same training
+RESUME_SAME = ("recordings", "coco", "steps", "minutes", "batch_size", "crop", "lr", "weight_decay", "every", "center",
+               "train_only", "loss", "augment")
+
+
+def _resume_settings(cfg: TrainConfig) -> dict:
+    return json.loads(json.dumps({k: getattr(cfg, k) for k in RESUME_SAME}, default=lambda o: asdict(o)))
+
+
+def save_resume(path: Path, model: Detector, opt: torch.optim.Optimizer, step: int, elapsed_s: float,
+                cfg: TrainConfig) -> None:
+    """Write what `resume` needs, atomically (a run killed while writing keeps the previous file)."""
+    tmp = path.with_name(path.name + ".partial")
+    torch.save({"model_config": asdict(model.config),
+                "model": {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()},
+                "optimizer": opt.state_dict(), "step": step, "elapsed_s": elapsed_s,
+                "settings": _resume_settings(cfg)}, tmp)
+    tmp.replace(path)
+
+
+def load_resume(path: Path, cfg: TrainConfig) -> dict:
+    """The state saved by save_resume; FileNotFoundError or ValueError naming the problem (no file, not a resume
+    file, settings that differ from the interrupted run's)."""
+    if not path.is_file():
+        raise FileNotFoundError(f"resume: no {path} (a run writes it every save_every steps; start without --resume)")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        keys = {"model_config", "model", "optimizer", "step", "elapsed_s", "settings"}
+        if not isinstance(state, dict) or not keys <= set(state):
+            raise KeyError(sorted(keys - set(state)) if isinstance(state, dict) else "not a dict")
+    except Exception as exc:  # torch raises unpickling and zip errors of its own kinds
+        raise ValueError(f"{path}: not a resume file ({type(exc).__name__}: {exc})") from None
+    now = _resume_settings(cfg)
+    differ = [k for k in RESUME_SAME if state["settings"].get(k) != now[k]]
+    if differ:
+        raise ValueError(f"resume: {', '.join(differ)} differ from the interrupted run's ("
+                         + "; ".join(f"{k} was {state['settings'].get(k)!r}" for k in differ) + ")")
+    return state
+
+
 def train(cfg: TrainConfig, log=print) -> dict:
     """Run one training; returns the summary also written to `out/train.json`."""
     device = torch.device(cfg.device)
@@ -238,7 +286,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
     rng = np.random.default_rng(cfg.seed)
-    if cfg.init is not None:
+    if cfg.init is not None and not cfg.resume:  # a resumed run's weights come from its resume.pt
         if not Path(cfg.init).is_file():
             raise FileNotFoundError(f"init model not found: {cfg.init}")
         model = load_detector(cfg.init)
@@ -259,6 +307,16 @@ def train(cfg: TrainConfig, log=print) -> dict:
         if cfg.input_long_side is not None:
             cfg = replace(cfg, model=replace(cfg.model, input_long_side=cfg.input_long_side))
         model = Detector(cfg.model)
+    resumed = None
+    if cfg.resume:
+        resumed = load_resume(out / RESUME_FILE, cfg)
+        model = Detector(DetectorConfig(**resumed["model_config"]))
+        model.load_state_dict(resumed["model"])
+        cfg = replace(cfg, model=model.config)
+        # fresh random streams: the interrupted run's would repeat its first batches
+        torch.manual_seed(cfg.seed + resumed["step"])
+        rng = np.random.default_rng((cfg.seed, resumed["step"]))
+        log(f"[train] resuming {out} at step {resumed['step']} ({resumed['elapsed_s'] / 60:.1f} min spent)")
     refs = training_refs(cfg)
     n_pos = sum(r.n_positive for r in refs)
     log(f"[train] {len(refs)} images, {n_pos} vehicles to detect")
@@ -280,6 +338,18 @@ def train(cfg: TrainConfig, log=print) -> dict:
     total = cfg.steps
     budget_s = None if cfg.minutes is None else cfg.minutes * 60
     step, t_start = 0, time.perf_counter()
+    log_file = None  # opened after the first step: a run that fails on its data keeps the last log
+    if resumed is not None:
+        opt.load_state_dict(resumed["optimizer"])
+        step = resumed["step"]
+        t_start -= resumed["elapsed_s"]  # the schedule and the budget go on from the time already spent
+        log_path = out / "train_log.jsonl"
+        kept = [line for line in (log_path.read_text().splitlines() if log_path.is_file() else [])
+                if line.strip() and json.loads(line).get("step", 0) <= step]
+        log_file = open(log_path, "w")  # closed in finally
+        log_file.write("".join(line + "\n" for line in kept))
+        log_file.flush()
+    first_step = step
 
     def lr_now() -> float:
         if budget_s is None:
@@ -290,7 +360,6 @@ def train(cfg: TrainConfig, log=print) -> dict:
         return step >= total or (budget_s is not None and time.perf_counter() - t_start >= budget_s)
 
     try:
-        log_file = None  # opened after the first step: a run that fails on its data keeps the last log
         for arrays in batches:
             if done():
                 break
@@ -307,8 +376,8 @@ def train(cfg: TrainConfig, log=print) -> dict:
             torch.nn.utils.clip_grad_norm_(params, 5.0)
             opt.step()
             step += 1
-            if step == WARMUP_STEPS:
-                if budget_s is not None:
+            if step - first_step == WARMUP_STEPS:
+                if budget_s is not None and resumed is None:
                     per_step = (time.perf_counter() - t_start) / WARMUP_STEPS
                     log(f"[train] {per_step:.2f} s per step: about {int(budget_s / per_step)} steps "
                         f"in {cfg.minutes:g} min (the schedule follows the clock)")
@@ -320,8 +389,9 @@ def train(cfg: TrainConfig, log=print) -> dict:
                 log_file.write(json.dumps(rec) + "\n")
                 log_file.flush()
                 log(f"[train] step {step} loss {parts['total']:.4f} heat {parts['heat']:.4f}")
-            if step % 500 == 0:
+            if step % cfg.save_every == 0:
                 save_detector(model, out / "model.pt", asdict(cfg.loss))
+                save_resume(out / RESUME_FILE, model, opt, step, time.perf_counter() - t_start, cfg)
     finally:
         if background is not None:
             background.close()
@@ -329,6 +399,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
             log_file.close()
     model.eval()
     save_detector(model, out / "model.pt", asdict(cfg.loss))
+    save_resume(out / RESUME_FILE, model, opt, step, time.perf_counter() - t_start, cfg)
     summary = {
         "steps": step,
         "seconds": round(time.perf_counter() - t_start, 1),
