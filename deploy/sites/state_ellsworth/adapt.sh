@@ -2,7 +2,9 @@
 # The site-adapted detector: autolabel the training slice of the four real cameras (frames before
 # 11:00:40), fine-tune the simulator-trained model on those labels mixed with simulator frames (so it keeps
 # what it learned there), export to ONNX. No manual training labels.
-# Starts from models/detector.pt (the shipped simulator-trained checkpoint).
+# Starts from models/detector.pt (the shipped simulator-trained checkpoint) and keeps the loss it was trained with
+# (recorded in the checkpoint; the shipped site model was adapted from run 5 with --beta-heading 0.05; adapted from
+# run 11 this way it scored lower on the real frames, models/README.md).
 # Usage: adapt.sh SIM_RECORDING [FOOTAGE_DIR] [MINUTES]  (MINUTES: stage 1's budget, default 20)
 #   SIM_RECORDING  a simulator recording of this site (roadside sim --site state_ellsworth --seconds 90 --hz 2 ...)
 set -euo pipefail
@@ -18,7 +20,7 @@ for c in NE NW SE SW; do COCO+=(--coco out/autolabel/$c/labels.json --coco out/a
 # Stage 1 (20 min, 1,274 steps for the shipped model), then stage 2 from its result at a lower learning rate
 # (1,800 steps, 28 min): 50 min in all.
 .venv/bin/roadside train --init models/detector.pt "${COCO[@]}" --recording "$SIM" \
-    --out out/train_state_ellsworth --minutes "$MINUTES" --batch-size 12 --lr 5e-4 --beta-heading 0.05 --seed 6
+    --out out/train_state_ellsworth --minutes "$MINUTES" --batch-size 12 --lr 5e-4 --seed 6
 .venv/bin/roadside train --init out/train_state_ellsworth/model.pt "${COCO[@]}" --recording "$SIM" \
-    --out out/train_state_ellsworth_2 --steps 1800 --minutes 45 --batch-size 12 --lr 3e-4 --beta-heading 0.05 --seed 7
+    --out out/train_state_ellsworth_2 --steps 1800 --minutes 45 --batch-size 12 --lr 3e-4 --seed 7
 .venv/bin/roadside export out/train_state_ellsworth_2/model.pt --out out/train_state_ellsworth_2/detector.onnx
