@@ -357,7 +357,7 @@ def _add_eval(sub) -> None:
                    help="budget: a roadside demo output folder (objects.jsonl, site/, the recording)")
     p.add_argument("--scenario", action="append",
                    help="budget: score only this scenario (repeatable; default all: as_run, exact_lift, "
-                        "true_positions, no_false_alarms, true_positions_no_false_alarms, truth)")
+                        "true_positions, no_false_alarms, true_positions_no_false_alarms, true_long_vehicles, truth)")
     p.add_argument("--json", action="store_true", help="print one JSON document (default: also a summary)")
 
 

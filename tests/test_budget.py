@@ -12,7 +12,17 @@ import pytest
 import yaml
 from pipeline_fixtures import CAMERA, write_exact_masks
 
-from eval.budget import SCENARIOS, budget, lift_exact, read_objects, seen_vehicles, truth_objects, with_truth
+from eval.budget import (
+    SCENARIOS,
+    budget,
+    lift_exact,
+    on_footprint,
+    read_objects,
+    seen_vehicles,
+    true_types,
+    truth_objects,
+    with_truth,
+)
 
 
 def row(xy, camera="A", t_ns=0, score=None) -> dict:
@@ -64,6 +74,37 @@ def test_truth_objects_lift_each_seen_vehicle_at_its_pixel():
     out = truth_objects([row([[50.0, 50.0]])], seen, {"A": lookup})[0]
     assert np.allclose(out["xy"], [[4.4, 5.7]]) and out["yaw"] == [0.5] and out["size_lwh"] == [[4.0, 1.7, 1.4]]
     assert out["score"][0] >= 0.9
+
+
+def test_on_footprint_follows_the_vehicles_length_and_heading():
+    bus = {**vehicle(10.0, 0.0), "yaw": np.pi / 2, "lwh": [12.0, 2.5, 3.0]}  # pointing north: 12 m along y
+    pts = [[10.0, 6.4], [10.0, -6.4], [10.0, 6.6], [11.7, 0.0], [11.8, 0.0], [16.0, 0.0]]
+    assert on_footprint(np.array(pts), bus).tolist() == [True, True, False, True, False, False]
+    assert on_footprint(np.array([[10.0, 6.6]]), bus, margin_m=1.0).tolist() == [True]
+
+
+def test_true_types_replaces_the_objects_of_long_vehicles_by_their_truth():
+    from calibration.masks import LookupMasks
+
+    h, w = 10, 10
+    uu, vv = np.meshgrid(np.arange(w), np.arange(h))
+    lookup = LookupMasks(np.zeros((h, w)), np.zeros((h, w)), np.stack([uu * 2.0, vv * 2.0], -1).astype(np.float32),
+                         np.ones((h, w), bool), {})
+    bus = {**vehicle(10.0, 4.0, u=5.0, v=2.0), "type": "bus", "yaw": 0.0, "lwh": [12.0, 2.5, 3.0]}
+    car = {**vehicle(4.0, 14.0, u=2.0, v=7.0), "type": "car"}
+    hidden_truck = {**vehicle(16.0, 16.0, u=8.0, v=8.0), "type": "truck", "visible_fraction": 0.1}
+    in_image = {("A", 0): [bus, car, hidden_truck]}
+    seen = {("A", 0): [bus, car]}  # the truck shows too little to count as seen
+    # one object at the bus's far end (3.5 m along it), one on the car 0.8 m off, one on the hidden truck
+    r = row([[13.5, 4.2], [4.8, 14.0], [16.5, 16.0]], score=[0.7, 0.6, 0.5])
+    out = true_types([r], in_image, seen, {"A": lookup})[0]
+    assert np.allclose(out["xy"], [[4.8, 14.0], [10.0, 4.0]])  # the car's as run, the bus at its truth
+    assert out["score"][0] == 0.6 and out["score"][1] >= 0.9
+    assert out["size_lwh"][1] == [12.0, 2.5, 3.0] and out["yaw"][1] == 0.0 and out["vtype"] == [1, 3]
+    # with cars made right instead, the bus's object stays and the car's object goes to its truth
+    cars = true_types([r], in_image, seen, {"A": lookup}, types=("car",))[0]
+    assert np.allclose(cars["xy"], [[13.5, 4.2], [16.5, 16.0], [4.0, 14.0]])
+    assert true_types([row([[1.0, 1.0]], camera="B")], in_image, seen, {"A": lookup})[0]["xy"] == [[1.0, 1.0]]
 
 
 def test_read_objects_names_the_bad_line(tmp_path: Path):
