@@ -230,7 +230,8 @@ def test_fine_tuning_keeps_the_loss_the_checkpoint_was_trained_with(small_record
 def test_an_interrupted_run_resumes_on_its_schedule(small_recording, tmp_path):
     """A run stopped after its save at step 4 resumes there with its weights and optimizer state: the learning
     rates after the resume are those of the uninterrupted schedule, the log keeps its records up to step 4 once,
-    and a resume with other settings, or without a resume file, is refused with a message naming why."""
+    and a resume with other settings, or without a resume file, is refused with a message naming why. A fresh run
+    in the same folder removes the old resume file first."""
     from training.train import RESUME_FILE
 
     threads = torch.get_num_threads()
@@ -251,6 +252,8 @@ def test_an_interrupted_run_resumes_on_its_schedule(small_recording, tmp_path):
             train(TrainConfig(out=str(out), **base), log=stop_at_step_6)
         saved = torch.load(out / RESUME_FILE, weights_only=True)
         assert saved["step"] == 4 and saved["optimizer"]["state"]  # Adam's moments came along
+        with open(out / "train_log.jsonl", "a") as f:
+            f.write('{"step": 7, "lr": 0.00')  # a line torn by the kill: dropped, not an error
         msgs = []
         summary = train(TrainConfig(out=str(out), resume=True, **base), log=msgs.append)
         assert summary["steps"] == 8
@@ -265,9 +268,23 @@ def test_an_interrupted_run_resumes_on_its_schedule(small_recording, tmp_path):
         assert losses(log[:4]) == losses(whole[:4])  # the same seed: the same first four steps, kept as they were
         assert log[4]["s"] > log[3]["s"]  # the time already spent goes on counting
         assert load_detector(out / "model.pt").config == load_detector(tmp_path / "whole" / "model.pt").config
+        final = torch.load(out / RESUME_FILE, weights_only=True)
+        # Adam's own step count went on from the saved optimizer state (4 more steps on top of 4)
+        assert final["step"] == 8 and all(int(st["step"]) == 8 for st in final["optimizer"]["state"].values())
+        # resumed at its end, the run takes no step and writes back exactly the weights it resumed with
+        train(TrainConfig(out=str(out), resume=True, **base), log=lambda _m: None)
+        again = load_detector(out / "model.pt").state_dict()
+        assert all(torch.equal(again[k], v) for k, v in final["model"].items())
 
         with pytest.raises(ValueError, match=r"resume: lr differ.*lr was 0\.002"):
             train(TrainConfig(out=str(out), resume=True, lr=1e-3, **base), log=lambda _m: None)
+        with pytest.raises(ValueError, match=r"resume: seed differ.*seed was 3"):
+            train(TrainConfig(out=str(out), resume=True, **{**base, "seed": 4}), log=lambda _m: None)
+        # a fresh run in that folder, stopped before its first save, leaves no resume file of the old run behind
+        with pytest.raises(Stop):
+            train(TrainConfig(out=str(out), **{**base, "save_every": 100}), log=stop_at_step_6)
+        with pytest.raises(FileNotFoundError, match=r"resume: no .*cut.*resume\.pt"):
+            train(TrainConfig(out=str(out), resume=True, **base), log=lambda _m: None)
         with pytest.raises(FileNotFoundError, match=r"resume: no .*new.*resume\.pt"):
             train(TrainConfig(out=str(tmp_path / "new"), resume=True, **base), log=lambda _m: None)
         (tmp_path / "bad").mkdir()

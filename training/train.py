@@ -15,7 +15,8 @@ to be kept busy. With workers the order in which their batches arrive is not rep
 Every `save_every` steps the run also writes `resume.pt` (weights, optimizer state, step, training time spent):
 the same settings again with `resume` continue an interrupted run where that file left it, on the same schedule
 (`train_log.jsonl` keeps its records up to that step). The batches drawn after a resume are not those the
-interrupted run would have drawn.
+interrupted run would have drawn. A run started without `resume` removes an earlier run's `resume.pt` from its
+folder first, so that a resume never goes back to a run that is not the last one.
 """
 
 from __future__ import annotations
@@ -237,8 +238,9 @@ def trainable(model: Detector, heads: tuple[str, ...], log=print) -> list[torch.
 
 RESUME_FILE = "resume.pt"
 # settings that must be those of the interrupted run for its resume to continue the same training
-RESUME_SAME = ("recordings", "coco", "steps", "minutes", "batch_size", "crop", "lr", "weight_decay", "every", "center",
-               "train_only", "loss", "augment")
+# (as given to `train`: `model` before a starting model's or an input size's replace it)
+RESUME_SAME = ("recordings", "coco", "init", "model", "input_long_side", "add_axis_head", "steps", "minutes",
+               "batch_size", "crop", "lr", "weight_decay", "every", "center", "train_only", "loss", "augment", "seed")
 
 
 def _resume_settings(cfg: TrainConfig) -> dict:
@@ -246,19 +248,21 @@ def _resume_settings(cfg: TrainConfig) -> dict:
 
 
 def save_resume(path: Path, model: Detector, opt: torch.optim.Optimizer, step: int, elapsed_s: float,
-                cfg: TrainConfig) -> None:
-    """Write what `resume` needs, atomically (a run killed while writing keeps the previous file)."""
+                settings: dict) -> None:
+    """Write what `resume` needs, atomically (a run killed while writing keeps the previous file). settings: the
+    run's `_resume_settings`, as given."""
     tmp = path.with_name(path.name + ".partial")
     torch.save({"model_config": asdict(model.config),
                 "model": {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()},
                 "optimizer": opt.state_dict(), "step": step, "elapsed_s": elapsed_s,
-                "settings": _resume_settings(cfg)}, tmp)
+                "settings": settings}, tmp)
     tmp.replace(path)
 
 
-def load_resume(path: Path, cfg: TrainConfig) -> dict:
-    """The state saved by save_resume; FileNotFoundError or ValueError naming the problem (no file, not a resume
-    file, settings that differ from the interrupted run's)."""
+def load_resume(path: Path, settings: dict) -> tuple[dict, Detector]:
+    """The state saved by save_resume and its model with the saved weights; FileNotFoundError or ValueError naming
+    the problem (no file, not a resume file, settings (`_resume_settings` of the run as given) that differ from the
+    interrupted run's)."""
     if not path.is_file():
         raise FileNotFoundError(f"resume: no {path} (a run writes it every save_every steps; start without --resume)")
     try:
@@ -266,14 +270,35 @@ def load_resume(path: Path, cfg: TrainConfig) -> dict:
         keys = {"model_config", "model", "optimizer", "step", "elapsed_s", "settings"}
         if not isinstance(state, dict) or not keys <= set(state):
             raise KeyError(sorted(keys - set(state)) if isinstance(state, dict) else "not a dict")
+        if not isinstance(state["settings"], dict):
+            raise TypeError("its settings are not a mapping")
+        if not (isinstance(state["step"], int) and state["step"] >= 0 and math.isfinite(float(state["elapsed_s"]))):
+            raise TypeError(f"step {state['step']!r} and elapsed_s {state['elapsed_s']!r} must be numbers")
+        model = Detector(DetectorConfig(**state["model_config"]))
+        model.load_state_dict(state["model"])
     except Exception as exc:  # torch raises unpickling and zip errors of its own kinds
         raise ValueError(f"{path}: not a resume file ({type(exc).__name__}: {exc})") from None
-    now = _resume_settings(cfg)
-    differ = [k for k in RESUME_SAME if state["settings"].get(k) != now[k]]
+    differ = [k for k in RESUME_SAME if state["settings"].get(k) != settings[k]]
     if differ:
         raise ValueError(f"resume: {', '.join(differ)} differ from the interrupted run's ("
                          + "; ".join(f"{k} was {state['settings'].get(k)!r}" for k in differ) + ")")
-    return state
+    return state, model
+
+
+def _trimmed_log(path: Path, step: int) -> None:
+    """Keep the records of a training log up to `step` (a torn last line left by a kill is dropped), rewritten
+    atomically."""
+    kept = []
+    for line in path.read_text().splitlines() if path.is_file() else []:
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if isinstance(rec, dict) and rec.get("step", 0) <= step:
+            kept.append(line)
+    tmp = path.with_name(path.name + ".partial")
+    tmp.write_text("".join(line + "\n" for line in kept))
+    tmp.replace(path)
 
 
 def train(cfg: TrainConfig, log=print) -> dict:
@@ -283,6 +308,10 @@ def train(cfg: TrainConfig, log=print) -> dict:
         raise RuntimeError(f"device {cfg.device}: this PyTorch has no CUDA (torch {torch.__version__})")
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
+    given = _resume_settings(cfg)  # before a starting model or an input size changes cfg.model
+    if not cfg.resume and (out / RESUME_FILE).is_file():
+        (out / RESUME_FILE).unlink()  # an earlier run's: a resume of this one must not go back to it
+        log(f"[train] removed the earlier run's {out / RESUME_FILE}")
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
     rng = np.random.default_rng(cfg.seed)
@@ -309,9 +338,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
         model = Detector(cfg.model)
     resumed = None
     if cfg.resume:
-        resumed = load_resume(out / RESUME_FILE, cfg)
-        model = Detector(DetectorConfig(**resumed["model_config"]))
-        model.load_state_dict(resumed["model"])
+        resumed, model = load_resume(out / RESUME_FILE, given)
         cfg = replace(cfg, model=model.config)
         # fresh random streams: the interrupted run's would repeat its first batches
         torch.manual_seed(cfg.seed + resumed["step"])
@@ -322,7 +349,9 @@ def train(cfg: TrainConfig, log=print) -> dict:
     log(f"[train] {len(refs)} images, {n_pos} vehicles to detect")
     aug = partial(augment, out_hw=(cfg.crop, cfg.crop), config=cfg.augment)
     if cfg.workers:  # started before CUDA is touched: forked workers must not inherit a CUDA context
-        background = BackgroundBatches(refs, aug, cfg.batch_size, cfg.seed, cfg.model.stride, cfg.center,
+        # a resumed run's workers get other seeds: the interrupted run's would repeat its first batches
+        seed = cfg.seed if resumed is None else cfg.seed + 100_003 * resumed["step"]
+        background = BackgroundBatches(refs, aug, cfg.batch_size, seed, cfg.model.stride, cfg.center,
                                        cfg.workers, default_cache_bytes() // cfg.workers)
         batches = iter(background)
     else:
@@ -343,12 +372,8 @@ def train(cfg: TrainConfig, log=print) -> dict:
         opt.load_state_dict(resumed["optimizer"])
         step = resumed["step"]
         t_start -= resumed["elapsed_s"]  # the schedule and the budget go on from the time already spent
-        log_path = out / "train_log.jsonl"
-        kept = [line for line in (log_path.read_text().splitlines() if log_path.is_file() else [])
-                if line.strip() and json.loads(line).get("step", 0) <= step]
-        log_file = open(log_path, "w")  # closed in finally
-        log_file.write("".join(line + "\n" for line in kept))
-        log_file.flush()
+        _trimmed_log(out / "train_log.jsonl", step)
+        log_file = open(out / "train_log.jsonl", "a")  # closed in finally
     first_step = step
 
     def lr_now() -> float:
@@ -391,7 +416,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
                 log(f"[train] step {step} loss {parts['total']:.4f} heat {parts['heat']:.4f}")
             if step % cfg.save_every == 0:
                 save_detector(model, out / "model.pt", asdict(cfg.loss))
-                save_resume(out / RESUME_FILE, model, opt, step, time.perf_counter() - t_start, cfg)
+                save_resume(out / RESUME_FILE, model, opt, step, time.perf_counter() - t_start, given)
     finally:
         if background is not None:
             background.close()
@@ -399,7 +424,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
             log_file.close()
     model.eval()
     save_detector(model, out / "model.pt", asdict(cfg.loss))
-    save_resume(out / RESUME_FILE, model, opt, step, time.perf_counter() - t_start, cfg)
+    save_resume(out / RESUME_FILE, model, opt, step, time.perf_counter() - t_start, given)
     summary = {
         "steps": step,
         "seconds": round(time.perf_counter() - t_start, 1),
