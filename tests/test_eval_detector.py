@@ -109,6 +109,9 @@ def test_an_oracle_detector_scores_perfectly(small_recording):
     # near the camera, on the ground: every vehicle to detect found, every detection on one, placed exactly
     assert overall["near_positives"] > 0 and overall["near_recall"] == 1.0 and overall["near_precision"] == 1.0
     assert overall["near_f1"] == 1.0 and overall["near_loc_err_m"] < 0.02
+    by_type = overall["near_by_type"]
+    assert by_type and sum(t["positives"] for t in by_type.values()) == overall["near_positives"]
+    assert all(t["recall"] == 1.0 and t["loc_err_median_m"] < 0.02 for t in by_type.values())
     assert evaluate(small_recording, oracle, near_m=1e-3)["overall"]["near_positives"] == 0
     with pytest.raises(ValueError, match="near_m must be > 0"):
         evaluate(small_recording, oracle, near_m=0.0)
@@ -193,6 +196,8 @@ def test_near_frame_counts_on_the_ground_around_the_camera():
     assert n["positives"] == 2 and n["found"] == 1
     assert n["detections"] == 3 and n["true"] == 1
     assert n["loc"] == pytest.approx([0.4])
+    # per label: 0.4 m for the found one, NaN for the missed near one, -1 for the far and the ignored (not counted)
+    assert np.allclose(n["label_dist"], [0.4, np.nan, -1.0, -1.0], equal_nan=True)
     # a detection just outside the radius still finds a vehicle just inside it
     n = near_frame(np.array([[25.5, 0.0]]), np.array([[24.5, 0.0]]), np.array([True]), centre, 25.0)
     assert (n["positives"], n["found"], n["detections"], n["true"]) == (1, 1, 0, 0)
