@@ -237,6 +237,9 @@ def _add_train(sub) -> None:
     p.add_argument("--beta-box", type=_finite_float,
                    help="extra weight of the 2D box (width, height, centre offset); default 0, the paper's loss "
                         "(with --init, the checkpoint's)")
+    p.add_argument("--loss-type-weights", type=_type_weights, metavar="TYPE=W,...",
+                   help="with --heat-loss focal: the cells of these vehicle types' vehicles weigh W times in the loss "
+                        "(e.g. bus=4,truck=2; the others 1; with --init, the checkpoint's)")
     p.add_argument("--fisheye-rotation", choices=["any", "quarter", "off"], default="any",
                    help="augmentation: turn fisheye crops about the principal point by any angle (2D boxes "
                         "approximated), by multiples of 90 degrees (boxes exact) or not at all")
@@ -262,6 +265,17 @@ UNLIMITED_STEPS = 10**9  # with --minutes alone the clock ends the run
 LOSS_FLAGS = ("heat_loss", "beta_size", "beta_heading", "beta_vtype", "beta_offset", "beta_box")
 
 
+def _loss_type_weights(given: dict[str, float]) -> tuple[float, ...]:
+    """{'bus': 4} -> one weight per VEHICLE_TYPES entry (1 for those not named); ValueError naming an unknown type."""
+    from shared.messages import VEHICLE_TYPES
+
+    unknown = sorted(set(given) - set(VEHICLE_TYPES))
+    if unknown:
+        raise ValueError(f"--loss-type-weights: unknown vehicle type(s) {', '.join(unknown)}; the types are "
+                         f"{', '.join(VEHICLE_TYPES)}")
+    return tuple(float(given.get(t, 1.0)) for t in VEHICLE_TYPES)
+
+
 def _train_loss(args, loss_config):
     """The run's LossConfig: the paper's defaults, or with --init the settings that checkpoint was trained with
     (fine-tuning keeps its loss), then whatever the command line gives."""
@@ -276,6 +290,8 @@ def _train_loss(args, loss_config):
              if getattr(args, name) is not None}
     if args.no_topk:
         given["topk_fraction"] = None
+    if args.loss_type_weights is not None:
+        given["type_weights"] = _loss_type_weights(args.loss_type_weights)
     try:
         return loss_config(**{**base, **given})
     except TypeError as exc:  # a checkpoint written by a later version with settings this one lacks

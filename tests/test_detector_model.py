@@ -323,6 +323,35 @@ def test_loss_config_heat_choice():
         LossConfig(heat="l1")
 
 
+def test_type_weights_weigh_the_cells_of_that_types_vehicles():
+    """The synthetic sample holds a car (type 0) and a truck (type 2): weights of 1 change nothing; a weight on the
+    truck multiplies its cells' focal terms, and its share of the regression terms, and nothing of the car's."""
+    torch.manual_seed(0)
+    images, targets = batch_of([synthetic_sample()], 4)
+    out = Detector(TINY)(images)
+    _, plain = detector_loss(out, targets, LossConfig(heat="focal"), 4)
+    _, ones = detector_loss(out, targets, LossConfig(heat="focal", type_weights=[1, 1, 1, 1, 1]), 4)
+    assert ones == pytest.approx(plain)
+    _, truck3 = detector_loss(out, targets, LossConfig(heat="focal", type_weights=(1, 1, 3, 1, 1)), 4)
+    owner = targets["vtype"][0]
+    w = torch.where(owner == 2, 3.0, 1.0)[None]
+    assert truck3["heat"] == pytest.approx(
+        focal_heat_loss(out["heat"][:, 0], targets["heat"], targets["ignore"], w).item())
+    assert truck3["heat"] > plain["heat"]
+    by_cell = ((out["offset"] - targets["offset"]) ** 2).sum(dim=1)
+    weight = targets["weight"] * w
+    assert truck3["offset"] == pytest.approx(((weight * by_cell).sum() / weight.sum()).item(), rel=1e-5)
+    # a weight on a type the sample does not hold changes nothing
+    _, bus9 = detector_loss(out, targets, LossConfig(heat="focal", type_weights=(1, 1, 1, 9, 1)), 4)
+    assert bus9 == pytest.approx(plain)
+    with pytest.raises(ValueError, match="type_weights must be 5 finite numbers > 0"):
+        LossConfig(heat="focal", type_weights=(1, 1, 0, 1, 1))
+    with pytest.raises(ValueError, match="type_weights must be 5"):
+        LossConfig(heat="focal", type_weights=(1, 2))
+    with pytest.raises(ValueError, match="type_weights need the focal heat loss"):
+        LossConfig(type_weights=(1, 1, 2, 1, 1))
+
+
 def batch_of(samples: list[Sample], stride: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     images = torch.from_numpy(np.stack([s.image for s in samples])[:, None].astype(np.float32) / 255)
     return images, default_collate([build_targets(s, stride) for s in samples])

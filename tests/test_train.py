@@ -213,6 +213,14 @@ def test_fine_tuning_keeps_the_loss_the_checkpoint_was_trained_with(small_record
         kept = fine_tune("b")
         assert kept["heat"] == "focal" and kept["beta_offset"] == 0.7 and kept["beta_size"] == 0.01
         assert "loss settings of" in capsys.readouterr().out
+        assert kept["type_weights"] is None
+        weighted = fine_tune("w", "--loss-type-weights", "bus=4,truck=2")
+        assert weighted["type_weights"] == [1.0, 1.0, 2.0, 4.0, 1.0] and weighted["heat"] == "focal"
+        assert list(checkpoint_loss(tmp_path / "w" / "model.pt")["type_weights"]) == [1.0, 1.0, 2.0, 4.0, 1.0]
+        capsys.readouterr()
+        assert main(["train", "--recording", str(small_recording), "--init", str(ckpt), "--out", str(tmp_path / "x"),
+                     "--steps", "1", "--loss-type-weights", "lorry=2"]) != 0
+        assert "unknown vehicle type(s) lorry" in capsys.readouterr().err
         changed = fine_tune("c", "--heat-loss", "mse", "--beta-size", "0.2", "--no-topk")
         assert (changed["heat"], changed["beta_size"], changed["beta_offset"], changed["topk_fraction"]) == \
             ("mse", 0.2, 0.7, None)

@@ -18,15 +18,20 @@ box      (beta_box > 0 only) the 2D box's part of size and offset again: log-spa
          size without changing the rest (the 2D box is what ap50 scores; the paper has no such term)
 The regression terms are weighted per cell by the targets' `weight` (and masks) and divided by the sum of
 those weights, so they are means per vehicle cell.
+With `type_weights` (one per vehicle type) every cell a vehicle owns (its heat-map window) counts that many times
+in every term, the focal heat term's peak and the cells around it included: rare or hard types (a 12 m bus seen
+from above) weigh more. The focal term stays divided by the number of peaks.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 
+from shared.messages import VEHICLE_TYPES
 from training.model import SIZE_EPS
 
 WEIGHT_FLOOR = 1e-6
@@ -40,7 +45,8 @@ FOCAL_CLAMP = 1e-4  # keeps a term at 0 (not NaN) for a batch without any weight
 class LossConfig:
     """topk_fraction: share of non-ignored heat pixels per batch kept for the heat term (None: all).
     beta_*: weights of the regression and classification terms (the paper uses 0.01 for size, heading, type;
-    offset is this project's addition for stride > 1)."""
+    offset is this project's addition for stride > 1). type_weights: None, or one weight > 0 per vehicle type
+    (`VEHICLE_TYPES` order) for the cells each type's vehicles own (module docstring)."""
 
     topk_fraction: float | None = 0.01
     beta_size: float = 0.01
@@ -49,8 +55,17 @@ class LossConfig:
     beta_offset: float = 0.1
     beta_box: float = 0.0
     heat: str = "mse"
+    type_weights: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
+        if self.type_weights is not None:
+            w = tuple(float(x) for x in self.type_weights)
+            if len(w) != len(VEHICLE_TYPES) or not all(math.isfinite(x) and x > 0 for x in w):
+                raise ValueError(f"type_weights must be {len(VEHICLE_TYPES)} finite numbers > 0 (one per type of "
+                                 f"{VEHICLE_TYPES}), got {self.type_weights!r}")
+            object.__setattr__(self, "type_weights", w)
+            if self.heat != "focal":
+                raise ValueError("type_weights need the focal heat loss (heat='focal')")
         if self.topk_fraction is not None and not 0 < self.topk_fraction <= 1:
             raise ValueError(f"topk_fraction must be in (0, 1] or None, got {self.topk_fraction}")
         if self.heat not in HEAT_LOSSES:
@@ -73,15 +88,18 @@ def heat_loss(pred: torch.Tensor, target: torch.Tensor, ignore: torch.Tensor,
     return torch.topk(err, k, sorted=False).values.mean()
 
 
-def focal_heat_loss(pred: torch.Tensor, target: torch.Tensor, ignore: torch.Tensor) -> torch.Tensor:
-    """CenterNet's penalty-reduced focal loss over the non-ignored cells, divided by the number of peak cells
-    (target == 1, at least one). pred, target (B, h, w) float; ignore (B, h, w) bool."""
+def focal_heat_loss(pred: torch.Tensor, target: torch.Tensor, ignore: torch.Tensor,
+                    cell_weight: torch.Tensor | None = None) -> torch.Tensor:
+    """CenterNet's penalty-reduced focal loss over the non-ignored cells, each times `cell_weight` (default 1),
+    divided by the number of peak cells (target == 1, at least one). pred, target, cell_weight (B, h, w) float;
+    ignore (B, h, w) bool."""
     p = pred.clamp(FOCAL_CLAMP, 1 - FOCAL_CLAMP)
     keep = ~ignore
     pos = (target >= 1.0) & keep
     neg = (target < 1.0) & keep
-    pos_loss = -(torch.log(p) * (1 - p) ** FOCAL_ALPHA)[pos].sum()
-    neg_loss = -(torch.log(1 - p) * p**FOCAL_ALPHA * (1 - target) ** FOCAL_BETA)[neg].sum()
+    w = torch.ones_like(p) if cell_weight is None else cell_weight
+    pos_loss = -(w * torch.log(p) * (1 - p) ** FOCAL_ALPHA)[pos].sum()
+    neg_loss = -(w * torch.log(1 - p) * p**FOCAL_ALPHA * (1 - target) ** FOCAL_BETA)[neg].sum()
     return (pos_loss + neg_loss) / pos.sum().clamp(min=1)
 
 
@@ -100,9 +118,16 @@ def detector_loss(outputs: dict[str, torch.Tensor], targets: dict[str, torch.Ten
     """
     cfg = config or LossConfig()
     weight = targets["weight"]
+    cell_weight = None
+    if cfg.type_weights is not None:  # the cells a vehicle owns weigh as its type
+        table = torch.tensor(cfg.type_weights, dtype=weight.dtype, device=weight.device)
+        owned = targets["vtype"] >= 0
+        cell_weight = torch.where(owned, table[targets["vtype"].clamp(min=0, max=len(table) - 1)],
+                                  torch.ones_like(weight))
+        weight = weight * cell_weight
     topk = None if cfg.topk_fraction is None else min(1.0, cfg.topk_fraction * stride * stride)
     if cfg.heat == "focal":
-        heat = focal_heat_loss(outputs["heat"][:, 0], targets["heat"], targets["ignore"])
+        heat = focal_heat_loss(outputs["heat"][:, 0], targets["heat"], targets["ignore"], cell_weight)
     else:
         heat = heat_loss(outputs["heat"][:, 0], targets["heat"], targets["ignore"], topk)
     size_mask = targets["size_mask"].to(weight.dtype)
