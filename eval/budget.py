@@ -25,6 +25,10 @@ A camera "sees" a vehicle as in eval/tracking.py. Objects scoring below the site
 first, so a run detected at a lower threshold can be replayed at any higher one (environment overrides such as
 `ROADSIDE_DETECT__SCORE_THR`, `ROADSIDE_FUSE_TRACK__HIGH_SCORE` apply, as for the services). The figures tell
 which part of the pipeline to improve next; they are not the run's score (docs/pipeline.md, "Where the MOTA goes").
+localize's footprint rule merges a long vehicle's peaks among the objects detect keeps, so what it publishes at one
+threshold is not a subset of what it publishes at a lower one: to replay a run at a higher threshold exactly, record
+it without the rule (`ROADSIDE_LOCALIZE__FOOTPRINT_OVERLAP=0`) and replay with `localize_rule`, which applies the
+site's rule (`localize.footprint_overlap`, `footprint_merge`) to the objects left at the replay's threshold.
 """
 
 from __future__ import annotations
@@ -202,8 +206,30 @@ def true_types(rows: Sequence[dict], in_image: dict, seen: dict, masks: dict,
     return out
 
 
-def budget(demo_dir: str | Path, scenarios: Sequence[str] = SCENARIOS, gate_m: float = 3.0, log=None) -> dict:
-    """Scores of each scenario (module docstring) for a `roadside demo` output folder."""
+def with_localize_rule(rows: Sequence[dict], localize) -> list[dict]:
+    """Objects rows with localize's footprint rule applied to each frame (LocalizeSettings: the overlap scale and
+    whether the kept objects merge the peaks they suppress), as localize does on the detections detect keeps."""
+    from services.localize.lift import footprint_groups, merge_along
+
+    out = []
+    for r in rows:
+        xy = np.asarray(r["xy"], np.float64).reshape(-1, 2)
+        yaw, score = np.asarray(r["yaw"], np.float64), np.asarray(r["score"], np.float64)
+        size = np.asarray(r["size_lwh"], np.float64).reshape(-1, 3)
+        groups = footprint_groups(xy, yaw, size, score, localize.footprint_overlap)
+        if localize.footprint_merge:
+            xy, size = merge_along(xy, yaw, size, score, groups)
+        keep = np.zeros(len(xy), bool)
+        keep[list(groups)] = True
+        row = _select({**r, "size_lwh": size.tolist()}, keep, xy)
+        out.append(row)
+    return out
+
+
+def budget(demo_dir: str | Path, scenarios: Sequence[str] = SCENARIOS, gate_m: float = 3.0, log=None,
+           localize_rule: bool = False) -> dict:
+    """Scores of each scenario (module docstring) for a `roadside demo` output folder; `localize_rule`: apply the
+    site's footprint rule to the objects at the replay's threshold (a run recorded without it)."""
     from calibration.masks import load_masks
     from eval.tracking import TrackingEvalConfig, evaluate_many
     from shared.settings import load_settings
@@ -226,6 +252,8 @@ def budget(demo_dir: str | Path, scenarios: Sequence[str] = SCENARIOS, gate_m: f
     recording = Recording(rec_dir)
     rows = [_select(r, np.asarray(r["score"], np.float64) >= settings.detect.score_thr,
                     np.asarray(r["xy"], np.float64).reshape(-1, 2)) for r in read_objects(demo / "objects.jsonl")]
+    if localize_rule:
+        rows = with_localize_rule(rows, settings.localize)
     cams = [c.name for c in settings.cameras]
     seen = seen_vehicles(recording, TrackingEvalConfig().min_visible_fraction)
     in_image = seen_vehicles(recording, 0.0)  # what an object may be of: any vehicle in its camera's image

@@ -19,6 +19,7 @@ from collections.abc import Callable
 from dataclasses import replace
 from datetime import UTC, datetime, time
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -147,8 +148,8 @@ def score_camera(frames: dict[str, np.ndarray], footage: Path, masks: LookupMask
     `exclude_px`: the camera's exclusion polygons; detections there are dropped (labels there still count).
     `area_px`: the camera's `detect_area_px`, run as `detect(grey, area_px=...)` as the detect service does.
     `localize`: the site's localize settings; the detections are lifted and those inside a higher-scoring one's
-    ground footprint dropped as localize does (greedy by score, so the same at every threshold). Default: localize's
-    lift without the footprint rule."""
+    ground footprint dropped (or merged into it) as localize does, for the detections at each threshold.
+    Default: localize's lift without the footprint rule."""
     loc = localize or LocalizeSettings(footprint_overlap=0.0)
     foot = camera_foot(masks)
     det_masks = replace(masks, valid=excluded(masks.valid, exclude_px)) if exclude_px else masks
@@ -160,9 +161,14 @@ def score_camera(frames: dict[str, np.ndarray], footage: Path, masks: LookupMask
             raise ValueError(f"{path}: labelled frame is missing or unreadable")
         det = detect(grey) if area_px is None else detect(grey, area_px=area_px)
         l_xy = _label_ground(masks, labels, path)
-        lifted, kept = lift_kept(det_masks, det, loc.heading_step_px, loc.footprint_overlap)  # what localize publishes
+        score = np.asarray(det.score)
         for a, thr in zip(acc, thresholds, strict=True):
-            _count(a, lifted.xy[kept[np.asarray(det.score)[kept] >= thr]], l_xy, foot)
+            # what localize publishes when detect keeps what scores thr or more (the merge depends on that)
+            sub = score >= thr
+            lifted, kept, _ = lift_kept(det_masks, SimpleNamespace(uv=det.uv[sub], heading_uv=det.heading_uv[sub],
+                                                                   size_lwh=det.size_lwh[sub], score=score[sub]),
+                                        loc.heading_step_px, loc.footprint_overlap, loc.footprint_merge)
+            _count(a, lifted.xy[kept], l_xy, foot)
     return [_scores(a, len(frames)) for a in acc]
 
 

@@ -374,6 +374,10 @@ def _add_eval(sub) -> None:
     p.add_argument("--scenario", action="append",
                    help="budget: score only this scenario (repeatable; default all: as_run, exact_lift, "
                         "true_positions, no_false_alarms, true_positions_no_false_alarms, true_long_vehicles, truth)")
+    p.add_argument("--localize-rule", action="store_true",
+                   help="budget: apply localize's footprint rule (localize.footprint_overlap, footprint_merge) to the "
+                        "objects left at the replay's threshold, for a run recorded without it "
+                        "(ROADSIDE_LOCALIZE__FOOTPRINT_OVERLAP=0): the exact replay of a higher threshold")
     p.add_argument("--json", action="store_true", help="print one JSON document (default: also a summary)")
 
 
@@ -383,7 +387,7 @@ def _run_eval(args) -> int:
     if args.what == "budget":
         from eval.budget import SCENARIOS, budget
 
-        result = budget(args.demo, args.scenario or SCENARIOS,
+        result = budget(args.demo, args.scenario or SCENARIOS, localize_rule=args.localize_rule,
                         log=None if args.json else lambda m: print(m, file=sys.stderr))
         print(dumps(result, indent=1))
         return 0

@@ -21,8 +21,10 @@ from eval.budget import (
     seen_vehicles,
     true_types,
     truth_objects,
+    with_localize_rule,
     with_truth,
 )
+from shared.settings import LocalizeSettings
 
 
 def row(xy, camera="A", t_ns=0, score=None) -> dict:
@@ -197,3 +199,28 @@ def test_budget_replays_at_the_sites_detect_threshold(demo: Path, monkeypatch):
     monkeypatch.setenv("ROADSIDE_DETECT__SCORE_THR", "0.9")  # above every object's 0.8: none is left
     s = budget(demo, ["true_positions"])["scenarios"]["true_positions"]
     assert s["recall"] == 0.0 and s["mota"] == 0.0  # no tracks at all: no match, no false positive
+
+
+def test_with_localize_rule_drops_or_merges_at_the_replays_threshold():
+    # two peaks 3 m apart along one vehicle heading east (yaw 0), another vehicle 10 m away
+    r = row([[0, 0], [3, 0], [13, 0]], score=[0.5, 0.8, 0.6])
+    r["yaw"] = [0.0, 0.0, 0.0]
+    merged = with_localize_rule([r], LocalizeSettings(footprint_merge=True))[0]
+    assert merged["score"] == [0.8, 0.6]
+    np.testing.assert_allclose(merged["xy"], [[1.5, 0], [13, 0]])
+    assert merged["size_lwh"][0][0] == pytest.approx(7.5) and merged["size_lwh"][1] == [4.5, 1.8, 1.5]
+    dropped = with_localize_rule([r], LocalizeSettings(footprint_merge=False))[0]
+    np.testing.assert_allclose(dropped["xy"], [[3, 0], [13, 0]])
+    assert dropped["size_lwh"][0] == [4.5, 1.8, 1.5]
+    assert with_localize_rule([r], LocalizeSettings(footprint_overlap=0))[0]["xy"] == r["xy"]
+
+
+def test_budget_applies_the_localize_rule_when_asked(demo: Path, monkeypatch):
+    plain = budget(demo, ["true_positions"])["scenarios"]["true_positions"]
+    ruled = budget(demo, ["true_positions"], localize_rule=True)["scenarios"]["true_positions"]
+    assert json.dumps(ruled) == json.dumps(plain)  # the fixture's objects stand apart: the rule changes nothing
+    assert plain["recall"] > 0
+    monkeypatch.setenv("ROADSIDE_LOCALIZE__FOOTPRINT_OVERLAP", "1000")  # every object inside the best one's
+    few = budget(demo, ["true_positions"], localize_rule=True)["scenarios"]["true_positions"]
+    assert few["recall"] < plain["recall"]
+    assert budget(demo, ["true_positions"])["scenarios"]["true_positions"] == plain  # only when asked

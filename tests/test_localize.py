@@ -7,7 +7,7 @@ import pytest
 
 from calibration.masks import LookupMasks
 from services.localize.__main__ import objects_message
-from services.localize.lift import GroundLookup, overlapping
+from services.localize.lift import MERGE_MAX_LENGTH_M, GroundLookup, footprint_groups, merge_along, overlapping
 from shared.messages import Detections
 from shared.settings import LocalizeSettings
 
@@ -73,9 +73,76 @@ def test_objects_message_drops_the_overlapping_detection_and_keeps_the_columns_a
                      box=np.zeros((3, 4), f4), heading_uv=np.tile(np.array([1, 0], f4), (3, 1)),
                      size_lwh=np.tile(np.array(CAR, f4), (3, 1)), vtype=np.array([0, 1, 2], np.int8))
     masks = _masks()
-    kept = objects_message(det, masks, 6.0, 1.5)
+    kept = objects_message(det, masks, 6.0, 1.5, False)
     assert kept.score.tolist() == pytest.approx([0.8, 0.6])
     assert kept.vtype.tolist() == [1, 2]
     np.testing.assert_allclose(kept.xy, [[5.5, -5.0], [12.5, -5.0]], atol=1e-6)
     np.testing.assert_allclose(kept.uv, [[22, 20], [50, 20]])
-    assert len(objects_message(det, masks, 6.0, 0.0)) == 3
+    assert len(objects_message(det, masks, 6.0, 0.0, False)) == 3
+    assert len(objects_message(det, masks, 6.0, 0.0, True)) == 3  # no rule, nothing to merge
+
+
+def test_objects_message_merges_the_peaks_of_one_vehicle_along_its_axis():
+    f4 = np.float32
+    # a 12 m bus heading east read as two 4.5 m peaks 12 px = 3 m apart (x 2.5 and 5.5 m), a car 10 m away
+    det = Detections(site="s", camera="C1", seq=1, t_capture_ns=5, width=64, height=48, infer_ms=1.0,
+                     score=np.array([0.5, 0.8, 0.6], f4), uv=np.array([[10, 20], [22, 20], [50, 20]], f4),
+                     box=np.zeros((3, 4), f4), heading_uv=np.tile(np.array([1, 0], f4), (3, 1)),
+                     size_lwh=np.tile(np.array(CAR, f4), (3, 1)), vtype=np.array([0, 1, 2], np.int8))
+    masks = _masks()
+    kept = objects_message(det, masks, 6.0, 1.5, True)
+    assert kept.score.tolist() == pytest.approx([0.8, 0.6])
+    # the span of both peaks: 0.25 to 7.75 m east, its middle 4.0 m, 7.5 m long; the car untouched
+    np.testing.assert_allclose(kept.xy, [[4.0, -5.0], [12.5, -5.0]], atol=1e-6)
+    np.testing.assert_allclose(kept.size_lwh, [[7.5, 1.8, 1.5], CAR], atol=1e-6)
+    np.testing.assert_allclose(kept.uv, [[22, 20], [50, 20]])  # the pixel stays the detection's
+    # latitude/longitude follow the moved point (1.5 m west of the kept peak)
+    dropped = objects_message(det, masks, 6.0, 1.5, False)
+    assert kept.latlon[1].tolist() == dropped.latlon[1].tolist()
+    assert kept.latlon[0, 0] == pytest.approx(dropped.latlon[0, 0], abs=1e-9)
+    assert kept.latlon[0, 1] < dropped.latlon[0, 1]
+    assert (dropped.latlon[0, 1] - kept.latlon[0, 1]) * 111320 * np.cos(np.radians(42)) == pytest.approx(1.5, rel=1e-2)
+
+
+def _merge(xy, yaw, size, score, scale=1.5):
+    n = len(xy)
+    xy, yaw = np.asarray(xy, float), np.full(n, yaw) if np.ndim(yaw) == 0 else np.asarray(yaw, float)
+    size = np.asarray(size, float).reshape(-1, 3) if np.ndim(size) > 1 else np.tile(size, (n, 1))
+    groups = footprint_groups(xy, yaw, size, np.asarray(score, float), scale)
+    mxy, msize = merge_along(xy, yaw, size, np.asarray(score, float), groups)
+    return sorted(groups), mxy, msize
+
+
+def test_merge_spans_the_aligned_peaks_and_leaves_the_rest():
+    # three peaks along a bus (east), 3 m apart: the best (middle) takes in both, 10.5 m long centred on it
+    kept, xy, size = _merge([[3, 0], [0, 0], [-3, 0]], 0.0, CAR, [0.4, 0.9, 0.5], scale=2.0)
+    assert kept == [1]
+    np.testing.assert_allclose(xy[1], [0.0, 0.0], atol=1e-12)
+    assert size[1, 0] == pytest.approx(10.5)
+    assert size[1, 1:].tolist() == list(CAR[1:])
+    # a peak off the axis (1.5 m across) or turned (45 deg) is dropped but not taken in
+    for xy2, yaw2 in (([[0, 0], [2, 1.5]], [0.0, 0.0]), ([[0, 0], [3, 0]], [0.0, np.pi / 4])):
+        kept, xy, size = _merge(xy2, yaw2, CAR, [0.9, 0.5], scale=2.0)
+        assert kept == [0]
+        np.testing.assert_allclose(xy[0], [0, 0])
+        assert size[0, 0] == pytest.approx(CAR[0])
+    # a reversed heading is the same axis: merged
+    kept, xy, size = _merge([[0, 0], [3, 0]], [0.0, np.pi], CAR, [0.9, 0.5])
+    np.testing.assert_allclose(xy[0], [1.5, 0])
+    assert size[0, 0] == pytest.approx(7.5)
+
+
+def test_merge_never_grows_past_a_long_bus_and_changes_nothing_alone():
+    big = (14.0, 2.5, 3.2)
+    kept, xy, size = _merge([[0, 0], [6, 0]], 0.0, big, [0.9, 0.5])  # the union would be 20 m
+    assert kept == [0] and size[0, 0] == pytest.approx(14.0) and xy[0].tolist() == [0, 0]
+    assert 20.0 > MERGE_MAX_LENGTH_M
+    kept, xy, size = _merge([[0, 0], [0, 3.5]], 0.0, CAR, [0.9, 0.5])  # two lanes: both kept, both as they were
+    assert kept == [0, 1]
+    np.testing.assert_allclose(xy, [[0, 0], [0, 3.5]])
+    np.testing.assert_allclose(size, [CAR, CAR])
+
+
+def test_settings_drop_without_merging_by_default():
+    assert LocalizeSettings().footprint_merge is False
+    assert LocalizeSettings(footprint_merge=True).footprint_merge is True

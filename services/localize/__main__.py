@@ -50,16 +50,17 @@ def load_all_masks(settings: Settings) -> dict[str, GroundLookup]:
     return out
 
 
-def objects_message(det: Detections, masks: GroundLookup, step_px: float, footprint_overlap: float) -> Objects:
+def objects_message(det: Detections, masks: GroundLookup, step_px: float, footprint_overlap: float,
+                    merge: bool) -> Objects:
     if (det.height, det.width) != masks.shape:
         raise ValueError(f"camera {det.camera}: detections for a {det.width}x{det.height} image, "
                          f"masks are {masks.shape[1]}x{masks.shape[0]}")
-    lifted, k = lift_kept(masks, det, step_px, footprint_overlap)
+    lifted, k, size_lwh = lift_kept(masks, det, step_px, footprint_overlap, merge)
     f4 = np.float32
     return Objects(
         site=det.site, camera=det.camera, seq=det.seq, t_capture_ns=det.t_capture_ns,
         stamps=[*det.stamps, ("localize", time.time_ns())], infer_ms=det.infer_ms,
-        xy=lifted.xy[k], latlon=lifted.latlon[k], yaw=lifted.yaw[k].astype(f4), size_lwh=det.size_lwh[k].astype(f4),
+        xy=lifted.xy[k], latlon=lifted.latlon[k], yaw=lifted.yaw[k].astype(f4), size_lwh=size_lwh[k].astype(f4),
         vtype=det.vtype[k].astype(np.int8), score=det.score[k].astype(f4), uv=det.uv[k].astype(f4))
 
 
@@ -84,7 +85,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
                     continue
                 try:
                     msg = objects_message(det, masks[det.camera], settings.localize.heading_step_px,
-                                          settings.localize.footprint_overlap)
+                                          settings.localize.footprint_overlap, settings.localize.footprint_merge)
                 except ValueError as exc:
                     bad(str(exc), det.camera)
                     continue

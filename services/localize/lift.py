@@ -8,7 +8,10 @@ The detector regresses the 3D size in metres, so size needs no conversion.
 
 Two vehicles cannot stand on the same ground: `overlapping` finds the objects of one frame whose ground point
 lies inside the footprint of a higher-scoring one (its length and width, scaled), the second peaks the detector
-puts on a long vehicle (a truck read as two cars, one on each half).
+puts on a long vehicle (a truck read as two cars, one on each half). With `merge` (`localize.footprint_merge`) the
+peaks that line up with the kept object (within MERGE_ACROSS_M of its axis, their axes within MERGE_AXIS_DEG) are
+not just dropped: the kept object spans them all along its axis (the union of their lengths, at most
+MERGE_MAX_LENGTH_M), so its ground point moves to the middle of what the peaks cover and its length grows to it.
 """
 
 from __future__ import annotations
@@ -20,6 +23,12 @@ import numpy as np
 from calibration.masks import LookupMasks
 from shared.geo import GeoFrame
 from shared.raster import bilinear, bilinear_cells
+
+# the peaks a kept object takes in (`merge_along`): within this distance of its axis, their own axes within this
+# angle of its, and the union no longer than a long bus (longer ones are left out: two vehicles, not one)
+MERGE_ACROSS_M = 1.0
+MERGE_AXIS_DEG = 20.0
+MERGE_MAX_LENGTH_M = 18.0
 
 
 class GroundLookup:
@@ -88,17 +97,16 @@ def lift(masks: GroundLookup | LookupMasks, uv: np.ndarray, heading_uv: np.ndarr
     return Lifted(valid, xy, latlon, yaw)
 
 
-def overlapping(xy: np.ndarray, yaw: np.ndarray, size_lwh: np.ndarray, score: np.ndarray,
-                scale: float) -> np.ndarray:
-    """(N,) bool: the objects (site metres, world yaw, size in metres, score) to drop because their ground point
-    lies inside the footprint (length and width times `scale`, along the yaw) of a higher-scoring object that is
-    kept, or the kept one's point inside theirs. Greedy by score, as non-maximum suppression; `scale` 0 drops
-    none. Objects with a non-finite position, yaw or size neither drop nor are dropped."""
+def footprint_groups(xy: np.ndarray, yaw: np.ndarray, size_lwh: np.ndarray, score: np.ndarray,
+                     scale: float) -> dict[int, np.ndarray]:
+    """The objects kept by the footprint rule (`overlapping`), each with the indices of those it suppresses, in the
+    order kept (highest score first): {kept index: (M,) int indices}."""
     xy = np.asarray(xy, np.float64).reshape(-1, 2)
     n = len(xy)
-    drop = np.zeros(n, bool)
+    score = np.asarray(score, np.float64).reshape(n)
+    order = np.argsort(-score, kind="stable")
     if n < 2 or scale <= 0:
-        return drop
+        return {int(a): np.zeros(0, np.int64) for a in order}
     yaw = np.asarray(yaw, np.float64).reshape(n)
     half = 0.5 * scale * np.asarray(size_lwh, np.float64).reshape(n, 3)[:, :2]
     ok = np.isfinite(xy).all(axis=1) & np.isfinite(yaw) & np.isfinite(half).all(axis=1)
@@ -109,16 +117,75 @@ def overlapping(xy: np.ndarray, yaw: np.ndarray, size_lwh: np.ndarray, score: np
     inside = (along <= half[:, :1]) & (across <= half[:, 1:])  # inside[a, b]: b's point in a's footprint
     inside = (inside | inside.T) & ok[:, None] & ok[None, :]
     np.fill_diagonal(inside, False)
-    for a in np.argsort(-np.asarray(score, np.float64).reshape(n), kind="stable"):
+    drop = np.zeros(n, bool)
+    groups = {}
+    for a in order:
         if not drop[a]:  # kept: no kept higher-scoring object overlaps it
+            groups[int(a)] = np.flatnonzero(inside[a] & ~drop)
             drop |= inside[a]
+    return groups
+
+
+def overlapping(xy: np.ndarray, yaw: np.ndarray, size_lwh: np.ndarray, score: np.ndarray,
+                scale: float) -> np.ndarray:
+    """(N,) bool: the objects (site metres, world yaw, size in metres, score) to drop because their ground point
+    lies inside the footprint (length and width times `scale`, along the yaw) of a higher-scoring object that is
+    kept, or the kept one's point inside theirs. Greedy by score, as non-maximum suppression; `scale` 0 drops
+    none. Objects with a non-finite position, yaw or size neither drop nor are dropped."""
+    n = len(np.asarray(xy).reshape(-1, 2))
+    drop = np.ones(n, bool)
+    drop[list(footprint_groups(xy, yaw, size_lwh, score, scale))] = False
     return drop
 
 
-def lift_kept(masks: GroundLookup | LookupMasks, det, step_px: float,
-              footprint_overlap: float) -> tuple[Lifted, np.ndarray]:
-    """A frame's detections (uv, heading_uv, size_lwh, score) lifted, and the indices of those localize publishes:
-    inside the calibrated area and not inside a higher-scoring one's footprint (`overlapping`)."""
+def merge_along(xy: np.ndarray, yaw: np.ndarray, size_lwh: np.ndarray, score: np.ndarray,
+                groups: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(xy, size_lwh) copies in which each kept object of `groups` (`footprint_groups`) spans, along its own axis,
+    itself and the suppressed peaks that line up with it (module docstring; best score first, a peak that would
+    make it longer than MERGE_MAX_LENGTH_M left out): its point moves to the middle of that span and its length
+    becomes the span's. Width and height stay the kept object's."""
+    xy = np.array(xy, np.float64).reshape(-1, 2)
+    size = np.array(size_lwh, np.float64).reshape(-1, 3)
+    yaw = np.asarray(yaw, np.float64).reshape(-1)
+    score = np.asarray(score, np.float64).reshape(-1)
+    max_axis = np.radians(MERGE_AXIS_DEG)
+    for a, members in groups.items():
+        if not len(members):
+            continue
+        axis = np.array([np.cos(yaw[a]), np.sin(yaw[a])])
+        normal = np.array([-axis[1], axis[0]])
+        lo, hi = -size[a, 0] / 2, size[a, 0] / 2
+        for b in members[np.argsort(-score[members], kind="stable")]:
+            e = xy[b] - xy[a]
+            turn = abs((yaw[b] - yaw[a] + np.pi / 2) % np.pi - np.pi / 2)  # between the axes, 0 to 90 deg
+            if abs(e @ normal) > MERGE_ACROSS_M or turn > max_axis:
+                continue
+            p = e @ axis
+            lo2, hi2 = min(lo, p - size[b, 0] / 2), max(hi, p + size[b, 0] / 2)
+            if hi2 - lo2 <= MERGE_MAX_LENGTH_M:
+                lo, hi = lo2, hi2
+        xy[a] = xy[a] + axis * (lo + hi) / 2
+        size[a, 0] = hi - lo
+    return xy, size
+
+
+def lift_kept(masks: GroundLookup | LookupMasks, det, step_px: float, footprint_overlap: float,
+              merge: bool) -> tuple[Lifted, np.ndarray, np.ndarray]:
+    """A frame's detections (uv, heading_uv, size_lwh, score) lifted, the indices of those localize publishes
+    (inside the calibrated area and not inside a higher-scoring one's footprint: `overlapping`), and the sizes
+    (N, 3). With `merge` the kept objects take in the peaks they suppress (`merge_along`): their site metres,
+    latitude/longitude and length in the returned Lifted and sizes are the merged ones."""
     lifted = lift(masks, det.uv, det.heading_uv, step_px)
+    size = np.array(det.size_lwh, np.float64).reshape(-1, 3)
     k = np.flatnonzero(lifted.valid)
-    return lifted, k[~overlapping(lifted.xy[k], lifted.yaw[k], det.size_lwh[k], det.score[k], footprint_overlap)]
+    groups = footprint_groups(lifted.xy[k], lifted.yaw[k], size[k], np.asarray(det.score)[k], footprint_overlap)
+    kept = np.sort(np.fromiter(groups, np.int64, len(groups)))
+    if merge and any(len(m) for m in groups.values()):
+        xy, size_k = merge_along(lifted.xy[k], lifted.yaw[k], size[k], np.asarray(det.score)[k], groups)
+        moved = k[np.any(xy != lifted.xy[k], axis=1)]
+        if len(moved):
+            geo = masks.site_geo if isinstance(masks, GroundLookup) else masks.geo
+            lifted.xy[k] = xy
+            lifted.latlon[moved] = geo.to_geodetic(lifted.xy[moved])[:, :2]
+        size[k] = size_k
+    return lifted, k[kept], size
