@@ -433,6 +433,7 @@ def _run_eval(args) -> int:
         result = evaluate_real(args.site / "labels", args.footage, args.site / "masks", det.detect, score_thr=thr,
                                curve=curve, exclude_px=exclude, detect_area_px=areas, localize=localize)
         result["footprint_overlap"] = localize.footprint_overlap if localize else 0.0  # localize's rule (site.yaml)
+        result["footprint_merge"] = bool(localize and localize.footprint_overlap > 0 and localize.footprint_merge)
         result["excluded_cameras"] = sorted(exclude)  # cameras whose exclusion zones (site.yaml) were applied
         line = ("{name:8s} precision {precision} recall {recall} ({labels} labels, {detections} detections within "
                 f"{result['roi_m']:g} m)")

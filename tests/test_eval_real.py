@@ -230,3 +230,4 @@ def test_the_real_labels_load_and_the_shipped_model_is_scored(capsys):
                  "--footage", str(FOOTAGE), "--json"]) == 0
     r = json.loads(capsys.readouterr().out)
     assert r["overall"]["frames"] == 40 and r["overall"]["labels"] >= 100
+    assert (r["footprint_overlap"], r["footprint_merge"]) == (1.5, False)  # the site's localize rule, as scored
