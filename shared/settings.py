@@ -164,7 +164,8 @@ class LocalizeSettings(Strict):
     footprint_overlap: float = Field(1.5, ge=0)
     # True: the kept object also spans the peaks it suppresses that line up with it (a long vehicle's fragments; its
     # point moves to their middle, its length to theirs: lift.py `merge_along`). Off: with the shipped model it
-    # tracked the same (validation MOTA 0.751 against 0.749, the demo's 0.837 against 0.837; docs/pipeline.md)
+    # tracked the same (validation MOTA 0.751 against 0.749 and 0.821 against 0.827 on a second one, the demo's 0.837
+    # against 0.837; docs/pipeline.md)
     footprint_merge: bool = False
 
 
