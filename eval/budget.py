@@ -280,3 +280,27 @@ def budget(demo_dir: str | Path, scenarios: Sequence[str] = SCENARIOS, gate_m: f
         if log:
             log(f"{name}: " + ", ".join(f"{k} {out['scenarios'][name][k]}" for k in SCORES))
     return out
+
+
+def budget_many(demo_dirs: Sequence[str | Path], scenarios: Sequence[str] = SCENARIOS, gate_m: float = 3.0,
+                log=None, localize_rule: bool = False) -> dict:
+    """`budget` of each run (e.g. several validation recordings), and per scenario the mean of each score over
+    them (id switches summed): one recording's figures swing by a few hundredths of MOTA with what happens in it
+    (docs/pipeline.md), so choices between settings or models are made on the mean. A score that is undefined
+    for a run (NaN, e.g. no tracked position in any ROI) leaves the mean undefined."""
+    if not demo_dirs:
+        raise ValueError("no demo folder given")
+    runs = []
+    for d in demo_dirs:
+        if log:
+            log(f"{d}:")
+        runs.append(budget(d, scenarios, gate_m, log, localize_rule))
+    mean = {}
+    for name in runs[0]["scenarios"]:
+        vals = [r["scenarios"][name] for r in runs]
+        mean[name] = {k: int(sum(v[k] for v in vals)) if k == "id_switches" else
+                      round(float(np.mean([v[k] for v in vals])), 4) for k in SCORES}
+        if log:
+            log(f"mean {name}: " + ", ".join(f"{k} {mean[name][k]}" for k in SCORES))
+    return {"runs": runs, "mean": mean}
+

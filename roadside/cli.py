@@ -369,8 +369,9 @@ def _add_eval(sub) -> None:
     p.add_argument("--mirror", action="store_true",
                    help="detector, real: infer each frame and its left-right mirror and average the maps "
                         "(detect.mirror)")
-    p.add_argument("--demo", type=Path, default=Path("out/demo"),
-                   help="budget: a roadside demo output folder (objects.jsonl, site/, the recording)")
+    p.add_argument("--demo", type=Path, action="append",
+                   help="budget: a roadside demo output folder (objects.jsonl, site/, the recording; default "
+                        "out/demo); repeatable: each run's budget and the mean over them")
     p.add_argument("--scenario", action="append",
                    help="budget: score only this scenario (repeatable; default all: as_run, exact_lift, "
                         "true_positions, no_false_alarms, true_positions_no_false_alarms, true_long_vehicles, truth)")
@@ -385,10 +386,12 @@ def _run_eval(args) -> int:
     from shared.inference import OnnxDetector
 
     if args.what == "budget":
-        from eval.budget import SCENARIOS, budget
+        from eval.budget import SCENARIOS, budget, budget_many
 
-        result = budget(args.demo, args.scenario or SCENARIOS, localize_rule=args.localize_rule,
-                        log=None if args.json else lambda m: print(m, file=sys.stderr))
+        demos = args.demo or [Path("out/demo")]
+        run = budget if len(demos) == 1 else budget_many
+        result = run(demos[0] if len(demos) == 1 else demos, args.scenario or SCENARIOS,
+                     localize_rule=args.localize_rule, log=None if args.json else lambda m: print(m, file=sys.stderr))
         print(dumps(result, indent=1))
         return 0
     if args.what == "handoff":

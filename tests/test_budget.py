@@ -15,6 +15,7 @@ from pipeline_fixtures import CAMERA, write_exact_masks
 from eval.budget import (
     SCENARIOS,
     budget,
+    budget_many,
     lift_exact,
     on_footprint,
     read_objects,
@@ -224,3 +225,32 @@ def test_budget_applies_the_localize_rule_when_asked(demo: Path, monkeypatch):
     few = budget(demo, ["true_positions"], localize_rule=True)["scenarios"]["true_positions"]
     assert few["recall"] < plain["recall"]
     assert budget(demo, ["true_positions"])["scenarios"]["true_positions"] == plain  # only when asked
+
+
+def test_budget_many_gives_each_run_and_their_mean(demo: Path, tmp_path: Path, monkeypatch, capsys):
+    from roadside.cli import main
+
+    one = budget(demo, ["true_positions"])["scenarios"]["true_positions"]
+    many = budget_many([demo, demo], ["true_positions"])
+    assert [r["scenarios"]["true_positions"] for r in many["runs"]] == [one, one]
+    mean = many["mean"]["true_positions"]
+    assert mean["id_switches"] == 2 * one["id_switches"]
+    assert {k: mean[k] for k in ("mota", "idf1", "precision", "recall")} == \
+        {k: one[k] for k in ("mota", "idf1", "precision", "recall")}
+    # two runs that differ: a copy whose site threshold is above every object, so its replay tracks nothing
+    import shutil
+    other = tmp_path / "other"
+    shutil.copytree(demo, other)
+    site = yaml.safe_load((other / "site" / "site.yaml").read_text())
+    site["detect"] = {"score_thr": 0.9}
+    (other / "site" / "site.yaml").write_text(yaml.safe_dump(site))
+    both = budget_many([demo, other], ["true_positions"])["mean"]["true_positions"]
+    assert both["recall"] == pytest.approx(one["recall"] / 2, abs=1e-4)
+    with pytest.raises(ValueError, match="no demo folder"):
+        budget_many([], ["as_run"])
+    assert main(["eval", "budget", "--demo", str(demo), "--demo", str(other), "--scenario", "true_positions",
+                 "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert len(out["runs"]) == 2 and out["mean"]["true_positions"]["recall"] == both["recall"]
+    assert main(["eval", "budget", "--demo", str(demo), "--scenario", "true_positions", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["scenarios"]["true_positions"] == one  # one run: as before
