@@ -65,14 +65,18 @@ def _masks(w: int = 64, h: int = 48, m_per_px: float = 0.25) -> GroundLookup:
                                     np.ones((h, w), bool), meta))
 
 
-def test_objects_message_drops_the_overlapping_detection_and_keeps_the_columns_aligned():
+def _two_peaks_and_a_car() -> Detections:
+    """Three car-sized detections heading east: two 12 px = 3 m apart on one vehicle (x 2.5 and 5.5 m), one 40 px
+    = 10 m further."""
     f4 = np.float32
-    # three detections heading east: two 12 px = 3 m apart on one vehicle, one 40 px = 10 m away
-    det = Detections(site="s", camera="C1", seq=1, t_capture_ns=5, width=64, height=48, infer_ms=1.0,
-                     score=np.array([0.5, 0.8, 0.6], f4), uv=np.array([[10, 20], [22, 20], [50, 20]], f4),
-                     box=np.zeros((3, 4), f4), heading_uv=np.tile(np.array([1, 0], f4), (3, 1)),
-                     size_lwh=np.tile(np.array(CAR, f4), (3, 1)), vtype=np.array([0, 1, 2], np.int8))
-    masks = _masks()
+    return Detections(site="s", camera="C1", seq=1, t_capture_ns=5, width=64, height=48, infer_ms=1.0,
+                      score=np.array([0.5, 0.8, 0.6], f4), uv=np.array([[10, 20], [22, 20], [50, 20]], f4),
+                      box=np.zeros((3, 4), f4), heading_uv=np.tile(np.array([1, 0], f4), (3, 1)),
+                      size_lwh=np.tile(np.array(CAR, f4), (3, 1)), vtype=np.array([0, 1, 2], np.int8))
+
+
+def test_objects_message_drops_the_overlapping_detection_and_keeps_the_columns_aligned():
+    det, masks = _two_peaks_and_a_car(), _masks()
     kept = objects_message(det, masks, 6.0, 1.5, False)
     assert kept.score.tolist() == pytest.approx([0.8, 0.6])
     assert kept.vtype.tolist() == [1, 2]
@@ -83,13 +87,7 @@ def test_objects_message_drops_the_overlapping_detection_and_keeps_the_columns_a
 
 
 def test_objects_message_merges_the_peaks_of_one_vehicle_along_its_axis():
-    f4 = np.float32
-    # a 12 m bus heading east read as two 4.5 m peaks 12 px = 3 m apart (x 2.5 and 5.5 m), a car 10 m away
-    det = Detections(site="s", camera="C1", seq=1, t_capture_ns=5, width=64, height=48, infer_ms=1.0,
-                     score=np.array([0.5, 0.8, 0.6], f4), uv=np.array([[10, 20], [22, 20], [50, 20]], f4),
-                     box=np.zeros((3, 4), f4), heading_uv=np.tile(np.array([1, 0], f4), (3, 1)),
-                     size_lwh=np.tile(np.array(CAR, f4), (3, 1)), vtype=np.array([0, 1, 2], np.int8))
-    masks = _masks()
+    det, masks = _two_peaks_and_a_car(), _masks()  # a long vehicle read as two car-sized peaks, and a car
     kept = objects_message(det, masks, 6.0, 1.5, True)
     assert kept.score.tolist() == pytest.approx([0.8, 0.6])
     # the span of both peaks: 0.25 to 7.75 m east, its middle 4.0 m, 7.5 m long; the car untouched
