@@ -208,21 +208,20 @@ def true_types(rows: Sequence[dict], in_image: dict, seen: dict, masks: dict,
 
 def with_localize_rule(rows: Sequence[dict], localize) -> list[dict]:
     """Objects rows with localize's footprint rule applied to each frame (LocalizeSettings: the overlap scale and
-    whether the kept objects merge the peaks they suppress), as localize does on the detections detect keeps."""
-    from services.localize.lift import footprint_groups, merge_along
+    whether the kept objects merge the peaks they suppress; lift.py `footprint_rule`), as localize does on the
+    detections detect keeps."""
+    from services.localize.lift import footprint_rule
 
     out = []
     for r in rows:
         xy = np.asarray(r["xy"], np.float64).reshape(-1, 2)
-        yaw, score = np.asarray(r["yaw"], np.float64), np.asarray(r["score"], np.float64)
-        size = np.asarray(r["size_lwh"], np.float64).reshape(-1, 3)
-        groups = footprint_groups(xy, yaw, size, score, localize.footprint_overlap)
-        if localize.footprint_merge:
-            xy, size = merge_along(xy, yaw, size, score, groups)
+        kept, xy, size = footprint_rule(xy, np.asarray(r["yaw"], np.float64),
+                                        np.asarray(r["size_lwh"], np.float64).reshape(-1, 3),
+                                        np.asarray(r["score"], np.float64), localize.footprint_overlap,
+                                        localize.footprint_merge)
         keep = np.zeros(len(xy), bool)
-        keep[list(groups)] = True
-        row = _select({**r, "size_lwh": size.tolist()}, keep, xy)
-        out.append(row)
+        keep[kept] = True
+        out.append(_select({**r, "size_lwh": np.asarray(size).tolist()}, keep, xy))
     return out
 
 
@@ -303,4 +302,3 @@ def budget_many(demo_dirs: Sequence[str | Path], scenarios: Sequence[str] = SCEN
         if log:
             log(f"mean {name}: " + ", ".join(f"{k} {mean[name][k]}" for k in SCORES))
     return {"runs": runs, "mean": mean}
-

@@ -19,7 +19,6 @@ from collections.abc import Callable
 from dataclasses import replace
 from datetime import UTC, datetime, time
 from pathlib import Path
-from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -27,7 +26,7 @@ from scipy.optimize import linear_sum_assignment
 
 from calibration.masks import LookupMasks, excluded, load_masks
 from services.ingest.sources import capture_time_from_name
-from services.localize.lift import lift_kept
+from services.localize.lift import footprint_rule, lift
 from shared.decode import Detections
 from shared.geo import GeoFrame
 from shared.settings import LocalizeSettings
@@ -161,14 +160,14 @@ def score_camera(frames: dict[str, np.ndarray], footage: Path, masks: LookupMask
             raise ValueError(f"{path}: labelled frame is missing or unreadable")
         det = detect(grey) if area_px is None else detect(grey, area_px=area_px)
         l_xy = _label_ground(masks, labels, path)
-        score = np.asarray(det.score)
+        lifted = lift(det_masks, det.uv, det.heading_uv, loc.heading_step_px)
+        score, size = np.asarray(det.score), np.asarray(det.size_lwh, np.float64).reshape(-1, 3)
         for a, thr in zip(acc, thresholds, strict=True):
             # what localize publishes when detect keeps what scores thr or more (the merge depends on that)
-            sub = score >= thr
-            lifted, kept, _ = lift_kept(det_masks, SimpleNamespace(uv=det.uv[sub], heading_uv=det.heading_uv[sub],
-                                                                   size_lwh=det.size_lwh[sub], score=score[sub]),
-                                        loc.heading_step_px, loc.footprint_overlap, loc.footprint_merge)
-            _count(a, lifted.xy[kept], l_xy, foot)
+            k = np.flatnonzero(lifted.valid & (score >= thr))
+            kept, xy, _ = footprint_rule(lifted.xy[k], lifted.yaw[k], size[k], score[k], loc.footprint_overlap,
+                                         loc.footprint_merge)
+            _count(a, xy[kept], l_xy, foot)
     return [_scores(a, len(frames)) for a in acc]
 
 

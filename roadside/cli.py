@@ -389,9 +389,11 @@ def _run_eval(args) -> int:
         from eval.budget import SCENARIOS, budget, budget_many
 
         demos = args.demo or [Path("out/demo")]
-        run = budget if len(demos) == 1 else budget_many
-        result = run(demos[0] if len(demos) == 1 else demos, args.scenario or SCENARIOS,
-                     localize_rule=args.localize_rule, log=None if args.json else lambda m: print(m, file=sys.stderr))
+        log = None if args.json else lambda m: print(m, file=sys.stderr)
+        if len(demos) == 1:
+            result = budget(demos[0], args.scenario or SCENARIOS, log=log, localize_rule=args.localize_rule)
+        else:
+            result = budget_many(demos, args.scenario or SCENARIOS, log=log, localize_rule=args.localize_rule)
         print(dumps(result, indent=1))
         return 0
     if args.what == "handoff":

@@ -144,3 +144,15 @@ def test_merge_never_grows_past_a_long_bus_and_changes_nothing_alone():
 def test_settings_drop_without_merging_by_default():
     assert LocalizeSettings().footprint_merge is False
     assert LocalizeSettings(footprint_merge=True).footprint_merge is True
+
+
+def test_objects_message_grows_a_vehicle_merged_on_both_sides_without_moving_it():
+    f4 = np.float32
+    # peaks 12 px = 3 m either side of the best one, all heading east: the span grows, its middle stays
+    det = Detections(site="s", camera="C1", seq=1, t_capture_ns=5, width=64, height=48, infer_ms=1.0,
+                     score=np.array([0.5, 0.8, 0.6], f4), uv=np.array([[10, 20], [22, 20], [34, 20]], f4),
+                     box=np.zeros((3, 4), f4), heading_uv=np.tile(np.array([1, 0], f4), (3, 1)),
+                     size_lwh=np.tile(np.array(CAR, f4), (3, 1)), vtype=np.array([0, 1, 2], np.int8))
+    kept = objects_message(det, _masks(), 6.0, 2.0, True)
+    np.testing.assert_allclose(kept.xy, [[5.5, -5.0]], atol=1e-6)
+    np.testing.assert_allclose(kept.size_lwh, [[10.5, 1.8, 1.5]], atol=1e-6)

@@ -169,23 +169,34 @@ def merge_along(xy: np.ndarray, yaw: np.ndarray, size_lwh: np.ndarray, score: np
     return xy, size
 
 
+def footprint_rule(xy: np.ndarray, yaw: np.ndarray, size_lwh: np.ndarray, score: np.ndarray, scale: float,
+                   merge: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """localize's rule on one frame's objects: (kept indices ascending, xy, size_lwh), the objects a higher-scoring
+    one's footprint holds left out (`overlapping`) and, with `merge`, the kept ones spanning the peaks they
+    suppress (`merge_along`; otherwise xy and size_lwh are returned as given)."""
+    groups = footprint_groups(xy, yaw, size_lwh, score, scale)
+    kept = np.sort(np.fromiter(groups, np.int64, len(groups)))
+    if merge and any(len(m) for m in groups.values()):
+        xy, size_lwh = merge_along(xy, yaw, size_lwh, score, groups)
+    return kept, xy, size_lwh
+
+
 def lift_kept(masks: GroundLookup | LookupMasks, det, step_px: float, footprint_overlap: float,
               merge: bool) -> tuple[Lifted, np.ndarray, np.ndarray]:
     """A frame's detections (uv, heading_uv, size_lwh, score) lifted, the indices of those localize publishes
-    (inside the calibrated area and not inside a higher-scoring one's footprint: `overlapping`), and the sizes
-    (N, 3). With `merge` the kept objects take in the peaks they suppress (`merge_along`): their site metres,
-    latitude/longitude and length in the returned Lifted and sizes are the merged ones."""
+    (inside the calibrated area, then `footprint_rule`), and the sizes (N, 3). With `merge` the kept objects'
+    site metres, latitude/longitude and length in the returned Lifted and sizes are the merged ones."""
     lifted = lift(masks, det.uv, det.heading_uv, step_px)
-    size = np.array(det.size_lwh, np.float64).reshape(-1, 3)
+    size = np.asarray(det.size_lwh, np.float64).reshape(-1, 3)
     k = np.flatnonzero(lifted.valid)
-    groups = footprint_groups(lifted.xy[k], lifted.yaw[k], size[k], np.asarray(det.score)[k], footprint_overlap)
-    kept = np.sort(np.fromiter(groups, np.int64, len(groups)))
-    if merge and any(len(m) for m in groups.values()):
-        xy, size_k = merge_along(lifted.xy[k], lifted.yaw[k], size[k], np.asarray(det.score)[k], groups)
-        moved = k[np.any(xy != lifted.xy[k], axis=1)]
-        if len(moved):
-            geo = masks.site_geo if isinstance(masks, GroundLookup) else masks.geo
-            lifted.xy[k] = xy
-            lifted.latlon[moved] = geo.to_geodetic(lifted.xy[moved])[:, :2]
+    kept, xy, size_k = footprint_rule(lifted.xy[k], lifted.yaw[k], size[k], np.asarray(det.score)[k],
+                                      footprint_overlap, merge)
+    moved = k[np.any(xy != lifted.xy[k], axis=1)] if merge else k[:0]
+    if len(moved):
+        geo = masks.site_geo if isinstance(masks, GroundLookup) else masks.geo
+        lifted.xy[k] = xy
+        lifted.latlon[moved] = geo.to_geodetic(lifted.xy[moved])[:, :2]
+    if merge:  # a span grown on both sides keeps its point but not its length
+        size = size.copy()
         size[k] = size_k
     return lifted, k[kept], size
