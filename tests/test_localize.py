@@ -7,7 +7,14 @@ import pytest
 
 from calibration.masks import LookupMasks
 from services.localize.__main__ import objects_message
-from services.localize.lift import MERGE_MAX_LENGTH_M, GroundLookup, footprint_groups, merge_along, overlapping
+from services.localize.lift import (
+    MERGE_MAX_LENGTH_M,
+    GroundLookup,
+    footprint_groups,
+    footprint_rule,
+    merge_along,
+    overlapping,
+)
 from shared.messages import Detections
 from shared.settings import LocalizeSettings
 
@@ -139,6 +146,25 @@ def test_merge_never_grows_past_a_long_bus_and_changes_nothing_alone():
     assert kept == [0, 1]
     np.testing.assert_allclose(xy, [[0, 0], [0, 3.5]])
     np.testing.assert_allclose(size, [CAR, CAR])
+
+
+def test_merge_takes_in_a_peak_the_grown_span_reaches_and_is_stable():
+    # a bus (east) read as peaks at 0, 3 and 6 m, the best at one end: the first round spans 0 and 3 (7.5 m long,
+    # centred at 1.5 m), whose footprint then holds the peak at 6 m; it joins in the second round
+    xy, yaw, size = np.array([[0.0, 0], [3, 0], [6, 0]]), np.zeros(3), np.tile(CAR, (3, 1))
+    score = np.array([0.9, 0.6, 0.5])
+    kept, mxy, msize = footprint_rule(xy, yaw, size, score, 1.5, True)
+    assert kept.tolist() == [0]
+    np.testing.assert_allclose(mxy[0], [3.0, 0.0], atol=1e-12)
+    assert msize[0, 0] == pytest.approx(6 + CAR[0])
+    again, xy2, size2 = footprint_rule(mxy[kept], yaw[kept], msize[kept], score[kept], 1.5, True)
+    assert again.tolist() == [0]
+    np.testing.assert_allclose(xy2, mxy[kept])
+    np.testing.assert_allclose(size2, msize[kept])
+    # without merging the first round's drop stands: the peak at 6 m is outside the best one's own footprint
+    kept, mxy, _ = footprint_rule(xy, yaw, size, score, 1.5, False)
+    assert kept.tolist() == [0, 2]
+    np.testing.assert_allclose(mxy, xy)
 
 
 def test_settings_drop_without_merging_by_default():
