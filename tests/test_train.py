@@ -239,7 +239,7 @@ def test_an_interrupted_run_resumes_on_its_schedule(small_recording, tmp_path):
     """A run stopped after its save at step 4 resumes there with its weights and optimizer state: the learning
     rates after the resume are those of the uninterrupted schedule, the log keeps its records up to step 4 once,
     and a resume with other settings, or without a resume file, is refused with a message naming why. A fresh run
-    in the same folder removes the old resume file first."""
+    in the same folder removes the old resume file once its model and data are ready."""
     from training.train import RESUME_FILE
 
     threads = torch.get_num_threads()
@@ -288,6 +288,10 @@ def test_an_interrupted_run_resumes_on_its_schedule(small_recording, tmp_path):
             train(TrainConfig(out=str(out), resume=True, lr=1e-3, **base), log=lambda _m: None)
         with pytest.raises(ValueError, match=r"resume: seed differ.*seed was 3"):
             train(TrainConfig(out=str(out), resume=True, **{**base, "seed": 4}), log=lambda _m: None)
+        # a fresh start that fails at its setup (a typo in --init) keeps the interrupted run's resume file
+        with pytest.raises(FileNotFoundError, match="init model not found"):
+            train(TrainConfig(out=str(out), init=str(tmp_path / "typo.pt"), **base), log=lambda _m: None)
+        assert torch.load(out / RESUME_FILE, weights_only=True)["step"] == 8
         # a fresh run in that folder, stopped before its first save, leaves no resume file of the old run behind
         with pytest.raises(Stop):
             train(TrainConfig(out=str(out), **{**base, "save_every": 100}), log=stop_at_step_6)

@@ -309,9 +309,6 @@ def train(cfg: TrainConfig, log=print) -> dict:
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     given = _resume_settings(cfg)  # before a starting model or an input size changes cfg.model
-    if not cfg.resume and (out / RESUME_FILE).is_file():
-        (out / RESUME_FILE).unlink()  # an earlier run's: a resume of this one must not go back to it
-        log(f"[train] removed the earlier run's {out / RESUME_FILE}")
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
     rng = np.random.default_rng(cfg.seed)
@@ -375,6 +372,11 @@ def train(cfg: TrainConfig, log=print) -> dict:
         _trimmed_log(out / "train_log.jsonl", step)
         log_file = open(out / "train_log.jsonl", "a")  # closed in finally
     first_step = step
+    if not cfg.resume and (out / RESUME_FILE).is_file():
+        # an earlier run's: a resume of this one must not go back to it. Removed only once this run has its model
+        # and data: a fresh start that fails on a typo must not lose an interrupted run's state
+        (out / RESUME_FILE).unlink()
+        log(f"[train] removed the earlier run's {out / RESUME_FILE}")
 
     def lr_now() -> float:
         if budget_s is None:
