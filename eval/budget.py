@@ -252,6 +252,10 @@ def budget(demo_dir: str | Path, scenarios: Sequence[str] = SCENARIOS, gate_m: f
     rows = [_select(r, np.asarray(r["score"], np.float64) >= settings.detect.score_thr,
                     np.asarray(r["xy"], np.float64).reshape(-1, 2)) for r in read_objects(demo / "objects.jsonl")]
     if localize_rule:
+        if not settings.localize.footprint_overlap > 0:
+            raise ValueError(f"localize_rule: localize.footprint_overlap is {settings.localize.footprint_overlap} "
+                             f"in {demo / 'site' / 'site.yaml'} with this environment (is "
+                             "ROADSIDE_LOCALIZE__FOOTPRINT_OVERLAP=0 still set?): there is no rule to apply")
         rows = with_localize_rule(rows, settings.localize)
     cams = [c.name for c in settings.cameras]
     seen = seen_vehicles(recording, TrackingEvalConfig().min_visible_fraction)
@@ -271,7 +275,11 @@ def budget(demo_dir: str | Path, scenarios: Sequence[str] = SCENARIOS, gate_m: f
         "true_long_vehicles": lambda: true_types(rows, in_image, seen, masks),
         "truth": lambda: truth_objects(rows, seen, masks),
     }
-    out = {"demo": str(demo), "recording": str(rec_dir), "gate_m": gate_m, "scenarios": {}}
+    out = {"demo": str(demo), "recording": str(rec_dir), "gate_m": gate_m,
+           "score_thr": settings.detect.score_thr, "high_score": settings.fuse_track.high_score,
+           "localize_rule": {"footprint_overlap": settings.localize.footprint_overlap,
+                             "footprint_merge": settings.localize.footprint_merge} if localize_rule else None,
+           "scenarios": {}}
     for name in scenarios:
         tracks = replay(variants[name](), settings)
         s = evaluate_many(recording, {"fused": tracks}, cameras=cams)["sources"]["fused"]

@@ -56,13 +56,22 @@ def _type_weights(text: str) -> dict[str, float]:
     out = {}
     for part in text.split(","):
         typ, sep, value = part.partition("=")
+        typ = typ.strip()
         try:
-            out[typ.strip()] = float(value)
+            weight = float(value)
         except ValueError:
             sep = ""
-        if not sep:
+        if not sep or not typ:
             raise argparse.ArgumentTypeError(f"expected TYPE=WEIGHT[,TYPE=WEIGHT...], got {part!r}")
+        if typ in out:
+            raise argparse.ArgumentTypeError(f"{typ} is given twice in {text!r}")
+        out[typ] = weight
     return out
+
+
+def _loss_type_weights_arg(text: str) -> dict[str, float]:
+    """--loss-type-weights: `_type_weights`, or 'none' (an empty dict: no type weights, also not a checkpoint's)."""
+    return {} if text.strip().lower() == "none" else _type_weights(text)
 
 
 def _run_sim(args) -> int:
@@ -237,9 +246,9 @@ def _add_train(sub) -> None:
     p.add_argument("--beta-box", type=_finite_float,
                    help="extra weight of the 2D box (width, height, centre offset); default 0, the paper's loss "
                         "(with --init, the checkpoint's)")
-    p.add_argument("--loss-type-weights", type=_type_weights, metavar="TYPE=W,...",
+    p.add_argument("--loss-type-weights", type=_loss_type_weights_arg, metavar="TYPE=W,...",
                    help="with --heat-loss focal: the cells of these vehicle types' vehicles weigh W times in the loss "
-                        "(e.g. bus=4,truck=2; the others 1; with --init, the checkpoint's)")
+                        "(e.g. bus=4,truck=2; the others 1; with --init, the checkpoint's; 'none': all 1)")
     p.add_argument("--fisheye-rotation", choices=["any", "quarter", "off"], default="any",
                    help="augmentation: turn fisheye crops about the principal point by any angle (2D boxes "
                         "approximated), by multiples of 90 degrees (boxes exact) or not at all")
@@ -265,14 +274,20 @@ UNLIMITED_STEPS = 10**9  # with --minutes alone the clock ends the run
 LOSS_FLAGS = ("heat_loss", "beta_size", "beta_heading", "beta_vtype", "beta_offset", "beta_box")
 
 
-def _loss_type_weights(given: dict[str, float]) -> tuple[float, ...]:
-    """{'bus': 4} -> one weight per VEHICLE_TYPES entry (1 for those not named); ValueError naming an unknown type."""
+def _loss_type_weights(given: dict[str, float]) -> tuple[float, ...] | None:
+    """{'bus': 4} -> one weight per VEHICLE_TYPES entry (1 for those not named); {} ('none') -> None; ValueError
+    naming an unknown type or a weight that is not a finite number > 0."""
     from shared.messages import VEHICLE_TYPES
 
+    if not given:
+        return None
     unknown = sorted(set(given) - set(VEHICLE_TYPES))
     if unknown:
         raise ValueError(f"--loss-type-weights: unknown vehicle type(s) {', '.join(unknown)}; the types are "
                          f"{', '.join(VEHICLE_TYPES)}")
+    bad = [f"{t}={w}" for t, w in given.items() if not (math.isfinite(w) and w > 0)]
+    if bad:
+        raise ValueError(f"--loss-type-weights: weights must be finite numbers > 0, got {', '.join(bad)}")
     return tuple(float(given.get(t, 1.0)) for t in VEHICLE_TYPES)
 
 

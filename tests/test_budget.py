@@ -225,6 +225,13 @@ def test_budget_applies_the_localize_rule_when_asked(demo: Path, monkeypatch):
     few = budget(demo, ["true_positions"], localize_rule=True)["scenarios"]["true_positions"]
     assert few["recall"] < plain["recall"]
     assert budget(demo, ["true_positions"])["scenarios"]["true_positions"] == plain  # only when asked
+    out = budget(demo, ["true_positions"], localize_rule=True)
+    assert out["localize_rule"] == {"footprint_overlap": 1000.0, "footprint_merge": False}  # said with the scores
+    assert budget(demo, ["true_positions"])["localize_rule"] is None
+    # the recording's setting left in the environment: no rule to apply, said so rather than a plain replay
+    monkeypatch.setenv("ROADSIDE_LOCALIZE__FOOTPRINT_OVERLAP", "0")
+    with pytest.raises(ValueError, match=r"footprint_overlap is 0\.0.*ROADSIDE_LOCALIZE__FOOTPRINT_OVERLAP"):
+        budget(demo, ["true_positions"], localize_rule=True)
 
 
 def test_budget_many_gives_each_run_and_their_mean(demo: Path, tmp_path: Path, monkeypatch, capsys):

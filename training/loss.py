@@ -59,7 +59,10 @@ class LossConfig:
 
     def __post_init__(self) -> None:
         if self.type_weights is not None:
-            w = tuple(float(x) for x in self.type_weights)
+            try:
+                w = tuple(float(x) for x in self.type_weights)
+            except (TypeError, ValueError):
+                w = ()
             if len(w) != len(VEHICLE_TYPES) or not all(math.isfinite(x) and x > 0 for x in w):
                 raise ValueError(f"type_weights must be {len(VEHICLE_TYPES)} finite numbers > 0 (one per type of "
                                  f"{VEHICLE_TYPES}), got {self.type_weights!r}")
