@@ -300,10 +300,13 @@ def evaluate(recording: str | Path, detect: Callable[[np.ndarray], Detections], 
         vtype = np.array([x for a in accs for x in a["near_type"]], np.int64)
         dist = np.array([x for a in accs for x in a["near_dist"]], float)
         by_type = {}
-        for t in sorted(set(vtype.tolist())):
-            d = dist[vtype == t]
+        name = np.array([VEHICLE_TYPES[t] if 0 <= t < len(VEHICLE_TYPES) else "unknown" for t in vtype.tolist()])
+        for t in [*VEHICLE_TYPES, "unknown"]:  # all indices off the list counted together as unknown
+            d = dist[name == t]
+            if not len(d):
+                continue
             found = d[np.isfinite(d)]
-            by_type[VEHICLE_TYPES[t] if 0 <= t < len(VEHICLE_TYPES) else "unknown"] = {
+            by_type[t] = {
                 "positives": len(d), "recall": round(len(found) / len(d), 4),
                 "loc_err_median_m": round(float(np.median(found)), 4) if len(found) else None}
         return {"near_m": near_m, "near_score_thr": near_score, "near_positives": n["positives"],
