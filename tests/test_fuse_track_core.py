@@ -216,6 +216,24 @@ def test_empty_ticks_age_tracks_out_after_max_age():
     assert [t.empty for t in ticks] == [True] * 5 + [False]
 
 
+def test_no_track_is_born_next_to_an_existing_one():
+    """An unmatched object within birth_separation_m of a track is a duplicate (a second peak on one vehicle the
+    fusion did not merge): no new track; one farther away starts its own."""
+    def run(offset_m: float, separation_m: float) -> int:
+        tracker = Tracker(TrackerConfig(birth_separation_m=separation_m))
+        for k in range(5):
+            xy = [[0.5 * k, 0.0]] if k < 3 else [[0.5 * k, 0.0], [0.5 * k, offset_m]]
+            tracker.update(frame("A", k * 100 * MS, xy), k * 100 * MS)
+        return len(tracker)
+
+    assert TrackerConfig().birth_separation_m == 2.25
+    assert run(2.0, 2.25) == 1  # inside: the duplicate is taken by nobody and starts nothing
+    assert run(2.5, 2.25) == 2  # outside: a new (tentative) track
+    assert run(2.0, 1.5) == 2
+    with pytest.raises(ValueError, match="birth_separation_m must be >= 0"):
+        TrackerConfig(birth_separation_m=float("nan"))
+
+
 def test_two_cameras_at_different_capture_times_make_one_accurate_track():
     """A vehicle at 15 m/s seen by two cameras 80 ms apart in every tick (1.2 m of travel): one fused
     object per tick, one track, within 10 cm of the truth at the tick time and exact once settled."""
