@@ -72,14 +72,19 @@ def _masks(w: int = 64, h: int = 48, m_per_px: float = 0.25) -> GroundLookup:
                                     np.ones((h, w), bool), meta))
 
 
+def _cars_heading_east(u: list[float], score: list[float]) -> Detections:
+    """Car-sized detections heading east at pixel columns u (row 20; 4 px per metre), types 0, 1, 2, ..."""
+    f4, n = np.float32, len(u)
+    return Detections(site="s", camera="C1", seq=1, t_capture_ns=5, width=64, height=48, infer_ms=1.0,
+                      score=np.array(score, f4), uv=np.array([[x, 20] for x in u], f4),
+                      box=np.zeros((n, 4), f4), heading_uv=np.tile(np.array([1, 0], f4), (n, 1)),
+                      size_lwh=np.tile(np.array(CAR, f4), (n, 1)), vtype=np.arange(n, dtype=np.int8))
+
+
 def _two_peaks_and_a_car() -> Detections:
     """Three car-sized detections heading east: two 12 px = 3 m apart on one vehicle (x 2.5 and 5.5 m), one 40 px
     = 10 m further."""
-    f4 = np.float32
-    return Detections(site="s", camera="C1", seq=1, t_capture_ns=5, width=64, height=48, infer_ms=1.0,
-                      score=np.array([0.5, 0.8, 0.6], f4), uv=np.array([[10, 20], [22, 20], [50, 20]], f4),
-                      box=np.zeros((3, 4), f4), heading_uv=np.tile(np.array([1, 0], f4), (3, 1)),
-                      size_lwh=np.tile(np.array(CAR, f4), (3, 1)), vtype=np.array([0, 1, 2], np.int8))
+    return _cars_heading_east([10, 22, 50], [0.5, 0.8, 0.6])
 
 
 def test_objects_message_drops_the_overlapping_detection_and_keeps_the_columns_aligned():
@@ -173,12 +178,7 @@ def test_settings_drop_without_merging_by_default():
 
 
 def test_objects_message_grows_a_vehicle_merged_on_both_sides_without_moving_it():
-    f4 = np.float32
     # peaks 12 px = 3 m either side of the best one, all heading east: the span grows, its middle stays
-    det = Detections(site="s", camera="C1", seq=1, t_capture_ns=5, width=64, height=48, infer_ms=1.0,
-                     score=np.array([0.5, 0.8, 0.6], f4), uv=np.array([[10, 20], [22, 20], [34, 20]], f4),
-                     box=np.zeros((3, 4), f4), heading_uv=np.tile(np.array([1, 0], f4), (3, 1)),
-                     size_lwh=np.tile(np.array(CAR, f4), (3, 1)), vtype=np.array([0, 1, 2], np.int8))
-    kept = objects_message(det, _masks(), 6.0, 2.0, True)
+    kept = objects_message(_cars_heading_east([10, 22, 34], [0.5, 0.8, 0.6]), _masks(), 6.0, 2.0, True)
     np.testing.assert_allclose(kept.xy, [[5.5, -5.0]], atol=1e-6)
     np.testing.assert_allclose(kept.size_lwh, [[10.5, 1.8, 1.5]], atol=1e-6)
