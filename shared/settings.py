@@ -160,7 +160,7 @@ class DetectSettings(Strict):
 class LocalizeSettings(Strict):
     heading_step_px: float = Field(6.0, gt=0)  # pixels along the image heading for the yaw Jacobian
     # an object whose ground point lies inside a higher-scoring object's footprint (its length and width times
-    # this) of the same frame is dropped as the same vehicle (services/localize/lift.py `overlapping`). 0: off
+    # this) of the same frame is dropped as the same vehicle (services/localize/lift.py `footprint_groups`). 0: off
     footprint_overlap: float = Field(1.5, ge=0)
     # True: the kept object also spans the peaks it suppresses that line up with it (a long vehicle's fragments; its
     # point moves to their middle, its length to theirs: lift.py `merge_along`). Off: with the shipped model it

@@ -13,7 +13,6 @@ from services.localize.lift import (
     footprint_groups,
     footprint_rule,
     merge_along,
-    overlapping,
 )
 from shared.messages import Detections
 from shared.settings import LocalizeSettings
@@ -23,9 +22,12 @@ CAR = (4.5, 1.8, 1.5)
 
 def _drop(xy, yaw, size, score, scale=1.5):
     n = len(xy)
-    return overlapping(np.asarray(xy, float), np.full(n, yaw) if np.ndim(yaw) == 0 else np.asarray(yaw, float),
-                       np.asarray(size, float).reshape(-1, 3) if np.ndim(size) > 1 else np.tile(size, (n, 1)),
-                       np.asarray(score, float), scale).tolist()
+    kept, _, _ = footprint_rule(np.asarray(xy, float), np.full(n, yaw) if np.ndim(yaw) == 0 else np.asarray(yaw, float),
+                                np.asarray(size, float).reshape(-1, 3) if np.ndim(size) > 1 else np.tile(size, (n, 1)),
+                                np.asarray(score, float), scale, False)
+    drop = np.ones(n, bool)
+    drop[kept] = False
+    return drop.tolist()
 
 
 def test_a_second_peak_on_the_same_vehicle_is_dropped_and_the_higher_score_kept():

@@ -6,7 +6,7 @@ centre and a point `step_px` along the heading are both lifted, and the yaw is t
 them (where the forward point falls outside the calibrated area, the backward point is used).
 The detector regresses the 3D size in metres, so size needs no conversion.
 
-Two vehicles cannot stand on the same ground: `overlapping` finds the objects of one frame whose ground point
+Two vehicles cannot stand on the same ground: `footprint_groups` finds the objects of one frame whose ground point
 lies inside the footprint of a higher-scoring one (its length and width, scaled), the second peaks the detector
 puts on a long vehicle (a truck read as two cars, one on each half). With `merge` (`localize.footprint_merge`) the
 peaks that line up with the kept object (within MERGE_ACROSS_M of its axis, their axes within MERGE_AXIS_DEG) are
@@ -99,8 +99,12 @@ def lift(masks: GroundLookup | LookupMasks, uv: np.ndarray, heading_uv: np.ndarr
 
 def footprint_groups(xy: np.ndarray, yaw: np.ndarray, size_lwh: np.ndarray, score: np.ndarray,
                      scale: float) -> dict[int, np.ndarray]:
-    """The objects kept by the footprint rule (`overlapping`), each with the indices of those it suppresses, in the
-    order kept (highest score first): {kept index: (M,) int indices}."""
+    """The footprint rule: greedy by score, as non-maximum suppression, an object (site metres, world yaw, size in
+    metres, score) is suppressed when its ground point lies inside the footprint (length and width times `scale`,
+    along the yaw) of a higher-scoring object that is kept, or the kept one's point inside its own. Returns the
+    objects kept, each with the indices of those it suppresses, in the order kept (highest score first): {kept
+    index: (M,) int indices}. `scale` 0 suppresses none; objects with a non-finite position, yaw or size neither
+    suppress nor are suppressed."""
     xy = np.asarray(xy, np.float64).reshape(-1, 2)
     n = len(xy)
     score = np.asarray(score, np.float64).reshape(n)
@@ -124,18 +128,6 @@ def footprint_groups(xy: np.ndarray, yaw: np.ndarray, size_lwh: np.ndarray, scor
             groups[int(a)] = np.flatnonzero(inside[a] & ~drop)
             drop |= inside[a]
     return groups
-
-
-def overlapping(xy: np.ndarray, yaw: np.ndarray, size_lwh: np.ndarray, score: np.ndarray,
-                scale: float) -> np.ndarray:
-    """(N,) bool: the objects (site metres, world yaw, size in metres, score) to drop because their ground point
-    lies inside the footprint (length and width times `scale`, along the yaw) of a higher-scoring object that is
-    kept, or the kept one's point inside theirs. Greedy by score, as non-maximum suppression; `scale` 0 drops
-    none. Objects with a non-finite position, yaw or size neither drop nor are dropped."""
-    n = len(np.asarray(xy).reshape(-1, 2))
-    drop = np.ones(n, bool)
-    drop[list(footprint_groups(xy, yaw, size_lwh, score, scale))] = False
-    return drop
 
 
 def merge_along(xy: np.ndarray, yaw: np.ndarray, size_lwh: np.ndarray, score: np.ndarray,
@@ -172,7 +164,7 @@ def merge_along(xy: np.ndarray, yaw: np.ndarray, size_lwh: np.ndarray, score: np
 def footprint_rule(xy: np.ndarray, yaw: np.ndarray, size_lwh: np.ndarray, score: np.ndarray, scale: float,
                    merge: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """localize's rule on one frame's objects: (kept indices ascending, xy, size_lwh), the objects a higher-scoring
-    one's footprint holds left out (`overlapping`) and, with `merge`, the kept ones spanning the peaks they
+    one's footprint holds left out (`footprint_groups`) and, with `merge`, the kept ones spanning the peaks they
     suppress (`merge_along`; otherwise xy and size_lwh are returned as given). Merging repeats on the kept objects
     until no grown footprint holds another (a bus read as peaks at 0, 3 and 6 m, best at 0: the one at 6 m lies in
     the first round's 7.5 m span, and joins it in the second), so the rule applied to its own output changes
