@@ -246,6 +246,9 @@ def _add_train(sub) -> None:
     p.add_argument("--beta-box", type=_finite_float,
                    help="extra weight of the 2D box (width, height, centre offset); default 0, the paper's loss "
                         "(with --init, the checkpoint's)")
+    p.add_argument("--beta-vote", type=_finite_float,
+                   help="weight of the centre votes: every cell of a vehicle's 2D box trained to point at its centre "
+                        "(training/targets.py); default 0 (with --init, the checkpoint's)")
     p.add_argument("--loss-type-weights", type=_loss_type_weights_arg, metavar="TYPE=W,...",
                    help="with --heat-loss focal: the cells of these vehicle types' vehicles weigh W times in the loss "
                         "(e.g. bus=4,truck=2; the others 1; with --init, the checkpoint's; 'none': all 1)")
@@ -271,7 +274,7 @@ def _add_train(sub) -> None:
 UNLIMITED_STEPS = 10**9  # with --minutes alone the clock ends the run
 
 
-LOSS_FLAGS = ("heat_loss", "beta_size", "beta_heading", "beta_vtype", "beta_offset", "beta_box")
+LOSS_FLAGS = ("heat_loss", "beta_size", "beta_heading", "beta_vtype", "beta_offset", "beta_box", "beta_vote")
 
 
 def _loss_type_weights(given: dict[str, float]) -> tuple[float, ...] | None:

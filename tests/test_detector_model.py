@@ -163,6 +163,31 @@ def test_overlapping_vehicles_cell_owned_by_highest_value():
                                                   np.exp(-9 / gaussian_sigma_px(s.box)[1] ** 2)))
 
 
+def test_votes_point_every_box_cell_at_its_centre():
+    """A long vehicle (a bus seen from above): every cell of its box, far outside its Gaussian too, points at the
+    bottom centre, and decoding there gives it back; cells shared with a second box do not vote, nor do cells
+    another vehicle's Gaussian owns; the other targets stay unowned outside the Gaussians."""
+    bus, car = [8, 20, 88, 44], [70, 36, 86, 50]
+    s = make_sample([[48.0, 40.0], [78.0, 48.0]], [bus, car], hw=(64, 96))
+    t = build_targets(s, 4)
+    vote = t["vote_weight"] > 0
+    cu, cv = cell_centres(24, 4), cell_centres(16, 4)
+    row = 5  # cell centre v = 21.5: inside the bus's box only
+    for col in (2, 6, 14):  # u = 9.5, 25.5, 57.5: 20-40 px from its centre, outside its Gaussian
+        assert vote[row, col] and t["weight"][row, col] == 0
+        off = t["offset"][:2, row, col]
+        assert cu[col] + 4 * off[0] == pytest.approx(48.0) and cv[row] + 4 * off[1] == pytest.approx(40.0)
+    assert vote[10, 12] and t["heat"][10, 12] == 1.0  # its own peak cell votes too (the same offset)
+    assert t["vtype"][row, 2] == -1 and not t["size_mask"][:, row, 2].any()  # votes set the offset only
+    # a cell in both boxes is ambiguous: no vote; the car's own peak cell is the car's, not the bus's
+    both = (cv[:, None] >= 36) & (cv[:, None] <= 44) & (cu[None, :] >= 70) & (cu[None, :] <= 86)
+    assert both.any() and not (vote & both).any()
+    assert not vote[0, :].any() and not vote[:, 23].any()  # outside every box
+    # a weight-0 vehicle's box does not vote
+    t0 = build_targets(make_sample([[48.0, 40.0]], [bus], weight=[0.0]), 4)
+    assert t0["vote_weight"].sum() == 0
+
+
 def test_targets_reject_bad_input():
     with pytest.raises(ValueError, match="stride 5"):
         build_targets(make_sample([[20.0, 40.0]], [[10, 20, 30, 44]]), 5)
@@ -350,6 +375,22 @@ def test_type_weights_weigh_the_cells_of_that_types_vehicles():
         LossConfig(heat="focal", type_weights=(1, 2))
     with pytest.raises(ValueError, match="type_weights need the focal heat loss"):
         LossConfig(type_weights=(1, 1, 2, 1, 1))
+
+
+def test_vote_term_is_the_huber_error_over_vote_cells_and_off_by_default():
+    torch.manual_seed(0)
+    images, targets = batch_of([synthetic_sample()], 4)
+    out = Detector(TINY)(images)
+    total, parts = detector_loss(out, targets, LossConfig())
+    voting = targets["vote_weight"] > 0
+    err = torch.nn.functional.smooth_l1_loss(out["offset"][:, :2], targets["offset"][:, :2], reduction="none")
+    assert parts["vote"] == pytest.approx(err.sum(dim=1)[voting].mean().item(), rel=1e-5)
+    with_vote, _ = detector_loss(out, targets, LossConfig(beta_vote=2.0))
+    assert with_vote.item() == pytest.approx(total.item() + 2.0 * parts["vote"], rel=1e-5)
+    perfect = dict(out, offset=targets["offset"].clone())
+    assert detector_loss(perfect, targets, LossConfig(beta_vote=1.0))[1]["vote"] == 0.0
+    with pytest.raises(ValueError, match="beta_vote must be >= 0"):
+        LossConfig(beta_vote=-1.0)
 
 
 def batch_of(samples: list[Sample], stride: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:

@@ -237,9 +237,9 @@ def test_fine_tuning_keeps_the_loss_the_checkpoint_was_trained_with(small_record
         cleared = fine_tune("n", "--loss-type-weights", "none", "--heat-loss", "mse")
         assert cleared["type_weights"] is None and cleared["heat"] == "mse"
         ckpt = w_ckpt
-        changed = fine_tune("c", "--heat-loss", "mse", "--beta-size", "0.2", "--no-topk")
-        assert (changed["heat"], changed["beta_size"], changed["beta_offset"], changed["topk_fraction"]) == \
-            ("mse", 0.2, 0.7, None)
+        changed = fine_tune("c", "--heat-loss", "mse", "--beta-size", "0.2", "--no-topk", "--beta-vote", "0.5")
+        assert (changed["heat"], changed["beta_size"], changed["beta_offset"], changed["topk_fraction"],
+                changed["beta_vote"]) == ("mse", 0.2, 0.7, None, 0.5)
         save_detector(load_detector(ckpt), tmp_path / "old.pt")  # no loss recorded
         assert checkpoint_loss(tmp_path / "old.pt") is None
         ckpt = tmp_path / "old.pt"

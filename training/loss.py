@@ -1,5 +1,5 @@
 """The paper's multi-task loss: total = heat + beta_size * size + beta_heading * heading + beta_vtype * vtype
-+ beta_offset * offset (+ beta_box * box, off by default).
++ beta_offset * offset (+ beta_box * box and beta_vote * vote, both off by default).
 
 heat     per-cell squared error over cells not ignored, averaged over the top `topk_fraction` of the batch's
          INPUT pixels' worth of cells (hard-example selection; None averages all of them: the paper's
@@ -16,6 +16,9 @@ offset   squared error, summed over the four components
 box      (beta_box > 0 only) the 2D box's part of size and offset again: log-space error of the box width and
          height plus the squared error of the box centre's offset, so the box can be weighted above the 3D
          size without changing the rest (the 2D box is what ap50 scores; the paper has no such term)
+vote     (beta_vote > 0 only) Huber error (1 cell) of the offset's first two channels at the targets' vote cells
+         (training/targets.py: every cell of a vehicle's 2D box points at its centre), a plain mean over them: a
+         peak at the end of a long vehicle can still give its centre
 The regression terms are weighted per cell by the targets' `weight` (and masks) and divided by the sum of
 those weights, so they are means per vehicle cell.
 With `type_weights` (one per vehicle type) every cell a vehicle owns (its heat-map window) counts that many times
@@ -54,6 +57,7 @@ class LossConfig:
     beta_vtype: float = 0.01
     beta_offset: float = 0.1
     beta_box: float = 0.0
+    beta_vote: float = 0.0
     heat: str = "mse"
     type_weights: tuple[float, ...] | None = None
 
@@ -73,7 +77,7 @@ class LossConfig:
             raise ValueError(f"topk_fraction must be in (0, 1] or None, got {self.topk_fraction}")
         if self.heat not in HEAT_LOSSES:
             raise ValueError(f"heat must be one of {HEAT_LOSSES}, got {self.heat!r}")
-        for name in ("beta_size", "beta_heading", "beta_vtype", "beta_offset", "beta_box"):
+        for name in ("beta_size", "beta_heading", "beta_vtype", "beta_offset", "beta_box", "beta_vote"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
 
@@ -148,8 +152,10 @@ def detector_loss(outputs: dict[str, torch.Tensor], targets: dict[str, torch.Ten
     offset = _weighted(offset_err.sum(dim=1), weight)
     box_known = size_mask[:, 3:5].sum(dim=1) > 0
     box = _weighted((log_err * size_mask)[:, 3:5].sum(dim=1) + offset_err[:, 2:4].sum(dim=1), weight * box_known)
+    vote_err = F.smooth_l1_loss(outputs["offset"][:, :2], targets["offset"][:, :2], reduction="none", beta=1.0)
+    vote = _weighted(vote_err.sum(dim=1), targets["vote_weight"])
     total = (heat + cfg.beta_size * size + cfg.beta_heading * (heading + axis) + cfg.beta_vtype * vtype
-             + cfg.beta_offset * offset + cfg.beta_box * box)
+             + cfg.beta_offset * offset + cfg.beta_box * box + cfg.beta_vote * vote)
     parts = {"heat": heat, "size": size, "heading": heading, "axis": axis, "vtype": vtype, "offset": offset,
-             "box": box, "total": total}
+             "box": box, "vote": vote, "total": total}
     return total, {name: float(value.detach()) for name, value in parts.items()}

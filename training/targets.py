@@ -8,6 +8,11 @@ centre for the paper's ablation); the cell containing the centre is set to 1 so 
 peak whatever the stride. Vehicles combine by maximum, and each cell's regression targets come from the
 vehicle with the highest value there (its owner), weighted by that value. Cell centres follow
 shared.decode.cell_centres, so decode(targets) gives back the labelled vehicles.
+
+Votes: every cell whose centre lies inside exactly one vehicle's 2D box (a vehicle to detect, the cell not owned by
+another vehicle's Gaussian and not ignored) also gets that vehicle's offset, pointing from the cell to the vehicle's
+centre however far it is, with `vote_weight` 1 there. A network that puts its peak at one end of a long vehicle (a
+bus seen from above) can then still point at the centre; the loss uses these cells only with beta_vote > 0.
 """
 
 from __future__ import annotations
@@ -49,7 +54,8 @@ def build_targets(sample: Sample, stride: int, center: str = "bottom") -> dict[s
     axis          (2, h, w) float32 the heading's axis as the doubled-angle vector (hu^2 - hv^2, 2 hu hv)
     vtype         (h, w)    int64   vehicle type index, -1 where no owner or unknown
     offset        (4, h, w) float32 (u - cell_u) / stride, (v - cell_v) / stride, (box_cx - u) / box_w,
-                                    (box_cy - v) / box_h, (u, v) the centre in input pixels
+                                    (box_cy - v) / box_h, (u, v) the centre in input pixels; also at vote cells
+    vote_weight   (h, w)    float32 1 at the cells voting for a vehicle's centre (module docstring), else 0
     Unknown values are stored as 0 and masked, so no NaN reaches the loss.
     """
     if center not in CENTERS:
@@ -93,10 +99,17 @@ def build_targets(sample: Sample, stride: int, center: str = "bottom") -> dict[s
         owner[rows, cols] = np.where(better, i, owner[rows, cols])
     ignore &= heat < IGNORE_KEEP_HEAT
 
+    # votes: cells inside exactly one positive vehicle's box, unless another vehicle's Gaussian owns them
+    in_boxes = np.zeros((h, w), np.int64)
+    box_owner = np.full((h, w), -1, np.int64)
+    for i in np.flatnonzero(sample.weight > 0):
+        half_w, half_h = box_wh[i] / 2
+        cells = _window(box_centre[i, 1], half_h, h, stride), _window(box_centre[i, 0], half_w, w, stride)
+        in_boxes[cells] += 1
+        box_owner[cells] = i
+    voting = (in_boxes == 1) & ~ignore & ((owner < 0) | (owner == box_owner))
     owned = owner >= 0
     idx = owner[owned]
-    grid_u = np.broadcast_to(cu[None, :], (h, w))[owned]
-    grid_v = np.broadcast_to(cv[:, None], (h, w))[owned]
     size_all = np.concatenate([sample.size_lwh, box_wh / BOX_SCALE_PX], axis=1)
 
     size = np.zeros((5, h, w), np.float32)
@@ -113,9 +126,11 @@ def build_targets(sample: Sample, stride: int, center: str = "bottom") -> dict[s
     vtype = np.full((h, w), -1, np.int64)
     vtype[owned] = sample.vtype[idx]
     offset = np.zeros((4, h, w), np.float32)
-    offset[0, owned] = (centre[idx, 0] - grid_u) / stride
-    offset[1, owned] = (centre[idx, 1] - grid_v) / stride
-    offset[2:, owned] = ((box_centre - centre) / box_wh)[idx].T
+    pointing = owned | voting  # a voting cell is unowned or owned by the vehicle it votes for
+    who = np.where(owned, owner, box_owner)[pointing]
+    offset[0, pointing] = (centre[who, 0] - np.broadcast_to(cu[None, :], (h, w))[pointing]) / stride
+    offset[1, pointing] = (centre[who, 1] - np.broadcast_to(cv[:, None], (h, w))[pointing]) / stride
+    offset[2:, pointing] = ((box_centre - centre) / box_wh)[who].T
     return {"heat": heat.astype(np.float32), "ignore": ignore, "weight": heat.astype(np.float32), "size": size,
             "size_mask": size_mask, "heading": heading, "heading_mask": heading_mask, "axis": axis, "vtype": vtype,
-            "offset": offset}
+            "offset": offset, "vote_weight": voting.astype(np.float32)}
