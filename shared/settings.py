@@ -14,7 +14,6 @@ listens on its own port (`port_base` + its index in SERVICES; clients such as `r
 
 from __future__ import annotations
 
-import math
 import os
 from pathlib import Path
 from typing import Literal
@@ -28,7 +27,8 @@ from shared.messages import CAMERA_KINDS, check_name
 
 
 class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # no NaN or infinity in any number of a site file (an infinite heading step dropped every detection)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class BusSettings(Strict):
@@ -69,9 +69,7 @@ class CameraSettings(Strict):
     def _region(cls, v):
         if v is not None and len(v) < 3:
             raise ValueError(f"region_m needs at least 3 points, got {len(v)}")
-        if v is not None:
-            if not all(math.isfinite(c) for p in v for c in p):
-                raise ValueError("region_m has a non-finite coordinate")
+        if v is not None:  # (NaN and infinity are refused before: allow_inf_nan)
             area = 0.5 * abs(sum(x0 * y1 - x1 * y0 for (x0, y0), (x1, y1) in zip(v, [*v[1:], v[0]], strict=True)))
             if area < 1.0:  # points on a line, or all in one place: nothing would ever be inside it
                 raise ValueError(f"region_m encloses {area:.2g} m^2: its points lie on a line or on top of each other")
@@ -92,8 +90,6 @@ class CameraSettings(Strict):
         for i, poly in enumerate(v):
             if len(poly) < 3:
                 raise ValueError(f"exclude_px[{i}] needs at least 3 points, got {len(poly)}")
-            if not all(math.isfinite(c) for pt in poly for c in pt):
-                raise ValueError(f"exclude_px[{i}] has a coordinate that is not a finite number")
             if not all(abs(c) <= MAX_EXCLUDE_PX for pt in poly for c in pt):  # the filling's fixed point overflows
                 raise ValueError(f"exclude_px[{i}] reaches beyond {MAX_EXCLUDE_PX} px: keep it near the image")
         return v
@@ -197,7 +193,8 @@ class FuseTrackSettings(Strict):
 class Settings(BaseSettings):
     """Everything a process needs; build with `load_settings(path)`."""
 
-    model_config = SettingsConfigDict(env_prefix="ROADSIDE_", env_nested_delimiter="__", extra="forbid")
+    model_config = SettingsConfigDict(env_prefix="ROADSIDE_", env_nested_delimiter="__", extra="forbid",
+                                      allow_inf_nan=False)
 
     site: str
     site_dir: Path = Path(".")
@@ -217,7 +214,7 @@ class Settings(BaseSettings):
             return v
         if not {"lat_deg", "lon_deg"} <= set(v) <= {"lat_deg", "lon_deg", "alt_m"}:
             raise ValueError(f"origin needs lat_deg and lon_deg (and optionally alt_m), got {sorted(v)}")
-        if not all(math.isfinite(x) for x in v.values()) or abs(v["lat_deg"]) > 90 or abs(v["lon_deg"]) > 180:
+        if abs(v["lat_deg"]) > 90 or abs(v["lon_deg"]) > 180:
             raise ValueError(f"origin must be a finite latitude (-90..90) and longitude (-180..180), got {v}")
         return v
 

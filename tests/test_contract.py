@@ -503,7 +503,7 @@ def test_an_exclusion_polygon_reaching_far_beyond_the_image_is_refused(tmp_path)
     ({"lat": 42.2, "lon": -83.7}, "origin needs lat_deg and lon_deg"),
     ({"lat_deg": 42.2, "lon_deg": -83.7, "height": 3.0}, "origin needs lat_deg and lon_deg"),
     ({"lat_deg": -83.7, "lon_deg": 242.2}, "origin must be a finite latitude"),
-    ({"lat_deg": float("nan"), "lon_deg": -83.7}, "origin must be a finite latitude")])
+    ({"lat_deg": float("nan"), "lon_deg": -83.7}, "origin.lat_deg: Input should be a finite number")])
 def test_a_misspelt_or_impossible_origin_is_refused_at_load(tmp_path, origin, match) -> None:
     with pytest.raises(ValueError, match=match):
         load_settings(write_site(tmp_path, {**SITE_YAML, "origin": origin}))
@@ -511,11 +511,23 @@ def test_a_misspelt_or_impossible_origin_is_refused_at_load(tmp_path, origin, ma
 
 @pytest.mark.parametrize(("region", "match"), [([[0, 0], [10, 10], [20, 20]], "on a line"),
                                                ([[5, 5], [5, 5], [5, 5]], "on top of each other"),
-                                               ([[0, 0], [10, 0], [float("nan"), 5]], "non-finite")])
+                                               ([[0, 0], [10, 0], [float("nan"), 5]],
+                                                "region_m.2.0: Input should be a finite number")])
 def test_a_degenerate_fusion_region_is_refused(tmp_path, region, match) -> None:
     cams = [{**SITE_YAML["cameras"][0], "region_m": region}, *SITE_YAML["cameras"][1:]]
     with pytest.raises(ValueError, match=match):
         load_settings(write_site(tmp_path, {**SITE_YAML, "cameras": cams}))
+
+
+@pytest.mark.parametrize(("variable", "field"), [("ROADSIDE_LOCALIZE__HEADING_STEP_PX", "localize.heading_step_px"),
+                                               ("ROADSIDE_INGEST__FPS", "ingest.fps"),
+                                               ("ROADSIDE_FUSE_TRACK__GATE_M", "fuse_track.gate_m")])
+@pytest.mark.parametrize("value", ["inf", "nan"])
+def test_an_infinite_or_nan_setting_is_refused_naming_it(tmp_path, monkeypatch, variable, field, value) -> None:
+    """An infinite heading step passed `gt=0` and dropped every detection as outside the calibrated area."""
+    monkeypatch.setenv(variable, value)
+    with pytest.raises(ValueError, match=rf"{field}: Input should be a finite number"):
+        load_settings(write_site(tmp_path, SITE_YAML))
 
 
 def test_environment_overrides_nested_fields_and_keeps_the_rest(tmp_path, monkeypatch) -> None:
@@ -581,7 +593,7 @@ def test_exclusion_polygons_are_checked(tmp_path) -> None:
     assert load_settings(write_site(tmp_path, SITE_YAML)).cameras[0].exclude_px == []
     with pytest.raises(ValueError, match=r"exclude_px\[0\] needs at least 3 points, got 2"):
         load_settings(write_site(tmp_path, {**SITE_YAML, "cameras": [{**cam, "exclude_px": [[[1, 2], [5, 2]]]}]}))
-    with pytest.raises(ValueError, match=r"exclude_px\[1\] has a coordinate that is not a finite number"):
+    with pytest.raises(ValueError, match=r"cameras.0.exclude_px.1.1.1: Input should be a finite number"):
         load_settings(write_site(tmp_path, {**SITE_YAML, "cameras": [
             {**cam, "exclude_px": [[[1, 2], [5, 2], [5, 6]], [[1, 2], [5, float("nan")], [5, 6]]]}]}))
 
