@@ -436,13 +436,63 @@ def test_silent_camera_is_waited_for_max_wait_then_not_at_all_until_it_returns()
     assert buffer.closed_by == {"complete": 2, "watermark": 0, "max_wait": 1, "flush": 0}
 
 
+def test_one_glitched_capture_time_costs_one_batch_not_the_camera():
+    """A camera arriving after the other sends one batch stamped an hour ahead: that batch is dropped and nothing
+    else (its newest time is not moved, so its later batches are not late and do not close ticks early); with a
+    single camera the same; a camera stuck an hour ahead for longer than max_lead_ms does not drag the other
+    camera's batches along."""
+    hour = 3600 * 1000 * MS
+    buffer: TickBuffer[str] = TickBuffer(["A", "B"], TickConfig(tick_ms=100, max_lead_ms=2000))
+    accepted = {"A": 0, "B": 0}
+    for k in range(100):
+        now = k * 0.1
+        accepted["B"] += buffer.add("B", k * 100 * MS + 10 * MS, f"b{k}", now)
+        glitch = hour if k == 50 else 0
+        accepted["A"] += buffer.add("A", k * 100 * MS + 20 * MS + glitch, f"a{k}", now + 0.03)
+        buffer.pop_ready(now + 0.03)
+    assert accepted == {"A": 99, "B": 100} and buffer.ahead == 1 and buffer.late == 0
+    alone: TickBuffer[str] = TickBuffer(["A"], TickConfig(tick_ms=100, max_lead_ms=2000))
+    got = [alone.add("A", k * 100 * MS + (hour if k == 5 else 0), f"a{k}", k * 0.1) for k in range(20)]
+    assert got == [k != 5 for k in range(20)] and alone.late == 0 and alone.ahead == 1
+    stuck: TickBuffer[str] = TickBuffer(["A", "B"], TickConfig(tick_ms=100, max_lead_ms=2000))
+    for k in range(100):  # B an hour ahead for 10 s of event time, five times max_lead_ms
+        assert stuck.add("A", k * 100 * MS, f"a{k}", k * 0.1)
+        assert stuck.add("B", k * 100 * MS + (hour if k >= 2 else 0), f"b{k}", k * 0.1) == (k < 2)
+        stuck.pop_ready(k * 0.1)
+    assert stuck.ahead == 98 and stuck.late == 0
+
+
+def test_every_clock_stepping_back_restarts_the_buffer():
+    """An NTP step of the cabinet's clock: every camera an hour back. The first camera's batch waits (a camera
+    alone could be wrong), the second's confirms it: the open ticks are handed out first, then ticks go on from
+    the new time; `restarts` tells the tracker to start again."""
+    hour = 3600 * 1000 * MS
+    buffer: TickBuffer[str] = TickBuffer(["A", "B"], TickConfig(tick_ms=100, max_lead_ms=2000))
+    emitted = []
+    for k in range(60):
+        now = k * 0.1
+        back = hour if k >= 30 else 0
+        a = buffer.add("A", hour + k * 100 * MS - back, f"a{k}", now)
+        b = buffer.add("B", hour + k * 100 * MS + 10 * MS - back, f"b{k}", now)
+        assert (a, b) == ((False, True) if k == 30 else (True, True))
+        emitted += buffer.pop_ready(now)
+    assert buffer.restarts == 1 and buffer.late == 1 and buffer.refusal.startswith("behind: captured 3599.9")
+    old = [t for t in emitted if t.start_ns >= hour]
+    new = [t for t in emitted if t.start_ns < hour]
+    assert emitted == old + new and len(new) >= 25  # the old clock's ticks first, then the new clock's
+    assert "b30" in new[0].items() and sum(len(t.items()) for t in new) >= 55
+    assert [t.index for t in new] == list(range(new[0].index, new[0].index + len(new)))
+
+
 def test_long_gap_emits_at_most_max_empty_ticks():
     buffer: TickBuffer[str] = TickBuffer(["A"], TickConfig(max_empty_ticks=4))
     buffer.add("A", 0, "first", 0.0)
-    buffer.add("A", 3600 * 10**9, "an hour later", 0.1)
-    ticks = buffer.pop_ready(0.1)
+    # an hour's jump of the only camera is followed once its next frame confirms it
+    assert not buffer.add("A", 3600 * 10**9, "an hour later", 0.1) and buffer.refusal.startswith("ahead: captured 3600.")
+    assert buffer.add("A", 3600 * 10**9 + 100 * MS, "and the next", 0.2)
+    ticks = buffer.pop_ready(0.2)
     assert ticks[0].items() == ["first"] and len(ticks) == 5 and all(t.empty for t in ticks[1:])
-    assert ticks[-1].index == 36_000 - 1 and buffer.empty == 4
+    assert ticks[-1].index == 36_001 - 1 and buffer.empty == 4 and buffer.ahead == 1
 
 
 # ---- fusion --------------------------------------------------------------------------------------

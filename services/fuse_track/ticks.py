@@ -16,10 +16,18 @@ in order, a tick as soon as one of these holds:
 
 A camera is live while it has delivered within camera_timeout_ms of wall time (cameras that never
 delivered: since the buffer's first batch); a silent camera stops being waited for and is waited
-for again as soon as it delivers. A batch for a tick already closed is late: counted and dropped. A batch
-captured more than max_lead_ms after the newest capture time of every other live camera is ahead (a camera's
-clock jumped): counted and dropped, so that it neither closes every tick by the watermark nor makes the other
-cameras' batches late; when the other cameras' clocks jump too, theirs are no longer ahead.
+for again as soon as it delivers. A batch for a tick already closed is late: counted and dropped.
+
+Clock jumps. A batch captured more than max_lead_ms away from the reference time (the newest capture time of the
+other live cameras not themselves in doubt, i.e. whose last batch was not a jump; with none, its own camera's
+newest) is a jump: counted (`ahead` forwards,
+`late` backwards) and dropped, and its time remembered as the camera's pending clock, without touching the
+camera's newest time or the watermark: one glitched time neither closes every tick nor makes a camera's next
+batches late. A jump is followed once it is confirmed: by another live camera whose pending clock is within
+max_lead_ms of it (several cameras' clocks jumped together), or, with no other camera to compare with, by a second
+batch of the same camera within max_lead_ms after its pending time. A confirmed step back starts the buffer again: the
+open ticks are closed ("flush") and returned first by the next pop_ready, every camera's history is cleared and
+`restarts` counts it (the tracker downstream must start again too: its time would go back).
 Ticks in which no camera delivered are emitted too (empty), so that tracks age; after a gap of
 more than max_empty_ticks only the last max_empty_ticks of it are emitted. Wall time `now_s` is
 always passed in (monotonic seconds), so tests are deterministic.
@@ -94,7 +102,8 @@ class TickBuffer(Generic[T]):
     """Groups per-camera batches into event-time ticks; see the module docstring.
 
     cameras: the cameras expected (others that deliver are added). Counters: `late` and `ahead` batches
-    dropped, `emitted` ticks, `empty` ticks, `closed_by` per reason; `refusal`: why the last batch refused was.
+    dropped, `restarts` after a clock's step back, `emitted` ticks, `empty` ticks, `closed_by` per reason;
+    `refusal`: why the last batch refused was.
     """
 
     def __init__(self, cameras: Iterable[str], config: TickConfig | None = None) -> None:
@@ -107,6 +116,8 @@ class TickBuffer(Generic[T]):
             self._check_camera(camera)
             self._last_seen_s[camera] = None
         self._newest_ns: dict[str, int] = {}
+        self._pending_ns: dict[str, int] = {}  # a camera's last refused jump (module docstring)
+        self._ready: list[Tick[T]] = []  # ticks closed by a restart, handed out by the next pop_ready
         self._periods_ns: dict[str, list[int]] = {}  # recent capture-time steps per camera
         self._open: dict[int, Tick[T]] = {}
         self._first_s: dict[int, float] = {}  # wall time of each open tick's first batch
@@ -115,6 +126,7 @@ class TickBuffer(Generic[T]):
         self._start_s: float | None = None
         self.late = 0
         self.ahead = 0
+        self.restarts = 0
         self.refusal = ""
         self.emitted = 0
         self.empty = 0
@@ -156,19 +168,30 @@ class TickBuffer(Generic[T]):
         now_s = self._check_now(now_s)
         if self._start_s is None:
             self._start_s = now_s
-        others = [self._newest_ns[c] for c in self.live(now_s) if c != camera and c in self._newest_ns]
+        live = [c for c in self.live(now_s) if c != camera]
+        # a camera in doubt (its last batch a jump) is no reference: its newest time may be long past
+        others = [self._newest_ns[c] for c in live if c in self._newest_ns and c not in self._pending_ns]
         self._last_seen_s[camera] = now_s
+        ref = max(others) if others else self._newest_ns.get(camera)
+        if ref is not None and abs(t_capture_ns - ref) > self._lead_ns:
+            if not self._confirmed(camera, t_capture_ns, live, bool(others)):
+                self._pending_ns[camera] = t_capture_ns
+                forward = t_capture_ns > ref
+                self.ahead += forward
+                self.late += not forward
+                self.refusal = (f"{'ahead' if forward else 'behind'}: captured {abs(t_capture_ns - ref) / 1e9:.3f} s "
+                                f"{'after' if forward else 'before'} the newest {'of the other cameras' if others else 'so far'} "
+                                f"(a clock jump? followed once another frame confirms it)")
+                return False
+            if t_capture_ns < ref:
+                self._restart()
+        self._pending_ns.pop(camera, None)
         prev = self._newest_ns.get(camera)
         if prev is not None and t_capture_ns > prev:
             steps = self._periods_ns.setdefault(camera, [])
             steps.append(t_capture_ns - prev)
             del steps[:-PERIOD_HISTORY]
         self._newest_ns[camera] = max(prev if prev is not None else t_capture_ns, t_capture_ns)
-        if others and t_capture_ns > max(others) + self._lead_ns:
-            self.ahead += 1
-            self.refusal = (f"ahead: captured {(t_capture_ns - max(others)) / 1e9:.3f} s after the other cameras' "
-                            f"newest (a clock jump?)")
-            return False
         self._max_ns = t_capture_ns if self._max_ns is None else max(self._max_ns, t_capture_ns)
         k = t_capture_ns // self._tick_ns
         if self._next is not None and k < self._next:
@@ -186,7 +209,7 @@ class TickBuffer(Generic[T]):
     def pop_ready(self, now_s: float) -> list[Tick[T]]:
         """The ticks that can close at wall time now_s, oldest first (empty ticks included)."""
         now_s = self._check_now(now_s)
-        out: list[Tick[T]] = []
+        out, self._ready = self._ready, []
         while self._open:
             k = self._head()
             reason = self._close_reason(k, now_s)
@@ -201,6 +224,23 @@ class TickBuffer(Generic[T]):
         while self._open:
             out.append(self._close(self._head(), "flush"))
         return out
+
+    def _confirmed(self, camera: str, t_ns: int, live: list[str], others: bool) -> bool:
+        """Whether a jump to t_ns is confirmed (module docstring): by another live camera's pending clock, or, with
+        other camera to compare with, by this camera's own pending time a little before it."""
+        if any(abs(t_ns - self._pending_ns[c]) <= self._lead_ns for c in live if c in self._pending_ns):
+            return True
+        mine = self._pending_ns.get(camera)
+        return not others and mine is not None and 0 <= t_ns - mine <= self._lead_ns
+
+    def _restart(self) -> None:
+        """A confirmed step back of the clock: the open ticks closed for the next pop_ready, the history cleared."""
+        self._ready += self.flush()
+        self._newest_ns.clear()
+        self._pending_ns.clear()
+        self._periods_ns.clear()
+        self._next = self._max_ns = None
+        self.restarts += 1
 
     def _head(self) -> int:
         """The oldest tick not closed yet; skips all but max_empty_ticks of a gap before the first open tick."""
