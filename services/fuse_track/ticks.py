@@ -179,8 +179,9 @@ class TickBuffer(Generic[T]):
                 forward = t_capture_ns > ref
                 self.ahead += forward
                 self.late += not forward
+                whose = "of the other cameras" if others else "so far"
                 self.refusal = (f"{'ahead' if forward else 'behind'}: captured {abs(t_capture_ns - ref) / 1e9:.3f} s "
-                                f"{'after' if forward else 'before'} the newest {'of the other cameras' if others else 'so far'} "
+                                f"{'after' if forward else 'before'} the newest {whose} "
                                 f"(a clock jump? followed once another frame confirms it)")
                 return False
             if t_capture_ns < ref:
