@@ -484,6 +484,65 @@ def test_every_clock_stepping_back_restarts_the_buffer():
     assert [t.index for t in new] == list(range(new[0].index, new[0].index + len(new)))
 
 
+def test_a_camera_flooding_one_tick_is_cut_at_max_per_camera():
+    buffer: TickBuffer[str] = TickBuffer(["A", "B"], TickConfig(max_per_camera=3))
+    got = [buffer.add("A", 10 * MS, f"a{i}", 0.0) for i in range(5)]
+    assert got == [True, True, True, False, False] and buffer.full == 2 and buffer.refusal.startswith("full: A has 3")
+    assert buffer.add("B", 10 * MS, "b", 0.0)  # the other camera's batch still goes in
+    assert buffer.flush()[0].items() == ["a0", "a1", "a2", "b"]
+    with pytest.raises(ValueError, match="max_per_camera must be an integer >= 1"):
+        TickConfig(max_per_camera=0)
+
+
+def test_a_tick_keeps_its_highest_scoring_objects_up_to_the_cap():
+    from services.fuse_track.__main__ import capped
+
+    batches = [frame("A", 0, [[0.0, 0.0], [5.0, 0.0]], score=np.array([0.2, 0.9])),
+               frame("B", 0, [[9.0, 0.0]], score=0.5)]
+    same, dropped = capped(batches, limit=3)
+    assert same is batches and dropped == 0
+    (kept,), dropped = capped(batches, limit=2)
+    assert dropped == 1 and kept.score.tolist() == [0.9, 0.5] and kept.xy[:, 0].tolist() == [5.0, 9.0]
+
+
+def test_the_recorder_survives_a_failed_write_and_a_half_written_line(tmp_path, caplog):
+    """A full disk costs the messages it could not record, not live tracking or the lines before; a file a killed
+    process left in half a line gets that half line cut off, so every line parses."""
+    import json
+
+    from services.fuse_track.__main__ import Recorder
+
+    class Msg:
+        site, tracker = "s", "tracker-1"
+
+        def __init__(self, seq: int) -> None:
+            self.seq = self.t_capture_ns = seq
+
+        def rows(self) -> list:
+            return [{"id": self.seq}]
+
+    path = tmp_path / "tracks.jsonl"
+    path.write_bytes(b'{"seq": 0}\n{"seq": 1, "tra')
+    rec = Recorder(path)
+    assert path.read_bytes() == b'{"seq": 0}\n' and "ended in half a line" in caplog.text
+    rec.write(Msg(2))
+    real_write = rec.file.write
+
+    def half_then_fail(data: bytes) -> int:
+        real_write(data[: len(data) // 2])
+        raise OSError(28, "No space left on device")
+
+    rec.file.write = half_then_fail
+    rec.write(Msg(3))
+    assert rec.failed == 1 and "Tracks seq 3 not recorded (No space left on device" in caplog.text
+    rec.file.write = real_write
+    rec.write(Msg(4))
+    rec.close()
+    assert [json.loads(line)["seq"] for line in path.read_text().splitlines()] == [0, 2, 4]
+    Recorder(path).close()  # a complete file is left as it is
+    assert [json.loads(line)["seq"] for line in path.read_text().splitlines()] == [0, 2, 4]
+
+
 def test_long_gap_emits_at_most_max_empty_ticks():
     buffer: TickBuffer[str] = TickBuffer(["A"], TickConfig(max_empty_ticks=4))
     buffer.add("A", 0, "first", 0.0)

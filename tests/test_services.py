@@ -474,6 +474,7 @@ def test_fuse_track_drops_bad_objects_and_keeps_running(site, site_name, port_ba
         (key, tampered(obj, size_lwh=arr(np.array([[4.0, 1e-300, 1.5]]))), r"size .* m outside"),
         (camera_key(site_name, "SW", "objects"), encode(good_objects(site_name, 0, camera="SW")),
          "objects from camera 'SW', not at this site"),
+        (key, tampered(obj, t_capture_ns=obj.t_capture_ns + 3600 * 10**9), "dropped, ahead: captured 3600"),
         (key, encode(good_objects(site_name, first)), "dropped, late: its tick has closed"),
     ]
     send_bad_inputs(fuse, peer, cases)

@@ -7,7 +7,9 @@ bounded watermark: services/fuse_track/ticks.py); fuses by camera region with a 
 (fusion.py); tracks with SORT on [x, y, s, r, vx, vy, vs, vr] (tracker.py); publishes Tracks on
 `roadside/<site>/tracks`, answers `roadside/<site>/tracks/latest` with the newest Tracks (a vehicle that
 joins late gets the current tracks at once), and appends every Tracks message to the recording file
-(`fuse_track.record`, JSON lines, flushed per line so a kill loses nothing written before it).
+(`fuse_track.record`, JSON lines, flushed per line so a kill loses nothing written before it; a write that fails
+is logged and counted, and tracking goes on). When every camera's clock steps back, the tracker starts again
+under a new id (ticks.py).
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from shared.bus import BadInput, Receiver, Stopper, declare_alive, open_session
 from shared.codec import encode
 from shared.geo import GeoFrame
 from shared.keys import all_cameras_key, latest_tracks_key, tracks_key
-from shared.messages import Objects, Tracks
+from shared.messages import MAX_ROWS, Objects, Tracks
 from shared.service import run
 from shared.settings import Settings
 
@@ -95,25 +97,68 @@ def tick_frames(tick: Tick) -> list[tuple[str, int, int, int]]:
 
 
 class Recorder:
-    """Appends one JSON line per Tracks message; each line is flushed as it is written."""
+    """Appends one JSON line per Tracks message; each line is flushed as it is written.
+
+    A write that fails (disk full, file too large) is logged and counted (`failed`), the half-written line cut off
+    and live tracking goes on; a file left ending in half a line (a process killed mid-write) has that half line
+    cut off when it is opened again, so every line in it parses."""
 
     def __init__(self, path: Path | None) -> None:
         self.file = None
+        self.path = path
+        self.failed = 0
         if path is not None:
             try:
                 path.parent.mkdir(parents=True, exist_ok=True)
-                self.file = path.open("a", buffering=1)
+                self.file = path.open("ab")
+                self._cut_partial_line()
             except OSError as exc:
                 raise ValueError(f"cannot write the tracks recording {path}: {exc.strerror or exc}") from None
 
+    def _cut_partial_line(self) -> None:
+        end = self.file.seek(0, 2)
+        if end == 0:
+            return
+        with self.path.open("rb") as f:
+            pos = end
+            while pos > 0:
+                step = min(pos, 65536)
+                f.seek(pos - step)
+                chunk = f.read(step)
+                if pos == end and chunk.endswith(b"\n"):
+                    return
+                nl = chunk.rfind(b"\n")
+                if nl >= 0:
+                    pos = pos - step + nl + 1
+                    break
+                pos -= step
+        log.warning("%s ended in half a line (%d bytes, a write cut off): removed", self.path, end - pos)
+        self.file.truncate(pos)
+
     def write(self, msg: Tracks) -> None:
-        if self.file is not None:
-            self.file.write(json.dumps({"site": msg.site, "seq": msg.seq, "t_ns": msg.t_capture_ns,
-                                        "tracker": msg.tracker, "tracks": msg.rows()}) + "\n")
+        if self.file is None:
+            return
+        line = (json.dumps({"site": msg.site, "seq": msg.seq, "t_ns": msg.t_capture_ns, "tracker": msg.tracker,
+                            "tracks": msg.rows()}) + "\n").encode()
+        start = self.file.tell()
+        try:
+            self.file.write(line)
+            self.file.flush()
+        except OSError as exc:
+            self.failed += 1
+            log.error("tracks recording %s: Tracks seq %d not recorded (%s; %d lost so far); tracking goes on",
+                      self.path, msg.seq, exc.strerror or exc, self.failed)
+            try:
+                self.file.truncate(start)
+            except OSError:
+                pass
 
     def close(self) -> None:
         if self.file is not None:
-            self.file.close()
+            try:
+                self.file.close()
+            except OSError as exc:
+                log.error("tracks recording %s: closing failed (%s)", self.path, exc.strerror or exc)
 
 
 def build(settings: Settings) -> tuple[Fusion, Tracker, TickBuffer, dict[str, tuple[float, float]], GeoFrame]:
@@ -125,12 +170,28 @@ def build(settings: Settings) -> tuple[Fusion, Tracker, TickBuffer, dict[str, tu
                for c in settings.cameras]
     fusion = Fusion(regions, FusionConfig(merge_gate_m=cfg.merge_gate_m, occlusion_fallback=cfg.occlusion_fallback,
                                           extend_range_m=cfg.extend_range_m, split_score=cfg.high_score))
-    tracker = Tracker(TrackerConfig(gate_m=cfg.gate_m, max_age_ticks=cfg.max_age_ticks, min_hits=cfg.min_hits,
-                                    high_score=cfg.high_score, standing_hits=cfg.standing_hits))
+    tracker = new_tracker(settings)
     ticks: TickBuffer = TickBuffer(positions, TickConfig(tick_ms=cfg.tick_ms, watermark_ms=cfg.watermark_ms,
                                                          max_wait_ms=cfg.max_wait_ms,
                                                          camera_timeout_ms=cfg.camera_timeout_ms))
     return fusion, tracker, ticks, positions, geo
+
+
+def new_tracker(settings: Settings) -> Tracker:
+    """A tracker of a site's settings (a new id, no tracks)."""
+    cfg = settings.fuse_track
+    return Tracker(TrackerConfig(gate_m=cfg.gate_m, max_age_ticks=cfg.max_age_ticks, min_hits=cfg.min_hits,
+                                 high_score=cfg.high_score, standing_hits=cfg.standing_hits))
+
+
+def capped(batches: list[ObjectBatch], limit: int = MAX_ROWS) -> tuple[list[ObjectBatch], int]:
+    """A tick's batches with at most `limit` objects in all (the highest-scoring; fusion's cost grows with the
+    square of the count), and how many were dropped."""
+    n = sum(len(b) for b in batches)
+    if n <= limit:
+        return batches, 0
+    objs = ObjectBatch.concat(batches)
+    return [objs.select(np.sort(np.argsort(-objs.score, kind="stable")[:limit]))], n - limit
 
 
 def fuse_and_track(fusion: Fusion, tracker: Tracker, batches: list[ObjectBatch], t_ref_ns: int) -> TrackState:
@@ -160,17 +221,31 @@ def main(settings: Settings, stopper: Stopper) -> int:
         seq = 0
         log.info("tracker %s, %d cameras, tick %g ms", tracker.id, len(fusion.regions), cfg.tick_ms)
 
+        last_ref: list[int] = []  # the reference time of the last tick tracked
+
         def close(closed: list[Tick]) -> None:
-            nonlocal seq
+            nonlocal seq, tracker, tokens
             for tick in closed:
                 t_closed = time.time_ns()
+                if last_ref and tick.t_ref_ns < last_ref[0]:  # the clocks stepped back (ticks.py): start again
+                    log.warning("capture times went back %.3f s: tracker %s ends, a new one starts",
+                                (last_ref[0] - tick.t_ref_ns) / 1e9, tracker.id)
+                    tracker = new_tracker(settings)
+                    for token in tokens:
+                        token.undeclare()
+                    tokens = declare_alive(session, settings.site, "fuse_track", [tracker.id.replace("tracker-", "t")])
+                last_ref[:] = [tick.t_ref_ns]
+                batches, dropped = capped([b for _, _, b in tick.items()])
+                if dropped:
+                    bad(f"tick at {tick.t_ref_ns}: {dropped} objects over the {MAX_ROWS} one tick may hold dropped "
+                        "(the lowest scores)", "tick")
                 try:
-                    state = fuse_and_track(fusion, tracker, [b for _, _, b in tick.items()], tick.t_ref_ns)
-                except ValueError as exc:  # what validation let through and fusion or the tracker cannot take
+                    state = fuse_and_track(fusion, tracker, batches, tick.t_ref_ns)
+                    msg = tracks_message(settings.site, state, tick.t_ref_ns, seq, geo,
+                                         [("tick_closed", t_closed), ("fuse_track", time.time_ns())], tick_frames(tick))
+                except ValueError as exc:  # what validation let through and fusion, the tracker or Tracks cannot take
                     bad(f"tick at {tick.t_ref_ns} dropped: {exc}", "tick")
                     continue
-                msg = tracks_message(settings.site, state, tick.t_ref_ns, seq, geo,
-                                     [("tick_closed", t_closed), ("fuse_track", time.time_ns())], tick_frames(tick))
                 payload = encode(msg)
                 pub.put(payload)
                 latest[:] = [payload]
@@ -198,8 +273,9 @@ def main(settings: Settings, stopper: Stopper) -> int:
             close(ticks.pop_ready(time.monotonic()))
             receiver.wait(POLL_S)
         close(ticks.flush())
-        log.info("stopped: %d Tracks messages, %d ticks (%s), %d late, %d ahead, %d bad %s", seq, ticks.emitted,
-                 ticks.closed_by, ticks.late, ticks.ahead, bad.total, dict(bad.counts))
+        log.info("stopped: %d Tracks messages, %d ticks (%s), %d late, %d ahead, %d over a tick's share, %d restarts, "
+                 "%d bad %s, %d not recorded", seq, ticks.emitted, ticks.closed_by, ticks.late, ticks.ahead, ticks.full,
+                 ticks.restarts, bad.total, dict(bad.counts), recorder.failed)
         queryable.undeclare()
         del tokens
     finally:

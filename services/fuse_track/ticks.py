@@ -53,7 +53,9 @@ class TickConfig:
     before it closes without the late cameras; max_wait_ms: wall time a tick waits at most after its
     first batch; camera_timeout_ms: wall time without a batch after which a camera is not waited for;
     max_empty_ticks: the most empty ticks emitted for one gap in the stream; max_lead_ms: how far a batch's
-    capture time may run ahead of every other live camera's newest before it is dropped as ahead."""
+    capture time may run ahead of every other live camera's newest before it is dropped as ahead;
+    max_per_camera: the most batches one camera may put in one tick (more are dropped as `full`: a camera
+    flooding one capture time would otherwise grow a tick without bound)."""
 
     tick_ms: float = 100.0
     watermark_ms: float = 150.0
@@ -61,6 +63,7 @@ class TickConfig:
     camera_timeout_ms: float = 1000.0
     max_empty_ticks: int = 50
     max_lead_ms: float = 60000.0  # above the event time a live camera's 1 s of silence spans at playback speeds
+    max_per_camera: int = 16  # a 10 Hz camera puts one batch in a 100 ms tick
 
     def __post_init__(self) -> None:
         for name in ("tick_ms", "max_wait_ms", "camera_timeout_ms", "max_lead_ms"):
@@ -70,8 +73,9 @@ class TickConfig:
         if not (isinstance(self.watermark_ms, int | float) and math.isfinite(self.watermark_ms)
                 and self.watermark_ms >= 0):
             raise ValueError(f"watermark_ms must be a finite number >= 0, got {self.watermark_ms!r}")
-        if not isinstance(self.max_empty_ticks, int) or self.max_empty_ticks < 1:
-            raise ValueError(f"max_empty_ticks must be an integer >= 1, got {self.max_empty_ticks!r}")
+        for name in ("max_empty_ticks", "max_per_camera"):
+            if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {getattr(self, name)!r}")
         if round(self.tick_ms * 1e6) < 1:
             raise ValueError(f"tick_ms must be at least 1 ns, got {self.tick_ms!r}")
 
@@ -101,7 +105,7 @@ class Tick(Generic[T]):
 class TickBuffer(Generic[T]):
     """Groups per-camera batches into event-time ticks; see the module docstring.
 
-    cameras: the cameras expected (others that deliver are added). Counters: `late` and `ahead` batches
+    cameras: the cameras expected (others that deliver are added). Counters: `late`, `ahead` and `full` batches
     dropped, `restarts` after a clock's step back, `emitted` ticks, `empty` ticks, `closed_by` per reason;
     `refusal`: why the last batch refused was.
     """
@@ -126,6 +130,7 @@ class TickBuffer(Generic[T]):
         self._start_s: float | None = None
         self.late = 0
         self.ahead = 0
+        self.full = 0
         self.restarts = 0
         self.refusal = ""
         self.emitted = 0
@@ -159,8 +164,8 @@ class TickBuffer(Generic[T]):
 
     def add(self, camera: str, t_capture_ns: int, item: T, now_s: float) -> bool:
         """One camera's batch captured at t_capture_ns (ns), arriving at wall time now_s (s).
-        Returns False when it is late (its tick has closed) or ahead (module docstring): it is counted and
-        dropped, and `refusal` says which."""
+        Returns False when it is late (its tick has closed), ahead or behind (module docstring) or its tick holds
+        max_per_camera of the camera's batches already: it is counted and dropped, and `refusal` says which."""
         self._check_camera(camera)
         if isinstance(t_capture_ns, bool) or not isinstance(t_capture_ns, numbers.Integral) or t_capture_ns < 0:
             raise ValueError(f"t_capture_ns must be an integer >= 0 (ns), got {t_capture_ns!r}")
@@ -200,6 +205,10 @@ class TickBuffer(Generic[T]):
             self.refusal = "late: its tick has closed"
             return False
         tick = self._open.get(k)
+        if tick is not None and len(tick.batches.get(camera, ())) >= self.config.max_per_camera:
+            self.full += 1
+            self.refusal = f"full: {camera} has {self.config.max_per_camera} batches in this tick already"
+            return False
         if tick is None:
             start = k * self._tick_ns
             tick = self._open[k] = Tick(k, start, start + self._tick_ns, start + self._tick_ns // 2)
