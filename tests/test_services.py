@@ -286,6 +286,11 @@ def test_ingest_counts_an_unreadable_or_mislabelled_file_and_goes_on(tmp_path):
     assert frames[0].error == "" and "cannot read" in frames[1].error and frames[1].jpeg is None
     cam = CameraSettings(name="NE", kind="pinhole", width=64, height=48, masks="m.npz")
     assert to_frame_fields(frames[0], cam, "gray8", 1)["width"] == 64
+    # a PNG in the folder with encoding jpeg: decoded and encoded as a JPEG (only a JPEG is passed through)
+    png = SourceFrame("NE", 2, jpeg=cv2.imencode(".png", np.full((48, 64), 77, np.uint8))[1].tobytes(), origin="p.png")
+    fields = to_frame_fields(png, cam, "jpeg", 1)
+    assert fields["encoding"] == "jpeg" and fields["data"][:2] == b"\xff\xd8" and (fields["width"], fields["height"]) \
+        == (64, 48) and abs(int(cv2.imdecode(np.frombuffer(fields["data"], np.uint8), 0).mean()) - 77) <= 1
     lying = SourceFrame("NE", 1, jpeg=jpeg_claiming(65500, 65500), origin="x.jpg")
     for encoding in ("gray8", "jpeg"):
         with pytest.raises(ValueError, match=r"x\.jpg: JPEG is 65500x65500"):
@@ -372,6 +377,9 @@ def test_detect_drops_bad_frames_and_keeps_running(site, site_name, small_record
         (key, tampered(jpeg, data=b"\xff\xd8" + bytes(MAX_FRAME_BYTES)), f"exceeds the {MAX_FRAME_BYTES}-byte limit"),
         (key, tampered(jpeg, data=b""), r"camera NE seq 0: corrupt JPEG \(0 bytes\)"),
         (key, tampered(jpeg), None),  # the same reason again (only the numbers differ): counted, not logged again
+        # a PNG said to be a JPEG: refused before decoding (its header's size is not checked: a decompression bomb)
+        (key, tampered(jpeg, data=cv2.imencode(".png", np.zeros((8, 8), np.uint8))[1].tobytes()),
+         "encoding 'jpeg' but the data is not a JPEG"),
         (key, tampered(frame, width=4000, height=1, data=bytes(4000)), "cannot detect on a 4000x1 image"),
         (key, tampered(frame, camera="SW"), "frame for camera SW on the key of camera NE"),
         (key, encode(good_objects(site_name, 0)), "expected a frame message, got 'objects'"),

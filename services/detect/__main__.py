@@ -47,7 +47,11 @@ def frame_image(frame: Frame) -> np.ndarray:
     if frame.encoding == "bgr8":
         return cv2.cvtColor(np.frombuffer(frame.data, np.uint8).reshape(frame.height, frame.width, 3),
                             cv2.COLOR_BGR2GRAY)
-    # the header's size is checked before decoding: OpenCV allocates what a header claims (up to 65535 x 65535)
+    # the header's size is checked before decoding: OpenCV allocates what a header claims (up to 65535 x 65535);
+    # other formats OpenCV reads (PNG) have no such check here, and a Frame that says jpeg must be one
+    if frame.data and frame.data[:2] != b"\xff\xd8":
+        raise ValueError(f"camera {frame.camera} seq {frame.seq}: encoding 'jpeg' but the data is not a JPEG "
+                         f"(starts {frame.data[:4].hex() or 'empty'})")
     img = decode_grey(frame.data, frame.width, frame.height, reduce=0, what=f"camera {frame.camera} seq {frame.seq}")
     if img.shape != (frame.height, frame.width):
         raise ValueError(f"camera {frame.camera} seq {frame.seq}: JPEG is {img.shape[1]}x{img.shape[0]}, "
@@ -143,7 +147,12 @@ def main(settings: Settings, stopper: Stopper) -> int:
                     bad(f"camera {frame.camera} seq {frame.seq}: cannot detect on a {frame.width}x{frame.height} "
                         f"image ({str(exc).strip().splitlines()[-1]})", frame.camera)
                     continue
-                pubs[frame.camera].put(encode(detections_message(frame, det, infer_ms, t_in)))
+                try:
+                    msg = detections_message(frame, det, infer_ms, t_in)
+                except ValueError as exc:  # e.g. NaN out of the model: the frame's detections cannot be sent
+                    bad(f"camera {frame.camera} seq {frame.seq}: detections refused ({exc})", frame.camera)
+                    continue
+                pubs[frame.camera].put(encode(msg))
                 done += 1
             if not any(r[0].done() for r in running) and (not waiting or len(running) >= workers):
                 wake.wait(IDLE_WAIT_S)

@@ -40,7 +40,7 @@ def decode_scale_for(width: int, height: int, long_side: int) -> int:
 
 def to_frame_fields(sf: SourceFrame, cam: CameraSettings, encoding: str, decode_scale: int) -> dict:
     """The image part of a Frame: encoding, width, height, scale, data. ValueError for a bad image."""
-    if encoding == "jpeg" and sf.jpeg is not None:
+    if encoding == "jpeg" and sf.jpeg is not None and sf.jpeg[:2] == b"\xff\xd8":  # passed through as it is
         size = jpeg_size(sf.jpeg)
         if size is None:
             raise ValueError(f"{sf.origin}: not a JPEG, or a corrupt one")
