@@ -482,6 +482,11 @@ def test_every_clock_stepping_back_restarts_the_buffer():
     assert emitted == old + new and len(new) >= 25  # the old clock's ticks first, then the new clock's
     assert "b30" in new[0].items() and sum(len(t.items()) for t in new) >= 55
     assert [t.index for t in new] == list(range(new[0].index, new[0].index + len(new)))
+    # a restart's closed ticks are not lost when the stream ends before the next pop_ready
+    ended: TickBuffer[str] = TickBuffer(["A"], TickConfig(tick_ms=100, max_lead_ms=2000))
+    for k, t in enumerate([hour, hour + 100 * MS, 0, 100 * MS]):
+        ended.add("A", t, f"a{k}", k * 0.01)
+    assert [t.items() for t in ended.flush()] == [["a0"], ["a1"], ["a3"]] and ended.restarts == 1
 
 
 def test_a_camera_flooding_one_tick_is_cut_at_max_per_camera():

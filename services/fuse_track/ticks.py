@@ -229,8 +229,8 @@ class TickBuffer(Generic[T]):
         return out
 
     def flush(self) -> list[Tick[T]]:
-        """Close every open tick (end of stream), oldest first."""
-        out: list[Tick[T]] = []
+        """Close every open tick (end of stream), oldest first (after those a restart closed)."""
+        out, self._ready = self._ready, []
         while self._open:
             out.append(self._close(self._head(), "flush"))
         return out
@@ -245,7 +245,7 @@ class TickBuffer(Generic[T]):
 
     def _restart(self) -> None:
         """A confirmed step back of the clock: the open ticks closed for the next pop_ready, the history cleared."""
-        self._ready += self.flush()
+        self._ready = self.flush()
         self._newest_ns.clear()
         self._pending_ns.clear()
         self._periods_ns.clear()
