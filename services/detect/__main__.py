@@ -51,7 +51,7 @@ def frame_image(frame: Frame) -> np.ndarray:
     # other formats OpenCV reads (PNG) have no such check here, and a Frame that says jpeg must be one
     if frame.data and frame.data[:2] != b"\xff\xd8":
         raise ValueError(f"camera {frame.camera} seq {frame.seq}: encoding 'jpeg' but the data is not a JPEG "
-                         f"(starts {frame.data[:4].hex() or 'empty'})")
+                         f"(starts {frame.data[:4].hex()})")
     img = decode_grey(frame.data, frame.width, frame.height, reduce=0, what=f"camera {frame.camera} seq {frame.seq}")
     if img.shape != (frame.height, frame.width):
         raise ValueError(f"camera {frame.camera} seq {frame.seq}: JPEG is {img.shape[1]}x{img.shape[0]}, "

@@ -116,24 +116,20 @@ class Recorder:
                 raise ValueError(f"cannot write the tracks recording {path}: {exc.strerror or exc}") from None
 
     def _cut_partial_line(self) -> None:
-        end = self.file.seek(0, 2)
-        if end == 0:
-            return
+        """Cut the file back to its last complete line (scanning back from the end a chunk at a time)."""
+        end = keep = self.file.seek(0, 2)
         with self.path.open("rb") as f:
-            pos = end
-            while pos > 0:
-                step = min(pos, 65536)
-                f.seek(pos - step)
-                chunk = f.read(step)
-                if pos == end and chunk.endswith(b"\n"):
-                    return
-                nl = chunk.rfind(b"\n")
+            while keep > 0:
+                start = max(0, keep - 65536)
+                f.seek(start)
+                nl = f.read(keep - start).rfind(b"\n")
                 if nl >= 0:
-                    pos = pos - step + nl + 1
+                    keep = start + nl + 1
                     break
-                pos -= step
-        log.warning("%s ended in half a line (%d bytes, a write cut off): removed", self.path, end - pos)
-        self.file.truncate(pos)
+                keep = start
+        if keep < end:
+            log.warning("%s ended in half a line (%d bytes, a write cut off): removed", self.path, end - keep)
+            self.file.truncate(keep)
 
     def write(self, msg: Tracks) -> None:
         if self.file is None:
@@ -221,20 +217,20 @@ def main(settings: Settings, stopper: Stopper) -> int:
         seq = 0
         log.info("tracker %s, %d cameras, tick %g ms", tracker.id, len(fusion.regions), cfg.tick_ms)
 
-        last_ref: list[int] = []  # the reference time of the last tick tracked
+        last_ref: int | None = None  # the reference time of the last tick tracked
 
         def close(closed: list[Tick]) -> None:
-            nonlocal seq, tracker, tokens
+            nonlocal seq, tracker, tokens, last_ref
             for tick in closed:
                 t_closed = time.time_ns()
-                if last_ref and tick.t_ref_ns < last_ref[0]:  # the clocks stepped back (ticks.py): start again
+                if last_ref is not None and tick.t_ref_ns < last_ref:  # the clocks stepped back (ticks.py): start again
                     log.warning("capture times went back %.3f s: tracker %s ends, a new one starts",
-                                (last_ref[0] - tick.t_ref_ns) / 1e9, tracker.id)
+                                (last_ref - tick.t_ref_ns) / 1e9, tracker.id)
                     tracker = new_tracker(settings)
                     for token in tokens:
                         token.undeclare()
                     tokens = declare_alive(session, settings.site, "fuse_track", [tracker.id.replace("tracker-", "t")])
-                last_ref[:] = [tick.t_ref_ns]
+                last_ref = tick.t_ref_ns
                 batches, dropped = capped([b for _, _, b in tick.items()])
                 if dropped:
                     bad(f"tick at {tick.t_ref_ns}: {dropped} objects over the {MAX_ROWS} one tick may hold dropped "

@@ -43,7 +43,7 @@ def to_frame_fields(sf: SourceFrame, cam: CameraSettings, encoding: str, decode_
     if encoding == "jpeg" and sf.jpeg is not None and sf.jpeg[:2] == b"\xff\xd8":  # passed through as it is
         size = jpeg_size(sf.jpeg)
         if size is None:
-            raise ValueError(f"{sf.origin}: not a JPEG, or a corrupt one")
+            raise ValueError(f"{sf.origin}: corrupt JPEG: no frame header")
         if size != (cam.width, cam.height):
             raise ValueError(f"{sf.origin}: JPEG is {size[0]}x{size[1]}, camera {cam.name} is {cam.width}x{cam.height}")
         return {"encoding": "jpeg", "width": cam.width, "height": cam.height, "scale": 1.0, "data": sf.jpeg}
