@@ -235,6 +235,9 @@ def _add_train(sub) -> None:
                         "command again with --resume; the schedule and a --minutes budget go on from where it was")
     p.add_argument("--axis-head", action="store_true",
                    help="predict the heading's axis too (training/model.py); with --init, adds it to that model")
+    p.add_argument("--vote-head", action="store_true",
+                   help="train the centre votes (--beta-vote) in a head of their own rather than the offset head; "
+                        "decoding moves a peak far from its vehicle's centre there (training/model.py)")
     p.add_argument("--beta-heading", type=_positive_float,
                    help="weight of the heading term (default 0.01, the paper's; with --init, the checkpoint's)")
     p.add_argument("--beta-size", type=_positive_float,
@@ -333,7 +336,7 @@ def _run_train(args) -> int:
                       input_long_side=args.input_long_side, device=args.device, workers=args.workers,
                       train_only=tuple(h.strip() for h in args.train_only.split(",") if h.strip()),
                       augment=AugmentConfig(fisheye_rotation=args.fisheye_rotation, focus_by_size=args.focus_by_size),
-                      model=DetectorConfig(stride=args.stride, axis_head=args.axis_head),
+                      model=DetectorConfig(stride=args.stride, axis_head=args.axis_head, vote_head=args.vote_head),
                       loss=_train_loss(args, LossConfig))
     print(dumps(train(cfg), indent=1))
     return 0

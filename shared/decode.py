@@ -17,6 +17,7 @@ import numpy as np
 BOX_SCALE_PX = 32.0  # the size head predicts 2D box width and height in input pixels / BOX_SCALE_PX
 HEADING_EPS = 1e-12
 PEAK_KERNEL = np.ones((3, 3), np.uint8)
+VOTE_MIN_CELLS = 1.5  # a peak whose vote points further than this (output cells) is moved to the vehicle's centre
 CONFIG_KEY = "detector_config"  # ONNX metadata written by training.export: the DetectorConfig as JSON
 
 
@@ -93,19 +94,27 @@ def peak_mask(heat: np.ndarray) -> np.ndarray:
 
 
 def decode(heat: np.ndarray, size: np.ndarray, heading: np.ndarray, vtype_prob: np.ndarray, offset: np.ndarray,
-           stride: int, score_thr: float = 0.3, top_k: int = 100, axis: np.ndarray | None = None) -> Detections:
+           stride: int, score_thr: float = 0.3, top_k: int = 100, axis: np.ndarray | None = None,
+           vote: np.ndarray | None = None, vote_min_cells: float = VOTE_MIN_CELLS) -> Detections:
     """Detections of one image from the exported model's outputs without the batch axis:
     heat (1, h, w), size (5, h, w), heading (2, h, w), vtype_prob (C, h, w), offset (4, h, w), and the optional
     axis (2, h, w) of a model with an axis head; coordinates in input pixels. Peaks at or above score_thr, the
     top_k highest first (ties in row-major order).
 
     With `axis` ((cos 2a, sin 2a) of the heading angle a), the heading is the axis direction (cos a, sin a),
-    turned round where it points away from the heading head's vector (which then only gives the sign)."""
+    turned round where it points away from the heading head's vector (which then only gives the sign).
+
+    With `vote` (2, h, w) (a model with a vote head: at every cell of a vehicle's 2D box, the way to its centre in
+    cells), a peak whose vote points further than `vote_min_cells` lies away from its vehicle's centre (the near
+    end of a bus seen from its pole): it is read at the cell its vote points to instead (position, box, size,
+    heading and type there; its own score), and of detections that then lie within half the smaller side of a
+    higher-scoring one's 2D box, where one of the two was moved, only the higher-scoring one is kept."""
     if heat.ndim != 3 or heat.shape[0] != 1:
         raise ValueError(f"heat must have shape (1, h, w), got {heat.shape}")
     h, w = heat.shape[1:]
     maps = [("size", size, 5), ("heading", heading, 2), ("offset", offset, 4),
-            ("vtype_prob", vtype_prob, vtype_prob.shape[0])] + ([("axis", axis, 2)] if axis is not None else [])
+            ("vtype_prob", vtype_prob, vtype_prob.shape[0])] + ([("axis", axis, 2)] if axis is not None else []) \
+        + ([("vote", vote, 2)] if vote is not None else [])
     for name, arr, c in maps:
         if arr.shape != (c, h, w):
             raise ValueError(f"{name} must have shape ({c}, {h}, {w}), got {arr.shape}")
@@ -117,6 +126,13 @@ def decode(heat: np.ndarray, size: np.ndarray, heading: np.ndarray, vtype_prob: 
     rows, cols = np.nonzero(peak_mask(hm) & (hm >= score_thr))
     order = np.argsort(-hm[rows, cols], kind="stable")[:top_k]
     rows, cols = rows[order], cols[order]
+    score = hm[rows, cols]
+    moved = np.zeros(len(rows), bool)
+    if vote is not None:
+        v = vote[:, rows, cols].astype(np.float64)
+        moved = np.hypot(v[0], v[1]) > vote_min_cells
+        rows = np.where(moved, np.clip(np.rint(rows + v[1]), 0, h - 1).astype(np.int64), rows)
+        cols = np.where(moved, np.clip(np.rint(cols + v[0]), 0, w - 1).astype(np.int64), cols)
     off = offset[:, rows, cols].astype(np.float64)
     uv = np.stack([cell_centres(w, stride)[cols] + off[0] * stride, cell_centres(h, stride)[rows] + off[1] * stride],
                   axis=1)
@@ -131,6 +147,20 @@ def decode(heat: np.ndarray, size: np.ndarray, heading: np.ndarray, vtype_prob: 
         hd = direction
     hd /= np.maximum(np.linalg.norm(hd, axis=1, keepdims=True), HEADING_EPS)
     prob = vtype_prob[:, rows, cols].astype(np.float64).T
-    return Detections(score=hm[rows, cols], uv=uv, box=np.concatenate([box_c - box_wh / 2, box_c + box_wh / 2], axis=1),
-                      heading_uv=hd, size_lwh=size[0:3, rows, cols].astype(np.float64).T,
-                      vtype=prob.argmax(axis=1), vtype_prob=prob)
+    keep = _kept_after_votes(uv, box_wh, moved) if moved.any() else slice(None)
+    return Detections(score=score[keep], uv=uv[keep],
+                      box=np.concatenate([box_c - box_wh / 2, box_c + box_wh / 2], axis=1)[keep],
+                      heading_uv=hd[keep], size_lwh=size[0:3, rows, cols].astype(np.float64).T[keep],
+                      vtype=prob.argmax(axis=1)[keep], vtype_prob=prob[keep])
+
+
+def _kept_after_votes(uv: np.ndarray, box_wh: np.ndarray, moved: np.ndarray) -> np.ndarray:
+    """Indices (highest score first, as given) of the detections kept after votes moved some: one lying within
+    half the smaller side of a kept, higher-scoring detection's box, where either was moved, is dropped."""
+    kept: list[int] = []
+    for i in range(len(uv)):
+        near = [j for j in kept if (moved[i] or moved[j])
+                and np.hypot(*(uv[i] - uv[j])) < 0.5 * min(box_wh[j, 0], box_wh[j, 1])]
+        if not near:
+            kept.append(i)
+    return np.array(kept, np.int64)

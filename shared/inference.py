@@ -30,10 +30,10 @@ def available_providers(wanted: tuple[str, ...] = PREFERRED_PROVIDERS) -> list[s
     return [p for p in wanted if p in have]
 
 
-OUTPUT_NAMES = {"heat", "size", "heading", "vtype_prob", "offset", "axis"}
+OUTPUT_NAMES = {"heat", "size", "heading", "vtype_prob", "offset", "axis", "vote"}
 # the output channels that change sign when the image is mirrored left to right: the x of the bottom centre's and
-# the box centre's offsets, the x of the heading vector, the sin(2a) of the axis (a -> pi - a)
-MIRROR_NEGATED = {"offset": (0, 2), "heading": (0,), "axis": (1,)}
+# the box centre's offsets, the x of the heading vector, the sin(2a) of the axis (a -> pi - a), the x of the vote
+MIRROR_NEGATED = {"offset": (0, 2), "heading": (0,), "axis": (1,), "vote": (0,)}
 
 
 def mirror_average(outputs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -84,7 +84,7 @@ class OnnxDetector:
         missing = {"heat", "size", "heading", "vtype_prob", "offset"} - set(self.output_names)
         if missing or not set(self.output_names) <= OUTPUT_NAMES:
             raise ValueError(f"{path}: outputs {list(self.output_names)} are not a detector's "
-                             f"(heat, size, heading, vtype_prob, offset and optionally axis)")
+                             f"(heat, size, heading, vtype_prob, offset and optionally axis, vote)")
         self.path = path
         self.score_thr = score_thr
         self.top_k = top_k

@@ -166,7 +166,7 @@ def test_mirror_average_turns_the_mirrors_maps_back():
     from shared.inference import MIRROR_NEGATED, mirror_average
 
     rng = np.random.default_rng(0)
-    shapes = {"heat": 1, "size": 5, "heading": 2, "vtype_prob": 4, "offset": 4, "axis": 2}
+    shapes = {"heat": 1, "size": 5, "heading": 2, "vtype_prob": 4, "offset": 4, "axis": 2, "vote": 2}
     own = {k: rng.normal(size=(c, 6, 8)).astype(np.float32) for k, c in shapes.items()}
     outputs = {}
     for k, o in own.items():

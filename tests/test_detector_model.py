@@ -393,6 +393,24 @@ def test_vote_term_is_the_huber_error_over_vote_cells_and_off_by_default():
         LossConfig(beta_vote=-1.0)
 
 
+
+def test_a_vote_head_takes_the_vote_term_and_leaves_the_offset_to_its_own():
+    torch.manual_seed(0)
+    images, targets = batch_of([synthetic_sample()], 4)
+    model = Detector(replace(TINY, vote_head=True))
+    out = model(images)
+    assert out["vote"].shape == out["offset"][:, :2].shape
+    voting = targets["vote_weight"] > 0
+    err = torch.nn.functional.smooth_l1_loss(out["vote"], targets["offset"][:, :2], reduction="none")
+    total, parts = detector_loss(out, targets, LossConfig(beta_vote=1.0))
+    assert parts["vote"] == pytest.approx(err.sum(dim=1)[voting].mean().item(), rel=1e-5)
+    # perfect votes: no vote term however wrong the offset head is, and the offset term is the offset head's
+    perfect = dict(out, vote=targets["offset"][:, :2].clone())
+    perfect_parts = detector_loss(perfect, targets, LossConfig(beta_vote=1.0))[1]
+    assert perfect_parts["vote"] == 0.0 and perfect_parts["offset"] == pytest.approx(parts["offset"], rel=1e-6)
+    total.backward()
+    assert model.heads["vote"].out.weight.grad.abs().sum() > 0
+
 def batch_of(samples: list[Sample], stride: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     images = torch.from_numpy(np.stack([s.image for s in samples])[:, None].astype(np.float32) / 255)
     return images, default_collate([build_targets(s, stride) for s in samples])
@@ -672,3 +690,77 @@ def test_axis_head_trains_exports_and_loads(tmp_path, one_torch_thread):
     # a model without the head has no axis term in its loss
     plain = Detector(TINY)
     assert detector_loss(plain(images), targets)[1]["axis"] == 0.0
+
+
+
+# --- the vote head ----------------------------------------------------------------------------------------------
+
+
+def bus_end_maps(h=12, w=16):
+    """A bus whose heat peaks at its near end, cell (col 3, row 8), with its centre 5 cells up at (3, 3), where
+    the maps hold the bus (box 64 x 96 px, type 3) and the peak's own cell a smaller car (type 1); a car elsewhere,
+    cell (12, 9), with no vote."""
+    heat, size, heading, prob, offset = (np.zeros((1, h, w), np.float32), np.ones((5, h, w), np.float32),
+                                         np.zeros((2, h, w), np.float32), np.full((5, h, w), 0.1, np.float32),
+                                         np.zeros((4, h, w), np.float32))
+    heading[0] = 1.0
+    heat[0, 8, 3], heat[0, 9, 12] = 0.8, 0.6
+    prob[:, 8, 3] = [0.1, 0.6, 0.1, 0.1, 0.1]
+    prob[:, 3, 3] = [0.1, 0.1, 0.1, 0.6, 0.1]
+    size[:, 3, 3] = [12.0, 2.5, 3.2, 2.0, 3.0]
+    offset[:, 3, 3] = [0.25, -0.25, 0.0, 0.0]
+    vote = np.zeros((2, h, w), np.float32)
+    vote[:, 8, 3] = [0.2, -5.1]  # rounds to the cell (3, 3)
+    vote[:, 9, 12] = [0.5, 0.5]  # a short vote: the car stays where it is
+    return heat, size, heading, prob, offset, vote
+
+
+def test_decode_moves_a_peak_its_vote_points_far_from_to_the_centre_and_reads_the_vehicle_there():
+    heat, size, heading, prob, offset, vote = bus_end_maps()
+    plain = decode(heat, size, heading, prob, offset, stride=4)
+    d = decode(heat, size, heading, prob, offset, stride=4, vote=vote)
+    assert len(d) == len(plain) == 2
+    np.testing.assert_allclose(d.score, [0.8, 0.6], rtol=1e-6)
+    # cell (3, 3) centre (13.5, 13.5) + offset (0.25, -0.25) * 4
+    np.testing.assert_allclose(d.uv[0], [14.5, 12.5])
+    np.testing.assert_allclose(plain.uv[0], [13.5, 33.5])
+    assert d.vtype[0] == 3 and plain.vtype[0] == 1
+    np.testing.assert_allclose(d.size_lwh[0], [12.0, 2.5, 3.2])
+    np.testing.assert_allclose(d.box[0], [14.5 - 32, 12.5 - 48, 14.5 + 32, 12.5 + 48])
+    # the car's short vote leaves it as it was
+    np.testing.assert_allclose(d.uv[1], plain.uv[1])
+    assert d.vtype[1] == plain.vtype[1]
+    # a threshold above the vote's length leaves the bus's end too
+    np.testing.assert_allclose(decode(heat, size, heading, prob, offset, stride=4, vote=vote, vote_min_cells=6).uv,
+                               plain.uv)
+    with pytest.raises(ValueError, match="vote"):
+        decode(heat, size, heading, prob, offset, stride=4, vote=vote[:1])
+
+
+def test_a_moved_peak_that_lands_on_a_detected_vehicle_is_one_detection():
+    heat, size, heading, prob, offset, vote = bus_end_maps()
+    heat[0, 3, 3] = 0.7  # the bus's centre is a peak of its own too, scoring below its end
+    d = decode(heat, size, heading, prob, offset, stride=4, vote=vote)
+    assert len(d) == 2 and d.score[0] == pytest.approx(0.8) and d.vtype[0] == 3
+    heat[0, 3, 3] = 0.9  # ... or above it
+    d = decode(heat, size, heading, prob, offset, stride=4, vote=vote)
+    assert len(d) == 2 and d.score[0] == pytest.approx(0.9) and d.vtype[0] == 3
+    # two unmoved peaks as close as that are two vehicles, as without votes
+    heat, size, heading, prob, offset, vote = bus_end_maps()
+    heat[0, 3, 3], heat[0, 3, 5], vote[:] = 0.7, 0.65, 0.0
+    size[:, 3, 5] = size[:, 3, 3]
+    assert len(decode(heat, size, heading, prob, offset, stride=4, vote=vote)) == 4
+
+
+def test_vote_head_exports_and_the_detector_uses_it(tmp_path, one_torch_thread):
+    from shared.inference import OnnxDetector
+    from training.export import export_onnx
+
+    torch.manual_seed(0)
+    model = Detector(replace(TINY, axis_head=True, vote_head=True))
+    save_detector(model, tmp_path / "m.pt")
+    assert load_detector(tmp_path / "m.pt").config.vote_head
+    export_onnx(model.eval(), tmp_path / "v.onnx", None, (64, 64))
+    det = OnnxDetector(tmp_path / "v.onnx", threads=1, score_thr=0.01)
+    assert det.output_names[-2:] == ("axis", "vote")
+    assert len(det.detect(synthetic_sample().image)) > 0

@@ -16,7 +16,8 @@ offset   squared error, summed over the four components
 box      (beta_box > 0 only) the 2D box's part of size and offset again: log-space error of the box width and
          height plus the squared error of the box centre's offset, so the box can be weighted above the 3D
          size without changing the rest (the 2D box is what ap50 scores; the paper has no such term)
-vote     (beta_vote > 0 only) Huber error (1 cell) of the offset's first two channels at the targets' vote cells
+vote     (beta_vote > 0 only) Huber error (1 cell) of the vote head (a model without one: the offset's first two
+         channels) at the targets' vote cells
          (training/targets.py: every cell of a vehicle's 2D box points at its centre), a plain mean over them: a
          peak at the end of a long vehicle can still give its centre
 The regression terms are weighted per cell by the targets' `weight` (and masks) and divided by the sum of
@@ -152,7 +153,8 @@ def detector_loss(outputs: dict[str, torch.Tensor], targets: dict[str, torch.Ten
     offset = _weighted(offset_err.sum(dim=1), weight)
     box_known = size_mask[:, 3:5].sum(dim=1) > 0
     box = _weighted((log_err * size_mask)[:, 3:5].sum(dim=1) + offset_err[:, 2:4].sum(dim=1), weight * box_known)
-    vote_err = F.smooth_l1_loss(outputs["offset"][:, :2], targets["offset"][:, :2], reduction="none", beta=1.0)
+    voted = outputs["vote"] if "vote" in outputs else outputs["offset"][:, :2]
+    vote_err = F.smooth_l1_loss(voted, targets["offset"][:, :2], reduction="none", beta=1.0)
     vote = _weighted(vote_err.sum(dim=1), targets["vote_weight"])
     total = (heat + cfg.beta_size * size + cfg.beta_heading * (heading + axis) + cfg.beta_vtype * vtype
              + cfg.beta_offset * offset + cfg.beta_box * box + cfg.beta_vote * vote)

@@ -11,6 +11,8 @@ Outputs at (H / stride, W / stride) for a (B, 1, H, W) grey input in [0, 1]:
     vtype    (B, C, h, w) logits over VEHICLE_TYPES (the export wrapper applies softmax)
     offset   (B, 4, h, w) linear: (u - cell_u) / stride, (v - cell_v) / stride,
              (box_cx - u) / box_w, (box_cy - v) / box_h, with (u, v) the bottom centre in input pixels
+    vote     (B, 2, h, w) linear, only with `vote_head`: (u - cell_u) / stride, (v - cell_v) / stride of the
+             vehicle whose 2D box holds the cell, however far (training/targets.py, votes)
 """
 
 from __future__ import annotations
@@ -52,6 +54,9 @@ class DetectorConfig:
                       least for a zero vector, and the heading head learns nothing (measured: its loss stayed
                       at 0.8-1.0 of 2 over 5,000 steps, a yaw error of 60-90 degrees); the axis has no such
                       ambiguity. Decoding takes the direction from the axis and only its sign from the heading.
+    vote_head         also predict, at every cell of a vehicle's 2D box, the way to its centre (trained by the
+                      loss's vote term). Decoding moves a peak that lies far from the centre its vote points at
+                      (a bus's near end) there, and reads the vehicle there (shared/decode.py).
     """
 
     width_mult: float = 0.5
@@ -63,6 +68,7 @@ class DetectorConfig:
     num_types: int = len(VEHICLE_TYPES)
     input_long_side: int = 640
     axis_head: bool = False
+    vote_head: bool = False
 
     def __post_init__(self) -> None:
         if self.stride not in STRIDES:
@@ -79,7 +85,7 @@ class DetectorConfig:
     def heads(self) -> dict[str, int]:
         """Output channels per head."""
         heads = {"heat": 1, "size": 5, "heading": 2, "vtype": self.num_types, "offset": 4}
-        return heads | ({"axis": 2} if self.axis_head else {})
+        return heads | ({"axis": 2} if self.axis_head else {}) | ({"vote": 2} if self.vote_head else {})
 
 
 def _divisible(value: float, divisor: int = 8) -> int:
@@ -211,7 +217,7 @@ class Detector(nn.Module):
 
 
 class ExportWrapper(nn.Module):
-    """The deployed graph: (B, 1, H, W) in [0, 1] -> (heat, size, heading, vtype_prob, offset[, axis]);
+    """The deployed graph: (B, 1, H, W) in [0, 1] -> (heat, size, heading, vtype_prob, offset[, axis][, vote]);
     `outputs` names them (the ONNX output names, and shared.decode.decode's arguments)."""
 
     OUTPUTS = ("heat", "size", "heading", "vtype_prob", "offset")
@@ -219,7 +225,8 @@ class ExportWrapper(nn.Module):
     def __init__(self, detector: Detector) -> None:
         super().__init__()
         self.detector = detector
-        self.outputs = self.OUTPUTS + (("axis",) if detector.config.axis_head else ())
+        self.outputs = (self.OUTPUTS + (("axis",) if detector.config.axis_head else ())
+                        + (("vote",) if detector.config.vote_head else ()))
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, ...]:
         out = self.detector(x)
@@ -227,7 +234,7 @@ class ExportWrapper(nn.Module):
         # 128 x 128 on one CPU thread, these element-wise ops ~0.2 ms
         logits = out["vtype"]
         e = torch.exp(logits - logits.amax(dim=1, keepdim=True))
-        extra = (out["axis"],) if "axis" in out else ()
+        extra = tuple(out[name] for name in ("axis", "vote") if name in out)
         return (out["heat"], out["size"], out["heading"], e / e.sum(dim=1, keepdim=True), out["offset"], *extra)
 
 
