@@ -150,7 +150,7 @@ class DetectorAlone:
         rec = Recording(rec_dir)
         self.detect = detect
         self.det = OnnxDetector(cfg.model, providers=["CPUExecutionProvider"], threads=detect.threads,
-                                spin=detect.spin, mirror=detect.mirror)
+                                spin=detect.spin, mirror=detect.mirror, votes=detect.votes)
         cams = {c: rec.cameras[c] for c in rec.camera_names}
         frames = [(p, decode_scale_for(cams[c].width, cams[c].height, self.det.long_side), area[c])
                   for c in rec.camera_names for _, p in rec.frames(c)]

@@ -58,7 +58,8 @@ class OnnxDetector:
     """An exported detector. `detect(grey)` -> Detections in the image's own pixels."""
 
     def __init__(self, path: str | Path, providers: list[str] | None = None, threads: int = 2,
-                 score_thr: float = 0.3, top_k: int = 200, spin: bool = True, mirror: bool = False) -> None:
+                 score_thr: float = 0.3, top_k: int = 200, spin: bool = True, mirror: bool = False,
+                 votes: bool = True) -> None:
         import onnxruntime as ort
 
         path = Path(path)
@@ -89,6 +90,7 @@ class OnnxDetector:
         self.score_thr = score_thr
         self.top_k = top_k
         self.mirror = mirror  # infer the image and its mirror as a batch of two and average (`mirror_average`)
+        self.votes = votes  # a model with a vote head: decoding moves peaks far from their centre (shared/decode.py)
 
     @property
     def providers(self) -> list[str]:
@@ -163,6 +165,8 @@ class OnnxDetector:
         else:
             outs = self.session.run(None, {self.input_name: x})
             maps = {name: o[0] for name, o in zip(self.output_names, outs, strict=True)}
+        if not self.votes:
+            maps.pop("vote", None)
         det = decode(**maps, stride=self.stride, score_thr=self.score_thr, top_k=self.top_k)
         # network pixel p (centre convention) <- image pixel q: p + 0.5 = (q + 0.5) * scale
         inv = 1.0 / scale

@@ -151,6 +151,9 @@ class DetectSettings(Strict):
     # (shared/inference.py `mirror_average`): twice the inference for better placed, surer detections (docs/pipeline.md
     # "Mirror averaging"). For a GPU, or a CPU with cores to spare
     mirror: bool = False
+    # a model with a vote head (training/model.py): a peak whose vote points far from it (a bus's near end) is read at
+    # the vehicle's centre (shared/decode.py). False: its peaks are read where they are, as a model without one
+    votes: bool = True
 
 
 class LocalizeSettings(Strict):

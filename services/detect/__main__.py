@@ -69,7 +69,7 @@ def load_detector(settings: Settings) -> OnnxDetector:
     if not path.is_file():
         raise ValueError(f"detector model not found: {path} (set detect.model in the site file)")
     return OnnxDetector(path, providers=providers, threads=cfg.threads, score_thr=cfg.score_thr, spin=cfg.spin,
-                        mirror=cfg.mirror)
+                        mirror=cfg.mirror, votes=cfg.votes)
 
 
 def detections_message(frame: Frame, det, infer_ms: float, t_in_ns: int) -> Detections:
