@@ -236,8 +236,8 @@ def _add_train(sub) -> None:
     p.add_argument("--axis-head", action="store_true",
                    help="predict the heading's axis too (training/model.py); with --init, adds it to that model")
     p.add_argument("--vote-head", action="store_true",
-                   help="train the centre votes (--beta-vote) in a head of their own rather than the offset head; "
-                        "decoding moves a peak far from its vehicle's centre there (training/model.py)")
+                   help="train the centre votes (--beta-vote) in a head of their own rather than the offset head "
+                        "(training/model.py); detect.votes lets decoding use them")
     p.add_argument("--beta-heading", type=_positive_float,
                    help="weight of the heading term (default 0.01, the paper's; with --init, the checkpoint's)")
     p.add_argument("--beta-size", type=_positive_float,
@@ -390,8 +390,9 @@ def _add_eval(sub) -> None:
     p.add_argument("--mirror", action="store_true",
                    help="detector, real: infer each frame and its left-right mirror and average the maps "
                         "(detect.mirror)")
-    p.add_argument("--no-votes", action="store_true",
-                   help="detector, real: read a vote-head model's peaks where they are (detect.votes false)")
+    p.add_argument("--votes", action="store_true",
+                   help="detector, real: a vote-head model's peaks whose votes point far away are read where they "
+                        "point (detect.votes)")
     p.add_argument("--demo", type=Path, action="append",
                    help="budget: a roadside demo output folder (objects.jsonl, site/, the recording; default "
                         "out/demo); repeatable: each run's budget and the mean over them")
@@ -452,7 +453,7 @@ def _run_eval(args) -> int:
         thr = 0.3 if args.score_thr is None else args.score_thr
         curve = tuple(round(0.05 * k, 2) for k in range(1, 13))  # 0.05 ... 0.6
         det = OnnxDetector(args.model, threads=args.threads, score_thr=min(thr, *curve), mirror=args.mirror,
-                           votes=not args.no_votes)
+                           votes=args.votes)
         has_settings = args.site.is_file() or (args.site / "site.yaml").is_file()  # a bare labels + masks folder too
         settings = load_settings(args.site) if has_settings else None
         cams = settings.cameras if settings else []
@@ -472,7 +473,7 @@ def _run_eval(args) -> int:
     if args.recording is None:
         raise ValueError("eval detector needs --recording")
     thr = 0.05 if args.score_thr is None else args.score_thr  # 0 is a threshold too
-    det = OnnxDetector(args.model, threads=args.threads, score_thr=thr, mirror=args.mirror, votes=not args.no_votes)
+    det = OnnxDetector(args.model, threads=args.threads, score_thr=thr, mirror=args.mirror, votes=args.votes)
     result = evaluate(args.recording, det.detect, every=args.every, fisheye_area_deg=args.fisheye_area_deg,
                       near_m=args.near_m, near_score=args.near_score)
     line = ("{name:8s} ap50 {ap50} loc {loc_err_m} m yaw {yaw_err_deg} deg size {size_err_m} m ({frames} frames); "

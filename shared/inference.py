@@ -59,7 +59,7 @@ class OnnxDetector:
 
     def __init__(self, path: str | Path, providers: list[str] | None = None, threads: int = 2,
                  score_thr: float = 0.3, top_k: int = 200, spin: bool = True, mirror: bool = False,
-                 votes: bool = True) -> None:
+                 votes: bool = False) -> None:
         import onnxruntime as ort
 
         path = Path(path)

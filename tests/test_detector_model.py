@@ -765,15 +765,15 @@ def test_vote_head_exports_and_the_detector_uses_it(tmp_path, one_torch_thread):
     assert det.output_names[-2:] == ("axis", "vote")
     assert len(det.detect(synthetic_sample().image)) > 0
     # votes 3 cells to the right everywhere and no sub-cell offsets: every peak is read 3 cells (12 pixels) right of
-    # itself, unless told not to
+    # itself when the detector is told to use them (not by default)
     with torch.no_grad():
         for name, bias in (("vote", [3.0, 0.0]), ("offset", [0.0] * 4)):
             model.heads[name].out.weight.zero_()
             model.heads[name].out.bias.copy_(torch.tensor(bias))
     export_onnx(model.eval(), tmp_path / "v3.onnx", None, (64, 64))
     image = synthetic_sample().image
-    voted = OnnxDetector(tmp_path / "v3.onnx", threads=1, score_thr=0.01, top_k=1).detect(image)
-    plain = OnnxDetector(tmp_path / "v3.onnx", threads=1, score_thr=0.01, top_k=1, votes=False).detect(image)
+    voted = OnnxDetector(tmp_path / "v3.onnx", threads=1, score_thr=0.01, top_k=1, votes=True).detect(image)
+    plain = OnnxDetector(tmp_path / "v3.onnx", threads=1, score_thr=0.01, top_k=1).detect(image)
     assert len(voted) == len(plain) == 1
     assert plain.uv[0, 0] < 64 - 12  # room to move right
     np.testing.assert_allclose(voted.uv[0] - plain.uv[0], [12.0, 0.0], atol=1e-4)

@@ -55,8 +55,8 @@ class DetectorConfig:
                       at 0.8-1.0 of 2 over 5,000 steps, a yaw error of 60-90 degrees); the axis has no such
                       ambiguity. Decoding takes the direction from the axis and only its sign from the heading.
     vote_head         also predict, at every cell of a vehicle's 2D box, the way to its centre (trained by the
-                      loss's vote term). Decoding moves a peak that lies far from the centre its vote points at
-                      (a bus's near end) there, and reads the vehicle there (shared/decode.py).
+                      loss's vote term). With `detect.votes`, decoding moves a peak that lies far from the centre its
+                      vote points at (a bus's near end) there, and reads the vehicle there (shared/decode.py).
     """
 
     width_mult: float = 0.5
