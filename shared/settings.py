@@ -110,6 +110,9 @@ class IngestSettings(Strict):
     max_frames: int | None = Field(None, gt=0)  # stop after this many frames per camera
     # pace "max": frames published but not yet detected (default: detect.workers, so that no worker idles)
     max_in_flight: int | None = Field(None, ge=1)
+    # pace "max": seconds a frame's detections may take before ingest stops waiting for them (a detect restart
+    # must not stall playback); a frame published after that may push an undetected one out of detect's ring
+    ack_timeout_s: float = Field(2.0, gt=0)
     # liveliness tokens beyond the four services' that ingest waits for before it plays (up to 60 s), e.g. 1 for
     # a recorder that must see the first frame (the demo's collector declares one once it is linked to all four)
     wait_extra_peers: int = Field(0, ge=0)

@@ -5,7 +5,7 @@
 Playback pace: `1` real time, `N` N x real time, `max` as fast as the pipeline takes it (at most
 `max_in_flight` frames published and not yet detected, by default as many as detect has workers, and
 never more of one camera than detect's ring keeps; an acknowledgement that does not come within
-`ACK_TIMEOUT_S` is given up, so a detect restart does not stall playback). With `loop`, the source
+`ingest.ack_timeout_s` is given up, so a detect restart does not stall playback). With `loop`, the source
 repeats with capture times shifted so event time keeps increasing. A frame that cannot be decoded
 (corrupt JPEG) is counted, logged and skipped. Exits 0 when the source ends.
 """
@@ -28,7 +28,6 @@ from shared.service import run
 from shared.settings import CameraSettings, Settings
 
 log = logging.getLogger("roadside.ingest")
-ACK_TIMEOUT_S = 2.0
 PIPELINE_WAIT_S = 60.0
 REDUCED = {1: cv2.IMREAD_GRAYSCALE, 2: cv2.IMREAD_REDUCED_GRAYSCALE_2, 4: cv2.IMREAD_REDUCED_GRAYSCALE_4}
 
@@ -95,8 +94,10 @@ class Acks:
     `limit` in all and `per_camera` of one camera (detect's ring keeps that many per camera: a frame more
     would push an unprocessed one out, and its acknowledgement would never come)."""
 
-    def __init__(self, receiver: Receiver, limit: int, stopper: Stopper, per_camera: int = 1) -> None:
+    def __init__(self, receiver: Receiver, limit: int, stopper: Stopper, per_camera: int = 1,
+                 timeout_s: float = 2.0) -> None:
         self.receiver, self.limit, self.stopper, self.per_camera = receiver, limit, stopper, per_camera
+        self.timeout_s = timeout_s
         self.pending: dict[tuple[str, int], float] = {}
         self.timeouts = 0
 
@@ -110,7 +111,7 @@ class Acks:
             self.drain()
             now = time.monotonic()
             for key, t in list(self.pending.items()):
-                if now - t > ACK_TIMEOUT_S:
+                if now - t > self.timeout_s:
                     del self.pending[key]
                     self.timeouts += 1
             own = sum(1 for c, _ in self.pending if c == camera)
@@ -137,7 +138,8 @@ def main(settings: Settings, stopper: Stopper) -> int:
         acks = None
         if cfg.pace == "max":
             acks = Acks(Receiver(session, all_cameras_key(settings.site, "detections"), Detections, bad),
-                        cfg.max_in_flight or settings.detect.workers, stopper, per_camera=settings.detect.ring)
+                        cfg.max_in_flight or settings.detect.workers, stopper, per_camera=settings.detect.ring,
+                        timeout_s=cfg.ack_timeout_s)
         tokens = declare_alive(session, settings.site, "ingest", list(cams))
         seen = wait_for_peers(session, all_alive_key(settings.site), len(cams) * 3 + 1 + cfg.wait_extra_peers,
                               PIPELINE_WAIT_S)
@@ -186,7 +188,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
             loop_idx += 1
             offset_ns += last - first + 100_000_000
         if acks is not None:
-            deadline = time.monotonic() + ACK_TIMEOUT_S
+            deadline = time.monotonic() + cfg.ack_timeout_s
             while acks.pending and time.monotonic() < deadline and not stopper.is_set():
                 acks.drain()
                 time.sleep(0.005)
