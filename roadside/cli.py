@@ -237,7 +237,7 @@ def _add_train(sub) -> None:
                    help="predict the heading's axis too (training/model.py); with --init, adds it to that model")
     p.add_argument("--vote-head", action="store_true",
                    help="train the centre votes (--beta-vote) in a head of their own rather than the offset head "
-                        "(training/model.py); detect.votes lets decoding use them")
+                        "(training/model.py; detect.votes lets decoding use them); with --init, adds it to that model")
     p.add_argument("--beta-heading", type=_positive_float,
                    help="weight of the heading term (default 0.01, the paper's; with --init, the checkpoint's)")
     p.add_argument("--beta-size", type=_positive_float,
@@ -332,7 +332,7 @@ def _run_train(args) -> int:
                       steps=args.steps or (UNLIMITED_STEPS if args.minutes else 4000),
                       minutes=args.minutes, batch_size=args.batch_size, crop=args.crop, lr=args.lr, every=args.every,
                       center=args.center, seed=args.seed, init=args.init, resume=args.resume,
-                      add_axis_head=args.axis_head,
+                      add_axis_head=args.axis_head, add_vote_head=args.vote_head,
                       input_long_side=args.input_long_side, device=args.device, workers=args.workers,
                       train_only=tuple(h.strip() for h in args.train_only.split(",") if h.strip()),
                       augment=AugmentConfig(fisheye_rotation=args.fisheye_rotation, focus_by_size=args.focus_by_size),

@@ -113,8 +113,8 @@ def decode(heat: np.ndarray, size: np.ndarray, heading: np.ndarray, vtype_prob: 
         raise ValueError(f"heat must have shape (1, h, w), got {heat.shape}")
     h, w = heat.shape[1:]
     maps = [("size", size, 5), ("heading", heading, 2), ("offset", offset, 4),
-            ("vtype_prob", vtype_prob, vtype_prob.shape[0])] + ([("axis", axis, 2)] if axis is not None else []) \
-        + ([("vote", vote, 2)] if vote is not None else [])
+            ("vtype_prob", vtype_prob, vtype_prob.shape[0])]
+    maps += [(name, arr, 2) for name, arr in (("axis", axis), ("vote", vote)) if arr is not None]
     for name, arr, c in maps:
         if arr.shape != (c, h, w):
             raise ValueError(f"{name} must have shape ({c}, {h}, {w}), got {arr.shape}")

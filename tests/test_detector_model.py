@@ -393,7 +393,6 @@ def test_vote_term_is_the_huber_error_over_vote_cells_and_off_by_default():
         LossConfig(beta_vote=-1.0)
 
 
-
 def test_a_vote_head_takes_the_vote_term_and_leaves_the_offset_to_its_own():
     torch.manual_seed(0)
     images, targets = batch_of([synthetic_sample()], 4)
@@ -410,6 +409,7 @@ def test_a_vote_head_takes_the_vote_term_and_leaves_the_offset_to_its_own():
     assert perfect_parts["vote"] == 0.0 and perfect_parts["offset"] == pytest.approx(parts["offset"], rel=1e-6)
     total.backward()
     assert model.heads["vote"].out.weight.grad.abs().sum() > 0
+
 
 def batch_of(samples: list[Sample], stride: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     images = torch.from_numpy(np.stack([s.image for s in samples])[:, None].astype(np.float32) / 255)
@@ -690,7 +690,6 @@ def test_axis_head_trains_exports_and_loads(tmp_path, one_torch_thread):
     # a model without the head has no axis term in its loss
     plain = Detector(TINY)
     assert detector_loss(plain(images), targets)[1]["axis"] == 0.0
-
 
 
 # --- the vote head ----------------------------------------------------------------------------------------------

@@ -348,7 +348,7 @@ def test_playback_keeps_no_more_frames_of_a_camera_in_flight_than_detect_keeps()
             pass
 
     rx = Acknowledger()
-    acks = Acks(rx, limit=2, stopper=Stopper(install_signals=False), per_camera=1)
+    acks = Acks(rx, limit=2, stopper=Stopper(install_signals=False), timeout_s=2.0, per_camera=1)
     acks.sent("NE", 0)
     acks.wait_for_room("SW")  # another camera: room at once
     assert rx.polls == 1

@@ -42,6 +42,15 @@ def test_train_writes_the_model_and_log_then_fine_tunes_from_it(small_recording,
         assert set(grown.state_dict()) - set(start.state_dict()) == {k for k in grown.state_dict()
                                                                      if k.startswith("heads.axis.")}
         assert "added an axis head" in " ".join(messages)
+        # a vote head too (it was ignored with --init once): the axis model grows one, the rest kept
+        train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "g"), steps=1, batch_size=2,
+                          crop=64, threads=1, init=str(tmp_path / "d" / "model.pt"), add_axis_head=True,
+                          add_vote_head=True), log=messages.append)
+        voting = load_detector(tmp_path / "g" / "model.pt")
+        assert voting.config == replace(grown.config, vote_head=True)
+        assert set(voting.state_dict()) - set(grown.state_dict()) == {k for k in voting.state_dict()
+                                                                      if k.startswith("heads.vote.")}
+        assert "added a vote head" in " ".join(messages)
         # a new input size for the starting weights (the fisheye frames at full resolution)
         train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "e"), steps=1, batch_size=2,
                           crop=64, threads=1, init=str(tmp_path / "a" / "model.pt"), input_long_side=1280),

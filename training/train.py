@@ -63,6 +63,7 @@ class TrainConfig:
     seed: int = 0
     init: str | None = None  # model.pt to start from (fine-tuning); its network config replaces `model`
     add_axis_head: bool = False  # with `init`: give the starting model an axis head (new, the rest kept)
+    add_vote_head: bool = False  # with `init`: give the starting model a vote head (new, the rest kept)
     input_long_side: int | None = None  # network input size (longer side); with `init`, replaces its (weights kept)
     threads: int = 2
     device: str = "cpu"  # "cpu", "cuda" or "cuda:N"
@@ -239,8 +240,9 @@ def trainable(model: Detector, heads: tuple[str, ...], log=print) -> list[torch.
 RESUME_FILE = "resume.pt"
 # settings that must be those of the interrupted run for its resume to continue the same training
 # (as given to `train`: `model` before a starting model's or an input size's replace it)
-RESUME_SAME = ("recordings", "coco", "init", "model", "input_long_side", "add_axis_head", "steps", "minutes",
-               "batch_size", "crop", "lr", "weight_decay", "every", "center", "train_only", "loss", "augment", "seed")
+RESUME_SAME = ("recordings", "coco", "init", "model", "input_long_side", "add_axis_head", "add_vote_head", "steps",
+               "minutes", "batch_size", "crop", "lr", "weight_decay", "every", "center", "train_only", "loss",
+               "augment", "seed")
 
 
 def _resume_settings(cfg: TrainConfig) -> dict:
@@ -316,14 +318,17 @@ def train(cfg: TrainConfig, log=print) -> dict:
         if not Path(cfg.init).is_file():
             raise FileNotFoundError(f"init model not found: {cfg.init}")
         model = load_detector(cfg.init)
-        if cfg.add_axis_head and not model.config.axis_head:
+        new_heads = [name for name, add in (("axis", cfg.add_axis_head), ("vote", cfg.add_vote_head))
+                     if add and not getattr(model.config, f"{name}_head")]
+        if new_heads:
             start = model
-            model = Detector(replace(start.config, axis_head=True))
+            model = Detector(replace(start.config, **{f"{name}_head": True for name in new_heads}))
             missing, unexpected = model.load_state_dict(start.state_dict(), strict=False)
-            if unexpected or any(not k.startswith("heads.axis.") for k in missing):
-                raise ValueError(f"{cfg.init}: weights do not fit the network with an axis head "
-                                 f"(missing {missing}, unexpected {unexpected})")
-            log("[train] added an axis head to the starting model")
+            if unexpected or any(not k.startswith(tuple(f"heads.{name}." for name in new_heads)) for k in missing):
+                raise ValueError(f"{cfg.init}: weights do not fit the network with the new {' and '.join(new_heads)} "
+                                 f"head (missing {missing}, unexpected {unexpected})")
+            for name in new_heads:
+                log(f"[train] added {'an' if name[0] in 'aeiou' else 'a'} {name} head to the starting model")
         if cfg.input_long_side is not None and cfg.input_long_side != model.config.input_long_side:
             log(f"[train] input size {model.config.input_long_side} -> {cfg.input_long_side} px (longer side)")
             model.config = replace(model.config, input_long_side=cfg.input_long_side)

@@ -94,8 +94,8 @@ class Acks:
     `limit` in all and `per_camera` of one camera (detect's ring keeps that many per camera: a frame more
     would push an unprocessed one out, and its acknowledgement would never come)."""
 
-    def __init__(self, receiver: Receiver, limit: int, stopper: Stopper, per_camera: int = 1,
-                 timeout_s: float = 2.0) -> None:
+    def __init__(self, receiver: Receiver, limit: int, stopper: Stopper, timeout_s: float,
+                 per_camera: int = 1) -> None:
         self.receiver, self.limit, self.stopper, self.per_camera = receiver, limit, stopper, per_camera
         self.timeout_s = timeout_s
         self.pending: dict[tuple[str, int], float] = {}
@@ -138,8 +138,8 @@ def main(settings: Settings, stopper: Stopper) -> int:
         acks = None
         if cfg.pace == "max":
             acks = Acks(Receiver(session, all_cameras_key(settings.site, "detections"), Detections, bad),
-                        cfg.max_in_flight or settings.detect.workers, stopper, per_camera=settings.detect.ring,
-                        timeout_s=cfg.ack_timeout_s)
+                        cfg.max_in_flight or settings.detect.workers, stopper, cfg.ack_timeout_s,
+                        per_camera=settings.detect.ring)
         tokens = declare_alive(session, settings.site, "ingest", list(cams))
         seen = wait_for_peers(session, all_alive_key(settings.site), len(cams) * 3 + 1 + cfg.wait_extra_peers,
                               PIPELINE_WAIT_S)
