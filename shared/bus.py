@@ -38,6 +38,7 @@ def zenoh_config(bus: BusSettings, service: str | None = None, client_index: int
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(bus.mode))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(bus.multicast_scouting))
+    conf.insert_json5("transport/shared_memory/enabled", json.dumps(bus.shared_memory))
     listen = list(bus.listen)
     if bus.mode == "peer":
         others = [bus.service_endpoint(s) for s in SERVICES if s != service]

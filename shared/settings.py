@@ -38,6 +38,10 @@ class BusSettings(Strict):
     connect: list[str] = Field(default_factory=list)  # client mode: the router(s), e.g. tcp/zenoh:7447
     listen: list[str] = Field(default_factory=list)  # extra listen endpoints
     multicast_scouting: bool = False
+    # Zenoh's shared-memory transport between processes of one host (its default since 1.x: a 16 MB pool mapped
+    # in every process that sends messages over 3 kB). Off: the demo measured no latency gained by it and 27 MB more
+    # resident in ingest and fuse_track (docs/pipeline.md); containers do not share /dev/shm by default anyway
+    shared_memory: bool = False
 
     def service_endpoint(self, service: str) -> str:
         return f"tcp/{self.host}:{self.port_base + SERVICES.index(service)}"

@@ -689,6 +689,14 @@ def test_zenoh_config_client_mode_needs_a_router() -> None:
     assert json.loads(conf.get_json("listen/endpoints")) == []
 
 
+def test_zenoh_config_shared_memory_is_off_unless_asked() -> None:
+    # Zenoh turns its shared-memory transport on by default: a pool mapped in each process, no latency gained here
+    assert json.loads(zenoh_config(BusSettings(port_base=30000), "ingest").get_json(
+        "transport/shared_memory/enabled")) is False
+    on = zenoh_config(BusSettings(port_base=30000, shared_memory=True), "ingest")
+    assert json.loads(on.get_json("transport/shared_memory/enabled")) is True
+
+
 def test_bad_input_logs_each_reason_once_and_counts_them(caplog) -> None:
     bad = BadInput("detect")
     with caplog.at_level(logging.WARNING, logger="roadside.bus"):
