@@ -38,7 +38,7 @@ def zenoh_config(bus: BusSettings, service: str | None = None, client_index: int
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(bus.mode))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(bus.multicast_scouting))
-    conf.insert_json5("transport/shared_memory/enabled", json.dumps(bus.shared_memory))
+    set_shared_memory(conf, bus.shared_memory)
     listen = list(bus.listen)
     if bus.mode == "peer":
         others = [bus.service_endpoint(s) for s in SERVICES if s != service]
@@ -54,6 +54,17 @@ def zenoh_config(bus: BusSettings, service: str | None = None, client_index: int
     conf.insert_json5("connect/endpoints", json.dumps(connect))
     conf.insert_json5("listen/endpoints", json.dumps(listen))
     return conf
+
+
+def set_shared_memory(conf, enabled: bool) -> None:
+    """Zenoh's shared-memory transport on or off (`bus.shared_memory`). A Zenoh built without it has no such key:
+    off is then what it is anyway; on is an error naming the setting."""
+    try:
+        conf.insert_json5("transport/shared_memory/enabled", json.dumps(enabled))
+    except zenoh.ZError as exc:
+        if enabled:
+            msg = f"bus.shared_memory is true but this Zenoh has no shared-memory transport ({exc})"
+            raise ValueError(msg) from None
 
 
 def open_session(settings: Settings, service: str | None = None, client_index: int = 0) -> zenoh.Session:

@@ -18,8 +18,9 @@ import msgpack
 import numpy as np
 import pytest
 import yaml
+import zenoh
 
-from shared.bus import BadInput, zenoh_config
+from shared.bus import BadInput, set_shared_memory, zenoh_config
 from shared.codec import MAX_ARRAY_ITEMS, MAX_MESSAGE_BYTES, DecodeError, decode, encode
 from shared.keys import (
     alive_key,
@@ -695,6 +696,16 @@ def test_zenoh_config_shared_memory_is_off_unless_asked() -> None:
         "transport/shared_memory/enabled")) is False
     on = zenoh_config(BusSettings(port_base=30000, shared_memory=True), "ingest")
     assert json.loads(on.get_json("transport/shared_memory/enabled")) is True
+
+
+def test_shared_memory_setting_on_a_zenoh_without_it() -> None:
+    class NoSharedMemory:  # a Zenoh built without the feature knows no such key
+        def insert_json5(self, key: str, value: str) -> None:
+            raise zenoh.ZError("unknown key")
+
+    set_shared_memory(NoSharedMemory(), False)  # off is what it is anyway
+    with pytest.raises(ValueError, match=r"bus\.shared_memory is true but this Zenoh has no shared-memory transport"):
+        set_shared_memory(NoSharedMemory(), True)
 
 
 def test_bad_input_logs_each_reason_once_and_counts_them(caplog) -> None:
