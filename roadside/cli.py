@@ -348,6 +348,27 @@ def _add_export(sub) -> None:
     p.add_argument("--out", type=Path, required=True, help="fp32 ONNX file; the fp16 copy gets a _fp16 suffix")
 
 
+def _add_mix(sub) -> None:
+    p = sub.add_parser("mix", help="interpolate a fine-tuned detector's weights with those of the model it started "
+                                   "from (needs torch)")
+    p.add_argument("base", type=Path, help="the starting model (model.pt), e.g. models/detector.pt")
+    p.add_argument("tuned", type=Path, help="its fine-tune (roadside train --init BASE)")
+    p.add_argument("--weight", type=float, required=True,
+                   help="the fine-tune's share in [0, 1]: (1 - w) * base + w * tuned (training/mix.py)")
+    p.add_argument("--out", type=Path, required=True, help="model.pt to write (the base's architecture)")
+
+
+def _run_mix(args) -> int:
+    from training.mix import mix_detectors
+    from training.model import checkpoint_loss, load_detector, save_detector
+
+    mixed = mix_detectors(load_detector(args.base), load_detector(args.tuned), args.weight)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    save_detector(mixed, args.out, loss=checkpoint_loss(args.base))
+    print(f"{args.out}: {1 - args.weight:g} x {args.base} + {args.weight:g} x {args.tuned}")
+    return 0
+
+
 def _run_export(args) -> int:
     from training.export import export_onnx
     from training.model import load_detector
@@ -925,6 +946,7 @@ def main(argv: list[str] | None = None) -> int:
     _add_area(sub)
     _add_composite(sub)
     _add_export(sub)
+    _add_mix(sub)
     _add_eval(sub)
     _add_up(sub)
     _add_tracks(sub)
@@ -933,7 +955,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     runners = {"sim": _run_sim, "demo": _run_demo, "calibrate": _run_calibrate, "bench": _run_bench,
                "train": _run_train, "autolabel": _run_autolabel, "static": _run_static, "area": _run_area,
-               "composite": _run_composite, "export": _run_export,
+               "composite": _run_composite, "export": _run_export, "mix": _run_mix,
                "eval": _run_eval, "up": _run_up,
                "tracks": _run_tracks, "health": _run_health, "viz": _run_viz}
     try:
