@@ -184,6 +184,9 @@ class FuseTrackSettings(Strict):
     max_wait_ms: float = Field(300.0, gt=0)  # wall time a tick waits after its first batch
     camera_timeout_ms: float = Field(1000.0, gt=0)  # wall time without frames before a camera is not waited for
     merge_gate_m: float = Field(3.0, gt=0)  # objects of two cameras this close are one vehicle
+    # weight of an object outside its camera's region in a fused position, against 1 inside (a far view places a
+    # vehicle worse; chosen over the validation recordings, docs/pipeline.md "Far views in a fused position")
+    out_of_region_weight: float = Field(0.1, gt=0, le=1)
     occlusion_fallback: bool = False  # keep out-of-region objects nobody else saw (services/fuse_track/fusion.py)
     # without occlusion_fallback: such an object within this distance of its own camera may still extend a confirmed
     # track, never start one (a vehicle hidden from its region's camera keeps its track while a neighbour sees it;

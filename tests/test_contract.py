@@ -555,6 +555,20 @@ def test_fuse_track_extend_range_reaches_the_services_fusion(tmp_path, monkeypat
         load_settings(write_site(tmp_path, SITE_YAML))
 
 
+def test_fuse_track_out_of_region_weight_reaches_the_services_fusion(tmp_path, monkeypatch) -> None:
+    import services.fuse_track.__main__ as fuse_track
+
+    monkeypatch.setattr(fuse_track, "camera_positions", lambda s: ({"NE": (0.0, 0.0), "T_SW": (50.0, 0.0)}, None))
+    s = load_settings(write_site(tmp_path, SITE_YAML))
+    assert s.fuse_track.out_of_region_weight == 0.1 and fuse_track.build(s)[0].config.out_of_region_weight == 0.1
+    monkeypatch.setenv("ROADSIDE_FUSE_TRACK__OUT_OF_REGION_WEIGHT", "0.2")
+    assert fuse_track.build(load_settings(write_site(tmp_path, SITE_YAML)))[0].config.out_of_region_weight == 0.2
+    for bad in ("0", "1.5", "nan"):
+        monkeypatch.setenv("ROADSIDE_FUSE_TRACK__OUT_OF_REGION_WEIGHT", bad)
+        with pytest.raises(ValueError, match=r"fuse_track\.out_of_region_weight"):
+            load_settings(write_site(tmp_path, SITE_YAML))
+
+
 def test_environment_override_is_validated(tmp_path, monkeypatch) -> None:
     monkeypatch.setenv("ROADSIDE_BUS__MODE", "broker")
     with pytest.raises(ValueError, match=r"site.yaml: bus.mode"):

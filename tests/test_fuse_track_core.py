@@ -573,13 +573,16 @@ def test_fusion_prefers_the_region_camera_and_keeps_occluded_objects_when_asked(
     fused = fusion.fuse(objects, 0)
     assert len(fused) == 2
     assert fused.sources_of(0) == ["A", "B"] and fused.sources_of(1) == ["B"]
-    assert fused.xy[0, 0] == pytest.approx((-15.0 * 1.0 + -14.5 * 0.2) / 1.2)
+    w = FusionConfig().out_of_region_weight  # B's object outside its region counts this much against A's 1
+    assert w == 0.1 and fused.xy[0, 0] == pytest.approx((-15.0 * 1.0 + -14.5 * w) / (1.0 + w))
     assert np.allclose(fused.xy[1], [-10.0, 8.0])
     assert fused.camera.tolist() == ["A", "B"]
     # by default (the paper's rule) B's object in A's region that A did not see is dropped
     strict = Fusion(regions, FusionConfig(merge_gate_m=2.5)).fuse(objects, 0)
     assert len(strict) == 1 and strict.sources_of(0) == ["A", "B"]
     assert strict.xy[0, 0] == pytest.approx(fused.xy[0, 0])
+    heavier = Fusion(regions, FusionConfig(merge_gate_m=2.5, out_of_region_weight=0.5)).fuse(objects, 0)
+    assert heavier.xy[0, 0] == pytest.approx((-15.0 * 1.0 + -14.5 * 0.5) / 1.5)
 
 
 def test_fusion_keeps_an_object_its_region_camera_missed_as_extend_only_within_range():

@@ -241,8 +241,9 @@ class CameraRegion:
 class FusionConfig:
     """merge_gate_m: objects of different frames closer than this (at the tick's reference time) are
     one vehicle; out_of_region_weight: weight of an object outside its camera's region relative to
-    one inside (~ the variance ratio of in- and out-of-region localization, (0.22 / 0.49)^2 in the
-    paper); min_score: objects below it are ignored (the paper fuses high-certainty detections only);
+    one inside (the variance ratio of in- and out-of-region localization, (0.22 / 0.49)^2 = 0.2 in the
+    paper, 0.1 chosen over the validation recordings: docs/pipeline.md); min_score: objects below it are
+    ignored (the paper fuses high-certainty detections only);
     occlusion_fallback: keep an object outside its camera's region that no region owner saw (module doc, 3);
     extend_range_m: without occlusion_fallback, keep such an object as extend-only when it lies within this distance
     of its own camera (module doc, 3; 0 = drop it, the paper's rule);
@@ -251,7 +252,7 @@ class FusionConfig:
     would otherwise let a high-score one from outside it join its group and start a track; 0 = one pool)."""
 
     merge_gate_m: float = 3.0
-    out_of_region_weight: float = 0.2
+    out_of_region_weight: float = 0.1
     min_score: float = 0.0
     occlusion_fallback: bool = False
     extend_range_m: float = 0.0
