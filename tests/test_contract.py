@@ -542,30 +542,23 @@ def test_environment_overrides_nested_fields_and_keeps_the_rest(tmp_path, monkey
     assert s.ingest.pace == "max"
 
 
-def test_fuse_track_extend_range_reaches_the_services_fusion(tmp_path, monkeypatch) -> None:
+@pytest.mark.parametrize(("name", "default", "other", "bad"), [
+    ("extend_range_m", 50.0, 0.0, ("-5",)),
+    ("out_of_region_weight", 0.1, 0.2, ("0", "1.5", "nan")),
+])
+def test_fuse_track_fusion_settings_reach_the_services_fusion(tmp_path, monkeypatch, name, default, other,
+                                                              bad) -> None:
     import services.fuse_track.__main__ as fuse_track
 
     monkeypatch.setattr(fuse_track, "camera_positions", lambda s: ({"NE": (0.0, 0.0), "T_SW": (50.0, 0.0)}, None))
     s = load_settings(write_site(tmp_path, SITE_YAML))
-    assert s.fuse_track.extend_range_m == 50.0 and fuse_track.build(s)[0].config.extend_range_m == 50.0
-    monkeypatch.setenv("ROADSIDE_FUSE_TRACK__EXTEND_RANGE_M", "0")
-    assert fuse_track.build(load_settings(write_site(tmp_path, SITE_YAML)))[0].config.extend_range_m == 0.0
-    monkeypatch.setenv("ROADSIDE_FUSE_TRACK__EXTEND_RANGE_M", "-5")
-    with pytest.raises(ValueError, match=r"fuse_track\.extend_range_m"):
-        load_settings(write_site(tmp_path, SITE_YAML))
-
-
-def test_fuse_track_out_of_region_weight_reaches_the_services_fusion(tmp_path, monkeypatch) -> None:
-    import services.fuse_track.__main__ as fuse_track
-
-    monkeypatch.setattr(fuse_track, "camera_positions", lambda s: ({"NE": (0.0, 0.0), "T_SW": (50.0, 0.0)}, None))
-    s = load_settings(write_site(tmp_path, SITE_YAML))
-    assert s.fuse_track.out_of_region_weight == 0.1 and fuse_track.build(s)[0].config.out_of_region_weight == 0.1
-    monkeypatch.setenv("ROADSIDE_FUSE_TRACK__OUT_OF_REGION_WEIGHT", "0.2")
-    assert fuse_track.build(load_settings(write_site(tmp_path, SITE_YAML)))[0].config.out_of_region_weight == 0.2
-    for bad in ("0", "1.5", "nan"):
-        monkeypatch.setenv("ROADSIDE_FUSE_TRACK__OUT_OF_REGION_WEIGHT", bad)
-        with pytest.raises(ValueError, match=r"fuse_track\.out_of_region_weight"):
+    assert getattr(s.fuse_track, name) == default and getattr(fuse_track.build(s)[0].config, name) == default
+    env = f"ROADSIDE_FUSE_TRACK__{name.upper()}"
+    monkeypatch.setenv(env, str(other))
+    assert getattr(fuse_track.build(load_settings(write_site(tmp_path, SITE_YAML)))[0].config, name) == other
+    for value in bad:
+        monkeypatch.setenv(env, value)
+        with pytest.raises(ValueError, match=rf"fuse_track\.{name}"):
             load_settings(write_site(tmp_path, SITE_YAML))
 
 
