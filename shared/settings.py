@@ -24,6 +24,7 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from shared.keys import SERVICES
 from shared.messages import CAMERA_KINDS, check_name
+from shared.position_error import POSITION_SIGMA, check_position_sigma
 
 
 class Strict(BaseModel):
@@ -185,8 +186,12 @@ class FuseTrackSettings(Strict):
     camera_timeout_ms: float = Field(1000.0, gt=0)  # wall time without frames before a camera is not waited for
     merge_gate_m: float = Field(3.0, gt=0)  # objects of two cameras this close are one vehicle
     # weight of an object outside its camera's region in a fused position, against 1 inside (a far view places a
-    # vehicle worse; chosen over the validation recordings, docs/pipeline.md "Far views in a fused position")
-    out_of_region_weight: float = Field(0.1, gt=0, le=1)
+    # vehicle worse; chosen over the validation recordings, docs/pipeline.md "Along and across the line of sight":
+    # 0.5 with position_sigma, 0.1 without it)
+    out_of_region_weight: float = Field(0.5, gt=0, le=1)
+    # a fused position weighs each member by its error along and across the line from its camera, rows of
+    # (range m, sigma along m, sigma across m) by range (shared/position_error.py); null: a scalar weighted mean
+    position_sigma: tuple[tuple[float, float, float], ...] | None = POSITION_SIGMA
     occlusion_fallback: bool = False  # keep out-of-region objects nobody else saw (services/fuse_track/fusion.py)
     # without occlusion_fallback: such an object within this distance of its own camera may still extend a confirmed
     # track, never start one (a vehicle hidden from its region's camera keeps its track while a neighbour sees it;
@@ -202,6 +207,11 @@ class FuseTrackSettings(Strict):
     # (a parked or queued vehicle the detector is unsure of; static clutter goes in cameras[].exclude_px). 0: off
     standing_hits: int = Field(0, ge=0)
     record: Path | None = None  # append every Tracks message to this JSON-lines file
+
+    @field_validator("position_sigma")
+    @classmethod
+    def _position_sigma(cls, v):
+        return None if v is None else check_position_sigma(v)
 
 
 class Settings(BaseSettings):

@@ -42,6 +42,7 @@ from shared.messages import (
     Tracks,
     check_name,
 )
+from shared.position_error import POSITION_SIGMA
 from shared.service import parse_sets, run
 from shared.settings import BusSettings, load_settings
 
@@ -544,7 +545,10 @@ def test_environment_overrides_nested_fields_and_keeps_the_rest(tmp_path, monkey
 
 @pytest.mark.parametrize(("name", "default", "other", "bad"), [
     ("extend_range_m", 50.0, 0.0, ("-5",)),
-    ("out_of_region_weight", 0.1, 0.2, ("0", "1.5", "nan")),
+    ("out_of_region_weight", 0.5, 0.2, ("0", "1.5", "nan")),
+    ("position_sigma", POSITION_SIGMA, ((0.0, 0.5, 0.3), (40.0, 2.0, 0.6)),
+     ("[[0, 0.5, 0.3], [0, 2, 0.6]]", "[[0, 0, 0.3]]", "[[0, 0.5]]", "[]", "7")),
+    ("position_sigma", POSITION_SIGMA, None, ()),
 ])
 def test_fuse_track_fusion_settings_reach_the_services_fusion(tmp_path, monkeypatch, name, default, other,
                                                               bad) -> None:
@@ -554,7 +558,7 @@ def test_fuse_track_fusion_settings_reach_the_services_fusion(tmp_path, monkeypa
     s = load_settings(write_site(tmp_path, SITE_YAML))
     assert getattr(s.fuse_track, name) == default and getattr(fuse_track.build(s)[0].config, name) == default
     env = f"ROADSIDE_FUSE_TRACK__{name.upper()}"
-    monkeypatch.setenv(env, str(other))
+    monkeypatch.setenv(env, json.dumps(other))
     assert getattr(fuse_track.build(load_settings(write_site(tmp_path, SITE_YAML)))[0].config, name) == other
     for value in bad:
         monkeypatch.setenv(env, value)

@@ -19,9 +19,13 @@ default), optionally cut at `max_range_m`. Then, for the objects of one tick:
    else matched, never start one, so a vehicle hidden from its region's camera behind another keeps its
    track while a neighbour sees it, and a far-off false positive finds no track to extend. Objects of a
    camera without a region are always kept;
-4. each group becomes one object: position the weighted mean (weight = score x region weight),
-   yaw the weighted circular mean after aligning 180-degree reversals to the heaviest member,
-   size the weighted mean, type the weighted vote, score the maximum; `sources` lists its cameras.
+4. each group becomes one object: position the weighted mean (weight = score x region weight), and
+   with `position_sigma` (the default) each member's weight a 2x2 information matrix rather than a number:
+   a camera places a vehicle well across its line of sight and poorly along it, the more so the farther
+   (the shipped fisheye detector, beyond 35 m: 0.5-0.7 m across, 1.2-2.5 m along), so two cameras that see
+   a vehicle from different sides pin it down where neither alone does; yaw the weighted circular mean after
+   aligning 180-degree reversals to the heaviest member, size the weighted mean, type the weighted vote,
+   score the maximum; `sources` lists its cameras.
 
 A fused object is stated at its members' weighted mean capture time `t_ns` (each member shifted
 there with its hint), not at the tick time: the tracker does the last shift with its own velocity,
@@ -35,6 +39,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+
+from shared.position_error import POSITION_SIGMA, check_position_sigma, position_information
 
 NS_PER_S = 1_000_000_000
 MAX_VTYPE = 127  # vtype travels as int8
@@ -242,8 +248,11 @@ class FusionConfig:
     """merge_gate_m: objects of different frames closer than this (at the tick's reference time) are
     one vehicle; out_of_region_weight: weight of an object outside its camera's region relative to
     one inside (the variance ratio of in- and out-of-region localization, (0.22 / 0.49)^2 = 0.2 in the
-    paper, 0.1 chosen over the validation recordings: docs/pipeline.md); min_score: objects below it are
-    ignored (the paper fuses high-certainty detections only);
+    paper; chosen over the validation recordings, docs/pipeline.md: 0.5 with position_sigma, 0.1 without);
+    min_score: objects below it are ignored (the paper fuses high-certainty detections only);
+    position_sigma: rows (range m, sigma along the line from the camera m, sigma across it m), ranges increasing:
+    each member of a group weighs in its position with the inverse of that covariance times its weight (module
+    doc, 4; objects of a camera without a region as 1 m either way); None = a scalar weighted mean (the paper's);
     occlusion_fallback: keep an object outside its camera's region that no region owner saw (module doc, 3);
     extend_range_m: without occlusion_fallback, keep such an object as extend-only when it lies within this distance
     of its own camera (module doc, 3; 0 = drop it, the paper's rule);
@@ -252,7 +261,8 @@ class FusionConfig:
     would otherwise let a high-score one from outside it join its group and start a track; 0 = one pool)."""
 
     merge_gate_m: float = 3.0
-    out_of_region_weight: float = 0.1
+    out_of_region_weight: float = 0.5
+    position_sigma: tuple[tuple[float, float, float], ...] | None = POSITION_SIGMA
     min_score: float = 0.0
     occlusion_fallback: bool = False
     extend_range_m: float = 0.0
@@ -263,6 +273,8 @@ class FusionConfig:
             raise ValueError(f"merge_gate_m must be > 0, got {self.merge_gate_m}")
         if not 0 < self.out_of_region_weight <= 1:
             raise ValueError(f"out_of_region_weight must be within (0, 1], got {self.out_of_region_weight}")
+        if self.position_sigma is not None:
+            object.__setattr__(self, "position_sigma", check_position_sigma(self.position_sigma))
         if not (np.isfinite(self.extend_range_m) and self.extend_range_m >= 0):
             raise ValueError(f"extend_range_m must be >= 0, got {self.extend_range_m}")
         for name in ("min_score", "split_score"):
@@ -294,6 +306,8 @@ class Fusion:
         self._pos = np.array([r.position_xy for r in self.regions], np.float64).reshape(-1, 2)
         self._voronoi = np.array([r.polygon_xy is None for r in self.regions], bool)
         self._range = np.array([np.inf if r.max_range_m is None else r.max_range_m for r in self.regions])
+        sigma = self.config.position_sigma
+        self._sigma = None if sigma is None else np.asarray(sigma, np.float64)
 
     @property
     def cameras(self) -> list[str]:
@@ -440,9 +454,34 @@ class Fusion:
         wsum = np.bincount(lab, w, g)
         t0 = int(objects.t_ns[kept].min())
         t_rel_s = (objects.t_ns[kept] - t0) / NS_PER_S
-        t_out_s = np.bincount(lab, w * t_rel_s, g) / wsum
-        xy_at = objects.xy[kept] + vel[kept] * (t_out_s[lab] - t_rel_s)[:, None]
-        xy = np.stack([np.bincount(lab, w * xy_at[:, k], g) for k in range(2)], 1) / wsum[:, None]
+        if self._sigma is None:
+            t_out_s = np.bincount(lab, w * t_rel_s, g) / wsum
+            xy_at = objects.xy[kept] + vel[kept] * (t_out_s[lab] - t_rel_s)[:, None]
+            xy = np.stack([np.bincount(lab, w * xy_at[:, k], g) for k in range(2)], 1) / wsum[:, None]
+        else:  # information-weighted: each member's weight times the inverse of its position covariance
+            cam = np.array([self._index.get(c, -1) for c in objects.camera[kept].tolist()])
+            info = np.tile(np.eye(2), (len(kept), 1, 1))  # a camera without a region: 1 m either way
+            own = cam >= 0
+            if own.any():
+                info[own] = position_information(objects.xy[kept][own], self._pos[cam[own]], self._sigma)
+            info *= w[:, None, None]
+            a = np.zeros((g, 2, 2))
+            np.add.at(a, lab, info)
+            share = np.linalg.solve(a[lab], info)  # each member's part of its group's position: A^-1 I_i
+            # The group's time: each member's capture time weighted by its part along its motion, so that an
+            # error in the velocity hints cancels along the motion, as scalar weights make it cancel altogether.
+            speed = np.hypot(vel[kept, 0], vel[kept, 1])
+            heading = np.where((speed > 0)[:, None], vel[kept] / np.maximum(speed, 1e-12)[:, None], 0.0)
+            t_weight = np.maximum(np.where(speed > 0, np.einsum("ni,nij,nj->n", heading, share, heading),
+                                           np.trace(share, axis1=1, axis2=2) / 2), 0.0)
+            t_sum = np.bincount(lab, t_weight, g)
+            flat = t_sum[lab] < 1e-6  # members moving in opposite directions: their plain weights instead
+            t_weight[flat] = w[flat]
+            t_out_s = np.bincount(lab, t_weight * t_rel_s, g) / np.bincount(lab, t_weight, g)
+            xy_at = objects.xy[kept] + vel[kept] * (t_out_s[lab] - t_rel_s)[:, None]
+            b = np.zeros((g, 2))
+            np.add.at(b, lab, np.einsum("nij,nj->ni", info, xy_at))
+            xy = np.linalg.solve(a, b[:, :, None])[:, :, 0]
         # The heaviest member of each group anchors its yaw, camera and preferred values.
         order = np.lexsort((-w, lab))
         first = order[np.r_[True, lab[order][1:] != lab[order][:-1]]]
