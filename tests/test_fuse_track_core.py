@@ -623,9 +623,10 @@ def test_two_far_views_from_different_sides_pin_a_vehicle_down():
     assert np.allclose(fused.xy[0], [x, y], atol=0.01) and np.linalg.norm(fused.xy[0]) < 0.25
     scalar = Fusion(regions, FusionConfig(extend_range_m=50.0, position_sigma=None)).fuse(objects, 0)
     assert np.linalg.norm(scalar.xy[0]) > 1.3
-    # hints of opposite motion (two tracks' velocities near one vehicle) leave the time and position finite
-    moving = ObjectBatch.concat([frame("N", 0, [[0.1, -2.0]]), frame("E", 40_000_000, [[-2.0, 0.1]])])
-    fused = Fusion(regions, FusionConfig(extend_range_m=50.0)).fuse(moving, 0, np.array([[5.0, 0.0], [-5.0, 0.0]]))
+    # hints that disagree (two tracks' velocities near one vehicle), each along its member's weak direction: the
+    # group's time stays within its members' capture times and its position finite
+    moving = ObjectBatch.concat([frame("N", 0, [[0.1, -1.5]]), frame("E", 40_000_000, [[-1.5, 0.1]])])
+    fused = Fusion(regions, FusionConfig(extend_range_m=50.0)).fuse(moving, 0, np.array([[0.0, 5.0], [5.0, 0.0]]))
     assert len(fused) == 1 and np.isfinite(fused.xy).all() and 0 <= fused.t_ns[0] <= 40_000_000
     # a near view and a far one: the far one's line of sight adds little along it
     objects = ObjectBatch.concat([frame("C", 0, [[0.3, 0.0]], score=0.8), frame("E", 0, [[-2.0, 0.0]], score=0.8)])
