@@ -359,7 +359,7 @@ class Fusion:
         in_region = (cam_idx >= 0) & owners[np.arange(n), np.maximum(cam_idx, 0)]
         weight = np.maximum(objects.score, 1e-6) * np.where(in_region, 1.0, self.config.out_of_region_weight)
         labels, extend = self._group(objects, p_ref, in_region, weight, cam_idx, owners)
-        return self._merge(objects, vel, weight, labels, extend | objects.extend_mask())
+        return self._merge(objects, vel, weight, labels, extend | objects.extend_mask(), cam_idx)
 
     def _group(self, objects: ObjectBatch, p_ref: np.ndarray, in_region: np.ndarray, weight: np.ndarray,
                cam_idx: np.ndarray, owners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -444,8 +444,9 @@ class Fusion:
         return out
 
     def _merge(self, objects: ObjectBatch, vel: np.ndarray, weight: np.ndarray, labels: np.ndarray,
-               extend: np.ndarray) -> ObjectBatch:
-        """One object per group; a group is extend-only when all its members are."""
+               extend: np.ndarray, cam_idx: np.ndarray) -> ObjectBatch:
+        """One object per group; a group is extend-only when all its members are. cam_idx: each object's camera
+        as an index into the regions, -1 for a camera without one."""
         kept = np.flatnonzero(labels >= 0)
         lab, w = labels[kept], weight[kept]
         g = int(lab.max()) + 1 if len(lab) else 0
@@ -459,7 +460,7 @@ class Fusion:
             xy_at = objects.xy[kept] + vel[kept] * (t_out_s[lab] - t_rel_s)[:, None]
             xy = np.stack([np.bincount(lab, w * xy_at[:, k], g) for k in range(2)], 1) / wsum[:, None]
         else:  # information-weighted: each member's weight times the inverse of its position covariance
-            cam = np.array([self._index.get(c, -1) for c in objects.camera[kept].tolist()])
+            cam = cam_idx[kept]
             info = np.tile(np.eye(2), (len(kept), 1, 1))  # a camera without a region: 1 m either way
             own = cam >= 0
             if own.any():
@@ -475,7 +476,7 @@ class Fusion:
             t_weight = np.maximum(np.where(speed > 0, np.einsum("ni,nij,nj->n", heading, share, heading),
                                            np.trace(share, axis1=1, axis2=2) / 2), 0.0)
             t_sum = np.bincount(lab, t_weight, g)
-            flat = t_sum[lab] < 1e-6  # members moving in opposite directions: their plain weights instead
+            flat = t_sum[lab] < 1e-6  # no member's share lies along its motion (degenerate): plain weights
             t_weight[flat] = w[flat]
             t_out_s = np.bincount(lab, t_weight * t_rel_s, g) / np.bincount(lab, t_weight, g)
             xy_at = objects.xy[kept] + vel[kept] * (t_out_s[lab] - t_rel_s)[:, None]
