@@ -192,6 +192,9 @@ class FuseTrackSettings(Strict):
     # a fused position weighs each member by its error along and across the line from its camera, rows of
     # (range m, sigma along m, sigma across m) by range (shared/position_error.py); null: a scalar weighted mean
     position_sigma: tuple[tuple[float, float, float], ...] | None = POSITION_SIGMA
+    # with position_sigma: a member with another object of its frame just in front of it (1-8 m nearer its camera,
+    # within 4 m of the line from it) counts with its sigmas times this (services/fuse_track/fusion.py). 1: off
+    crowded_sigma_factor: float = Field(2.0, ge=1, allow_inf_nan=False)
     occlusion_fallback: bool = False  # keep out-of-region objects nobody else saw (services/fuse_track/fusion.py)
     # without occlusion_fallback: such an object within this distance of its own camera may still extend a confirmed
     # track, never start one (a vehicle hidden from its region's camera keeps its track while a neighbour sees it;

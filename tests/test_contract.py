@@ -549,6 +549,7 @@ def test_environment_overrides_nested_fields_and_keeps_the_rest(tmp_path, monkey
     ("position_sigma", POSITION_SIGMA, ((0.0, 0.5, 0.3), (40.0, 2.0, 0.6)),
      ("[[0, 0.5, 0.3], [0, 2, 0.6]]", "[[0, 0, 0.3]]", "[[0, 0.5]]", "[]", "7")),
     ("position_sigma", POSITION_SIGMA, None, ()),
+    ("crowded_sigma_factor", 2.0, 1.0, ("0.5", "nan", "inf")),
 ])
 def test_fuse_track_fusion_settings_reach_the_services_fusion(tmp_path, monkeypatch, name, default, other,
                                                               bad) -> None:

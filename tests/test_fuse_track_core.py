@@ -9,7 +9,15 @@ import numpy as np
 import pytest
 from filterpy.kalman import KalmanFilter
 
-from services.fuse_track.fusion import CameraRegion, Fusion, FusionConfig, ObjectBatch, points_in_polygon
+from services.fuse_track.fusion import (
+    CameraRegion,
+    Fusion,
+    FusionConfig,
+    ObjectBatch,
+    crowded,
+    frame_labels,
+    points_in_polygon,
+)
 from services.fuse_track.ticks import TickBuffer, TickConfig
 from services.fuse_track.tracker import (
     Tracker,
@@ -680,6 +688,46 @@ def test_two_far_views_from_different_sides_pin_a_vehicle_down():
     assert len(fused) == 1 and 0.0 < fused.xy[0, 0] < 0.3
 
 
+def test_crowded_objects_have_another_of_their_frame_just_in_front():
+    cam = np.zeros((7, 2))
+    xy = np.array([
+        [10.0, 0.0],  # nothing nearer on its line
+        [15.0, 0.5],  # 5 m behind the first, 0.5 m off its line: crowded
+        [20.0, 3.5],  # the second 5 m in front, 2.6 m across: crowded
+        [10.5, 0.0],  # 0.5 m behind the first: too close to be in front (one vehicle, two peaks); not crowded
+        [25.0, -9.0],  # the nearest in front is 5 m nearer but 8 m across: not crowded
+        [30.0, 0.0],  # 10 m behind the second, nothing 1-8 m in front: not crowded
+        [16.0, 0.0],  # another camera's frame: the first is not its neighbour
+    ])
+    frames = np.array([0, 0, 0, 0, 0, 0, 1])
+    got = crowded(xy, cam, frames, (1.0, 8.0), 4.0)
+    assert got.tolist() == [False, True, True, False, False, False, False]
+    assert not crowded(xy[:1], cam[:1], frames[:1], (1.0, 8.0), 4.0).any()
+    assert crowded(xy[:2], cam[:2], np.array([3, 3]), (1.0, 8.0), 0.2).tolist() == [False, False]  # 0.33 m across
+
+
+def test_a_crowded_view_counts_less_in_a_fused_position():
+    """A vehicle 20 m east of camera A and 20 m north of camera B: A sees another vehicle 4 m in front of it and
+    places this one 1 m off across its line; B's view is clear and exact. The crowded member's sigmas count double."""
+    regions = [CameraRegion("A", (-20.0, 0.0)), CameraRegion("B", (0.0, -20.0)), CameraRegion("C", (1.0, 1.0))]
+    objects = ObjectBatch.concat([frame("A", 0, [[0.0, 1.0], [-4.0, 0.0]]), frame("B", 0, [[0.0, 0.0]])])
+    labels = frame_labels(objects.camera, objects.t_ns)
+    assert crowded(objects.xy[:2], np.array([[-20.0, 0.0]] * 2), labels[:2], (1.0, 8.0), 4.0).tolist() == [True, False]
+    plain = Fusion(regions, FusionConfig(crowded_sigma_factor=1.0, occlusion_fallback=True)).fuse(objects, 0)
+    fused = Fusion(regions, FusionConfig(occlusion_fallback=True)).fuse(objects, 0)
+    assert FusionConfig().crowded_sigma_factor == 2.0
+    i, j = (int(np.argmin(np.linalg.norm(f.xy - [0.0, 0.5], axis=1))) for f in (plain, fused))
+    assert plain.sources_of(i) == fused.sources_of(j) == ["A", "B"]
+    # y: A's information across its line against B's along its own (about as sharp at 20 m): about an even split
+    # without the factor, A's share a quarter as large with it
+    info = position_information(np.array([[0.0, 1.0], [0.0, 0.0]]), np.array([[-20.0, 0.0], [0.0, -20.0]]),
+                                np.asarray(POSITION_SIGMA))
+    a_y, b_y = info[0, 1, 1], info[1, 1, 1]
+    assert plain.xy[i, 1] == pytest.approx(a_y / (a_y + b_y), abs=0.01) and 0.45 < plain.xy[i, 1] < 0.55
+    assert fused.xy[j, 1] == pytest.approx(a_y / 4 / (a_y / 4 + b_y), abs=0.01) and fused.xy[j, 1] < 0.25
+    assert np.allclose([plain.xy[i, 0], fused.xy[j, 0]], 0.0, atol=0.01)
+
+
 def test_fusion_keeps_an_object_its_region_camera_missed_as_extend_only_within_range():
     regions = [CameraRegion("A", (-20.0, 0.0)), CameraRegion("B", (20.0, 0.0))]
     fusion = Fusion(regions, FusionConfig(merge_gate_m=2.5, extend_range_m=40.0))
@@ -807,6 +855,10 @@ def test_bad_configs_and_calls_raise_value_errors_naming_the_parameter():
         (lambda: FusionConfig(merge_gate_m=0), "merge_gate_m"),
         (lambda: FusionConfig(out_of_region_weight=2), "out_of_region_weight"),
         (lambda: FusionConfig(split_score=-0.1), "split_score"),
+        (lambda: FusionConfig(crowded_sigma_factor=0.5), "crowded_sigma_factor"),
+        (lambda: FusionConfig(crowd_ahead_m=(5.0, 2.0)), "crowd_ahead_m"),
+        (lambda: FusionConfig(crowd_ahead_m=(1.0, 2.0, 3.0)), "crowd_ahead_m"),
+        (lambda: FusionConfig(crowd_across_m=0.0), "crowd_across_m"),
         (lambda: CameraRegion("A", (0.0, math.inf)), "position_xy"),
         (lambda: CameraRegion("A", (0.0, 0.0), polygon_xy=np.zeros((2, 2))), "polygon_xy"),
         (lambda: Fusion([CameraRegion("A", (0.0, 0.0)), CameraRegion("A", (1.0, 0.0))]), "regions"),

@@ -165,7 +165,9 @@ def build(settings: Settings) -> tuple[Fusion, Tracker, TickBuffer, dict[str, tu
     regions = [CameraRegion(c.name, positions[c.name], np.asarray(c.region_m) if c.region_m else None)
                for c in settings.cameras]
     fusion = Fusion(regions, FusionConfig(merge_gate_m=cfg.merge_gate_m, out_of_region_weight=cfg.out_of_region_weight,
-                                          position_sigma=cfg.position_sigma, occlusion_fallback=cfg.occlusion_fallback,
+                                          position_sigma=cfg.position_sigma,
+                                          crowded_sigma_factor=cfg.crowded_sigma_factor,
+                                          occlusion_fallback=cfg.occlusion_fallback,
                                           extend_range_m=cfg.extend_range_m, split_score=cfg.high_score))
     tracker = new_tracker(settings)
     ticks: TickBuffer = TickBuffer(positions, TickConfig(tick_ms=cfg.tick_ms, watermark_ms=cfg.watermark_ms,

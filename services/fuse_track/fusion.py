@@ -23,7 +23,10 @@ default), optionally cut at `max_range_m`. Then, for the objects of one tick:
    with `position_sigma` (the default) each member's weight a 2x2 information matrix rather than a number:
    a camera places a vehicle well across its line of sight and poorly along it, the more so the farther
    (the shipped fisheye detector, beyond 35 m: 0.5-0.7 m across, 1.2-2.5 m along), so two cameras that see
-   a vehicle from different sides pin it down where neither alone does; yaw the weighted circular mean after
+   a vehicle from different sides pin it down where neither alone does (a member with another object of its frame
+   just in front of it, between it and its camera, counts with `crowded_sigma_factor` times its sigmas: the
+   detector places such a vehicle, in a queue or beside a neighbour, worse, above all across the line of sight);
+   yaw the weighted circular mean after
    aligning 180-degree reversals to the heaviest member, size the weighted mean, type the weighted vote,
    score the maximum; `sources` lists its cameras.
 
@@ -253,6 +256,9 @@ class FusionConfig:
     position_sigma: rows (range m, sigma along the line from the camera m, sigma across it m), ranges increasing:
     each member of a group weighs in its position with the inverse of that covariance times its weight (module
     doc, 4; objects of a camera without a region as 1 m either way); None = a scalar weighted mean (the paper's);
+    crowded_sigma_factor: with position_sigma, the sigmas of a member that has another object of its own frame in
+    front of it (nearer its camera by crowd_ahead_m = (at least, at most) m, within crowd_across_m of the line from
+    the camera) are multiplied by this (module doc, 4; 1 = off);
     occlusion_fallback: keep an object outside its camera's region that no region owner saw (module doc, 3);
     extend_range_m: without occlusion_fallback, keep such an object as extend-only when it lies within this distance
     of its own camera (module doc, 3; 0 = drop it, the paper's rule);
@@ -263,6 +269,10 @@ class FusionConfig:
     merge_gate_m: float = 3.0
     out_of_region_weight: float = 0.5
     position_sigma: tuple[tuple[float, float, float], ...] | None = POSITION_SIGMA
+    # 2 within (1-8 m ahead, 4 m across): a plateau over 1.7-2.4 and 3-6 m (validation; docs/pipeline.md, "Crowded")
+    crowded_sigma_factor: float = 2.0
+    crowd_ahead_m: tuple[float, float] = (1.0, 8.0)
+    crowd_across_m: float = 4.0
     min_score: float = 0.0
     occlusion_fallback: bool = False
     extend_range_m: float = 0.0
@@ -275,6 +285,14 @@ class FusionConfig:
             raise ValueError(f"out_of_region_weight must be within (0, 1], got {self.out_of_region_weight}")
         if self.position_sigma is not None:
             object.__setattr__(self, "position_sigma", check_position_sigma(self.position_sigma))
+        if not (np.isfinite(self.crowded_sigma_factor) and self.crowded_sigma_factor >= 1):
+            raise ValueError(f"crowded_sigma_factor must be >= 1, got {self.crowded_sigma_factor}")
+        ahead = np.asarray(self.crowd_ahead_m, np.float64)
+        if ahead.shape != (2,) or not (np.all(np.isfinite(ahead)) and 0 <= ahead[0] < ahead[1]):
+            raise ValueError(f"crowd_ahead_m must be (least, most) m with 0 <= least < most, got {self.crowd_ahead_m}")
+        object.__setattr__(self, "crowd_ahead_m", (float(ahead[0]), float(ahead[1])))
+        if not (np.isfinite(self.crowd_across_m) and self.crowd_across_m > 0):
+            raise ValueError(f"crowd_across_m must be > 0, got {self.crowd_across_m}")
         if not (np.isfinite(self.extend_range_m) and self.extend_range_m >= 0):
             raise ValueError(f"extend_range_m must be >= 0, got {self.extend_range_m}")
         for name in ("min_score", "split_score"):
@@ -291,6 +309,28 @@ def points_in_polygon(xy: np.ndarray, polygon: np.ndarray) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
         x_at = a[:, 0] + (y - a[:, 1]) * (b[:, 0] - a[:, 0]) / (b[:, 1] - a[:, 1])
     return np.count_nonzero(crosses & (x < x_at), axis=1) % 2 == 1
+
+
+def crowded(xy: np.ndarray, camera_xy: np.ndarray, frame: np.ndarray, ahead_m: tuple[float, float],
+            across_m: float) -> np.ndarray:
+    """(N,) bool: object n has another object of its own frame (`frame`: (N,) labels) in front of it, between it and
+    its camera (camera_xy: (N, 2), the same within a frame): nearer along the line from the camera by ahead_m[0] to
+    ahead_m[1] m and within across_m of that line."""
+    out = np.zeros(len(xy), bool)
+    order = np.argsort(frame, kind="stable")
+    starts = np.flatnonzero(np.r_[True, frame[order][1:] != frame[order][:-1]])
+    for rows in np.split(order, starts[1:]):
+        if len(rows) < 2:
+            continue
+        v = xy[rows] - camera_xy[rows[0]]
+        rng = np.hypot(v[:, 0], v[:, 1])
+        u = v / np.maximum(rng, 1e-9)[:, None]
+        along = v @ u.T - rng[None, :]  # [j, i]: how much farther object j lies than i along i's line
+        across = np.abs(v @ np.stack([-u[:, 1], u[:, 0]], axis=1).T)
+        front = (along <= -ahead_m[0]) & (along >= -ahead_m[1]) & (across <= across_m)
+        np.fill_diagonal(front, False)
+        out[rows] = front.any(axis=0)
+    return out
 
 
 class Fusion:
@@ -465,6 +505,12 @@ class Fusion:
             own = cam >= 0
             if own.any():
                 info[own] = position_information(objects.xy[kept][own], self._pos[cam[own]], self._sigma)
+                if self.config.crowded_sigma_factor > 1:
+                    mine = kept[own]
+                    hidden = crowded(objects.xy[mine], self._pos[cam[own]],
+                                     frame_labels(objects.camera[mine], objects.t_ns[mine]), self.config.crowd_ahead_m,
+                                     self.config.crowd_across_m)
+                    info[np.flatnonzero(own)[hidden]] /= self.config.crowded_sigma_factor**2
             info *= w[:, None, None]
             a = np.zeros((g, 2, 2))
             np.add.at(a, lab, info)
