@@ -702,6 +702,7 @@ def test_crowded_objects_have_another_of_their_frame_just_in_front():
     frames = np.array([0, 0, 0, 0, 0, 0, 1])
     got = crowded(xy, cam, frames, (1.0, 8.0), 4.0)
     assert got.tolist() == [False, True, True, False, False, False, False]
+    assert crowded(xy, cam, frames, (1.0, 8.0), 4.0, block=2).tolist() == got.tolist()  # in blocks, the same
     assert not crowded(xy[:1], cam[:1], frames[:1], (1.0, 8.0), 4.0).any()
     assert crowded(xy[:2], cam[:2], np.array([3, 3]), (1.0, 8.0), 0.2).tolist() == [False, False]  # 0.33 m across
 

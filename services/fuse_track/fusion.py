@@ -312,24 +312,27 @@ def points_in_polygon(xy: np.ndarray, polygon: np.ndarray) -> np.ndarray:
 
 
 def crowded(xy: np.ndarray, camera_xy: np.ndarray, frame: np.ndarray, ahead_m: tuple[float, float],
-            across_m: float) -> np.ndarray:
+            across_m: float, block: int = 256) -> np.ndarray:
     """(N,) bool: object n has another object of its own frame (`frame`: (N,) labels) in front of it, between it and
     its camera (camera_xy: (N, 2), the same within a frame): nearer along the line from the camera by ahead_m[0] to
-    ahead_m[1] m and within across_m of that line."""
-    out = np.zeros(len(xy), bool)
-    order = np.argsort(frame, kind="stable")
-    starts = np.flatnonzero(np.r_[True, frame[order][1:] != frame[order][:-1]])
-    for rows in np.split(order, starts[1:]):
-        if len(rows) < 2:
-            continue
-        v = xy[rows] - camera_xy[rows[0]]
-        rng = np.hypot(v[:, 0], v[:, 1])
-        u = v / np.maximum(rng, 1e-9)[:, None]
-        along = v @ u.T - rng[None, :]  # [j, i]: how much farther object j lies than i along i's line
-        across = np.abs(v @ np.stack([-u[:, 1], u[:, 0]], axis=1).T)
-        front = (along <= -ahead_m[0]) & (along >= -ahead_m[1]) & (across <= across_m)
-        np.fill_diagonal(front, False)
-        out[rows] = front.any(axis=0)
+    ahead_m[1] m and within across_m of that line. All pairs at once, `block` objects at a time (memory)."""
+    n = len(xy)
+    out = np.zeros(n, bool)
+    v = xy - camera_xy
+    rng = np.hypot(v[:, 0], v[:, 1])
+    u = v / np.maximum(rng, 1e-9)[:, None]
+    normal = np.stack([-u[:, 1], u[:, 0]], axis=1)
+    u_at = np.einsum("nk,nk->n", camera_xy, u)  # each object's camera, projected on its own line
+    normal_at = np.einsum("nk,nk->n", camera_xy, normal)
+    for lo in range(0, n, block):
+        i = np.arange(lo, min(lo + block, n))
+        # [i, j]: how much farther object j lies than object i along i's line from i's camera, and how far across it
+        along = u[i] @ xy.T - (u_at[i] + rng[i])[:, None]
+        across = np.abs(normal[i] @ xy.T - normal_at[i][:, None])
+        front = (frame[None, :] == frame[i, None]) & (along <= -ahead_m[0]) & (along >= -ahead_m[1]) & (
+            across <= across_m)
+        front[np.arange(len(i)), i] = False
+        out[i] = front.any(axis=1)
     return out
 
 
