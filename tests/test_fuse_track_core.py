@@ -693,10 +693,10 @@ def test_crowded_objects_have_another_of_their_frame_just_in_front():
     xy = np.array([
         [10.0, 0.0],  # nothing nearer on its line
         [15.0, 0.5],  # 5 m behind the first, 0.5 m off its line: crowded
-        [20.0, 3.5],  # the second 5 m in front, 2.6 m across: crowded
+        [20.0, 3.5],  # the second 5.4 m in front, 2.1 m off its line: crowded
         [10.5, 0.0],  # 0.5 m behind the first: too close to be in front (one vehicle, two peaks); not crowded
-        [25.0, -9.0],  # the nearest in front is 5 m nearer but 8 m across: not crowded
-        [30.0, 0.0],  # 10 m behind the second, nothing 1-8 m in front: not crowded
+        [20.0, -5.5],  # the second 6.4 m in front but 4.5 m off its line: not crowded
+        [30.0, 0.0],  # the nearest in front 10 m nearer: not crowded
         [16.0, 0.0],  # another camera's frame: the first is not its neighbour
     ])
     frames = np.array([0, 0, 0, 0, 0, 0, 1])
