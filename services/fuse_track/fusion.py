@@ -401,14 +401,14 @@ class Fusion:
         owners = self.contains(p_ref)  # (N, C)
         in_region = (cam_idx >= 0) & owners[np.arange(n), np.maximum(cam_idx, 0)]
         weight = np.maximum(objects.score, 1e-6) * np.where(in_region, 1.0, self.config.out_of_region_weight)
-        labels, extend = self._group(objects, p_ref, in_region, weight, cam_idx, owners)
-        return self._merge(objects, vel, weight, labels, extend | objects.extend_mask(), cam_idx)
+        source = frame_labels(objects.camera, objects.t_ns)  # the frame each object comes from
+        labels, extend = self._group(objects, p_ref, in_region, weight, cam_idx, owners, source)
+        return self._merge(objects, vel, weight, labels, extend | objects.extend_mask(), cam_idx, source)
 
     def _group(self, objects: ObjectBatch, p_ref: np.ndarray, in_region: np.ndarray, weight: np.ndarray,
-               cam_idx: np.ndarray, owners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+               cam_idx: np.ndarray, owners: np.ndarray, source: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(N,) group label per object, -1 for dropped objects, and (N,) bool: kept as extend-only."""
         gate = self.config.merge_gate_m
-        source = frame_labels(objects.camera, objects.t_ns)  # the frame each object comes from
         d = np.hypot(p_ref[:, None, 0] - p_ref[None, :, 0], p_ref[:, None, 1] - p_ref[None, :, 1])
         d[source[:, None] == source[None]] = np.inf  # one frame never sees a vehicle twice
         labels = np.full(len(objects), -1)
@@ -487,9 +487,9 @@ class Fusion:
         return out
 
     def _merge(self, objects: ObjectBatch, vel: np.ndarray, weight: np.ndarray, labels: np.ndarray,
-               extend: np.ndarray, cam_idx: np.ndarray) -> ObjectBatch:
+               extend: np.ndarray, cam_idx: np.ndarray, source: np.ndarray) -> ObjectBatch:
         """One object per group; a group is extend-only when all its members are. cam_idx: each object's camera
-        as an index into the regions, -1 for a camera without one."""
+        as an index into the regions, -1 for a camera without one; source: the frame each object comes from."""
         kept = np.flatnonzero(labels >= 0)
         lab, w = labels[kept], weight[kept]
         g = int(lab.max()) + 1 if len(lab) else 0
@@ -510,8 +510,7 @@ class Fusion:
                 info[own] = position_information(objects.xy[kept][own], self._pos[cam[own]], self._sigma)
                 if self.config.crowded_sigma_factor > 1:
                     mine = kept[own]
-                    hidden = crowded(objects.xy[mine], self._pos[cam[own]],
-                                     frame_labels(objects.camera[mine], objects.t_ns[mine]), self.config.crowd_ahead_m,
+                    hidden = crowded(objects.xy[mine], self._pos[cam[own]], source[mine], self.config.crowd_ahead_m,
                                      self.config.crowd_across_m)
                     info[np.flatnonzero(own)[hidden]] /= self.config.crowded_sigma_factor**2
             info *= w[:, None, None]

@@ -169,10 +169,15 @@ def transition(dt_s: float) -> np.ndarray:
     return f
 
 
+def white_noise_block(dt_s: float) -> np.ndarray:
+    """(2, 2): piecewise white acceleration noise of unit variance for a (value, rate) pair over dt_s."""
+    return np.array([[dt_s**4 / 4, dt_s**3 / 2], [dt_s**3 / 2, dt_s**2]])
+
+
 def process_noise(dt_s: float, variances: tuple[float, float, float, float]) -> np.ndarray:
     """Q (8, 8): piecewise white acceleration noise of variance var_k for each (value k, rate k) pair."""
     q = np.zeros((DIM_X, DIM_X))
-    block = np.array([[dt_s**4 / 4, dt_s**3 / 2], [dt_s**3 / 2, dt_s**2]])
+    block = white_noise_block(dt_s)
     for k, var in enumerate(variances):
         q[np.ix_([k, k + 4], [k, k + 4])] = var * block
     return q
@@ -188,7 +193,7 @@ def turn_noise(dt_s: float, velocity: np.ndarray, extra_var: float, min_speed: f
         return out
     across = np.stack([-velocity[moving, 1], velocity[moving, 0]], axis=1) / speed[moving, None]
     outer = extra_var * across[:, :, None] * across[:, None, :]  # (M, 2, 2)
-    block = np.array([[dt_s**4 / 4, dt_s**3 / 2], [dt_s**3 / 2, dt_s**2]])
+    block = white_noise_block(dt_s)
     for a, i in enumerate((0, 4)):  # positions x, y at 0-1, their rates at 4-5
         for b, j in enumerate((0, 4)):
             out[moving, i:i + 2, j:j + 2] = block[a, b] * outer
@@ -286,8 +291,10 @@ class Tracker:
             if self._fq[0] != dt_s:
                 self._fq = (dt_s, transition(dt_s), process_noise(dt_s, self._q_var))
             c = self.config
-            q = self._fq[2] + turn_noise(dt_s, self._x[:, 4:6], c.turn_accel_std_mps2**2 - c.accel_std_mps2**2,
-                                         c.turn_speed_mps)
+            q = self._fq[2]
+            if c.turn_accel_std_mps2 != c.accel_std_mps2:
+                q = q + turn_noise(dt_s, self._x[:, 4:6], c.turn_accel_std_mps2**2 - c.accel_std_mps2**2,
+                                   c.turn_speed_mps)
             self._x, self._p = kf_predict(self._x, self._p, self._fq[1], q)
             # a shrinking size's rate carries area and aspect below zero on a tick without a measurement: keep them
             # positive here too, not only after an update (their square roots are the reported length and width)
