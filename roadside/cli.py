@@ -204,7 +204,8 @@ def _run_calibrate(args) -> int:
     return 0
 
 
-BENCHMARKS = {"sim": "bench.sim_render", "calibration": "bench.calibration", "detector": "bench.detector"}
+BENCHMARKS = {"sim": "bench.sim_render", "calibration": "bench.calibration", "detector": "bench.detector",
+              "fuse_track": "bench.fuse_track"}
 
 
 def _add_train(sub) -> None:

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import json
 import math
-import time
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -403,25 +405,39 @@ def test_a_vehicle_round_a_bend_is_tracked_on_its_path_not_outside_it():
     assert 0 <= outside[4.0] < 0.6 * outside[2.0]  # 0.19 m
 
 
-def test_update_of_30_objects_and_30_tracks_is_fast():
-    """Fusion + tracking of a 30-vehicle tick seen by two cameras: well under 1 ms per object."""
+def test_thirty_vehicles_seen_by_two_cameras_make_thirty_tracks():
+    """A 30-vehicle tick seen by two cameras 50 ms apart, 20 ticks: one track per vehicle, each on its vehicle.
+    (Its cost per tick is measured by `roadside bench fuse_track`, not here: speed lives in benchmarks.)"""
     rng = np.random.default_rng(0)
     cams = {"A": (-20.0, 0.0), "B": (20.0, 0.0)}
     fusion, tracker = Fusion([CameraRegion(n, p) for n, p in cams.items()]), Tracker()
     start = np.column_stack([rng.uniform(-40, 40, 30), 6.0 * np.arange(30) - 90])  # one vehicle per lane
-    costs = []
     for k in range(20):
         t_ref = k * 100 * MS + 50 * MS
         batches = []
         for name, off_ms in (("A", -30), ("B", 20)):
             xy = start + np.array([10 * (t_ref / 1e9 + off_ms / 1e3), 0]) + rng.normal(0, 0.2, (30, 2))
             batches.append(frame(name, t_ref + off_ms * MS, xy))
-        t0 = time.perf_counter()
         objects = ObjectBatch.concat(batches)
         state = tracker.update(fusion.fuse(objects, t_ref, tracker.velocity_hints(objects)), t_ref)
-        costs.append(time.perf_counter() - t0)
-    assert len(state) == 30
-    assert np.median(costs) < 0.3e-3 * 60  # 60 objects in, 30 tracks
+    truth = start + np.array([10 * t_ref / 1e9, 0])
+    assert len(state) == 30 and len(set(state.id.tolist())) == 30
+    d = np.hypot(*(state.xy[:, None, :] - truth[None]).transpose(2, 0, 1))
+    assert sorted(np.argmin(d, axis=1).tolist()) == list(range(30)) and d.min(axis=1).max() < 0.5
+
+
+def test_bench_fuse_track_smoke():
+    """The benchmark runs on its synthetic roundabout and prints one JSON document; bad flags stop it."""
+    args = ["--vehicles", "12", "--ticks", "20", "--warmup", "10"]
+    run = subprocess.run([sys.executable, "-m", "bench.fuse_track", *args], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    doc = json.loads(run.stdout)
+    assert doc["benchmark"] == "fuse_track" and doc["ticks"] == 20 and doc["cameras"] == 4
+    assert 0 < doc["tick_ms"]["p50"] <= doc["tick_ms"]["p99"]
+    assert doc["objects_per_tick"] > 12 and 6 <= doc["tracks_per_tick"] <= 14  # each camera sees most of them
+    bad = subprocess.run([sys.executable, "-m", "bench.fuse_track", "--vehicles", "2"], capture_output=True, text=True,
+                         timeout=60)
+    assert bad.returncode == 2 and "vehicles must be at least 4" in bad.stderr
 
 
 # ---- ticks ---------------------------------------------------------------------------------------
