@@ -205,6 +205,38 @@ def test_fusion_split_score_keeps_low_and_high_score_objects_apart():
     assert len(high_only) == 0
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_fusion_of_two_pools_in_one_pass_equals_each_pool_fused_alone(seed):
+    """Both pools of a tick go through one pass (fusion's cost is mostly per call), with exactly the result of
+    fusing the high-scoring objects alone, then the low-scoring ones alone: a crowded, noisy tick of three cameras
+    (one of them without a region: extend-only and fallback objects too), at several capture times."""
+    rng = np.random.default_rng(seed)
+    regions = [CameraRegion("A", (-20.0, 0.0)), CameraRegion("B", (20.0, 0.0)), CameraRegion("C", (0.0, 30.0))]
+    cfg = dict(merge_gate_m=3.0, extend_range_m=40.0)
+    truth = rng.uniform(-35, 35, (25, 2))
+    batches = []
+    for cam, t_ms in (("A", -30), ("B", 10), ("C", 40), ("D", 0)):  # D: a camera without a region
+        seen = truth[rng.random(len(truth)) < 0.8]
+        xy = np.concatenate([seen + rng.normal(0, 0.6, seen.shape), rng.uniform(-35, 35, (3, 2))])
+        n = len(xy)
+        batches.append(ObjectBatch.from_frame(cam, t_ms * MS, xy, rng.uniform(-np.pi, np.pi, n),
+                                              np.tile(CAR, (n, 1)) * rng.uniform(0.9, 1.1, (n, 1)),
+                                              rng.integers(0, 3, n), rng.uniform(0.2, 0.95, n)))
+    objects = ObjectBatch.concat(batches)
+    vel = rng.normal(0, 5, (len(objects), 2))
+    got = Fusion(regions, FusionConfig(split_score=0.5, **cfg)).fuse(objects, 0, vel)
+    alone = Fusion(regions, FusionConfig(**cfg))
+    high = objects.score >= 0.5
+    want = ObjectBatch.concat([alone.fuse(objects.select(k), 0, vel[k]) for k in (high, ~high)])
+    assert len(got) == len(want) > 20
+    for k in ("camera", "t_ns", "vtype"):
+        assert getattr(got, k).tolist() == getattr(want, k).tolist(), k
+    for k in ("xy", "yaw", "size_lwh", "score"):
+        np.testing.assert_allclose(getattr(got, k), getattr(want, k), rtol=0, atol=1e-9, err_msg=k)
+    assert [got.sources_of(i) for i in range(len(got))] == [want.sources_of(i) for i in range(len(want))]
+    assert got.extend_mask().tolist() == want.extend_mask().tolist() and want.extend_mask().any()
+
+
 def test_empty_ticks_age_tracks_out_after_max_age():
     """A vehicle seen for 10 ticks, then only empty batches: reported while it coasts one tick, dropped
     after max_age_ticks empty ticks; empty ticks are emitted across a gap in the stream too."""

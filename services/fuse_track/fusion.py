@@ -388,12 +388,12 @@ class Fusion:
             n = len(objects)
         if n == 0:
             return ObjectBatch.empty()
-        high = objects.score >= self.config.split_score
-        if not high.all() and high.any():
-            return ObjectBatch.concat([self._fuse(objects.select(k), t_ref_ns, vel[k]) for k in (high, ~high)])
-        return self._fuse(objects, t_ref_ns, vel)
+        # two pools (split_score): fused in one pass, never with each other, as if each were fused alone, the
+        # high-scoring pool's objects first
+        pool = (objects.score < self.config.split_score).astype(np.int64)
+        return self._fuse(objects, t_ref_ns, vel, pool)
 
-    def _fuse(self, objects: ObjectBatch, t_ref_ns: int, vel: np.ndarray) -> ObjectBatch:
+    def _fuse(self, objects: ObjectBatch, t_ref_ns: int, vel: np.ndarray, pool: np.ndarray) -> ObjectBatch:
         n = len(objects)
         dt_s = (int(t_ref_ns) - objects.t_ns) / NS_PER_S
         p_ref = objects.xy + vel * dt_s[:, None]  # positions at the reference time
@@ -402,19 +402,28 @@ class Fusion:
         in_region = (cam_idx >= 0) & owners[np.arange(n), np.maximum(cam_idx, 0)]
         weight = np.maximum(objects.score, 1e-6) * np.where(in_region, 1.0, self.config.out_of_region_weight)
         source = frame_labels(objects.camera, objects.t_ns)  # the frame each object comes from
-        labels, extend = self._group(objects, p_ref, in_region, weight, cam_idx, owners, source)
-        return self._merge(objects, vel, weight, labels, extend | objects.extend_mask(), cam_idx, source)
+        labels, extend = self._group(objects, p_ref, in_region, weight, cam_idx, owners, source, pool)
+        if pool.any():  # the high-scoring pool's groups first, each pool's in its own order
+            groups = np.zeros(int(labels.max()) + 1, np.int64)
+            groups[labels[labels >= 0]] = pool[labels >= 0]
+            rank = np.empty_like(groups)
+            rank[np.argsort(groups, kind="stable")] = np.arange(len(groups))
+            labels = np.where(labels >= 0, rank[np.maximum(labels, 0)], -1)
+        return self._merge(objects, vel, weight, labels, extend | objects.extend_mask(), cam_idx, source, pool)
 
     def _group(self, objects: ObjectBatch, p_ref: np.ndarray, in_region: np.ndarray, weight: np.ndarray,
-               cam_idx: np.ndarray, owners: np.ndarray, source: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(N,) group label per object, -1 for dropped objects, and (N,) bool: kept as extend-only."""
+               cam_idx: np.ndarray, owners: np.ndarray, source: np.ndarray,
+               pool: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(N,) group label per object, -1 for dropped objects, and (N,) bool: kept as extend-only. Objects of
+        different pools (N,) never meet: as far as grouping goes, they lie beyond every gate of each other."""
         gate = self.config.merge_gate_m
         d = np.hypot(p_ref[:, None, 0] - p_ref[None, :, 0], p_ref[:, None, 1] - p_ref[None, :, 1])
-        d[source[:, None] == source[None]] = np.inf  # one frame never sees a vehicle twice
+        # one frame never sees a vehicle twice; the other pool's objects are not there
+        d[(source[:, None] == source[None]) | (pool[:, None] != pool[None])] = np.inf
         labels = np.full(len(objects), -1)
         # 1. Objects in their own camera's region seed the groups.
         seeds = np.flatnonzero(in_region)
-        labels[seeds] = self._cluster(seeds, d, source, weight, p_ref)
+        labels[seeds] = self._cluster(seeds, d, source, weight, p_ref, pool)
         g = int(labels.max()) + 1
         # 2. The others join a group within the gate (one object per frame and group).
         out = np.flatnonzero(~in_region)
@@ -424,8 +433,10 @@ class Fusion:
             centre /= np.bincount(labels[seeds], w, g)[:, None]
             has = np.zeros((g, source.max() + 1), bool)
             has[labels[seeds], source[seeds]] = True
+            group_pool = np.zeros(g, np.int64)
+            group_pool[labels[seeds]] = pool[seeds]
             dg = np.hypot(p_ref[out, None, 0] - centre[None, :, 0], p_ref[out, None, 1] - centre[None, :, 1])
-            dg[has[:, source[out]].T] = np.inf
+            dg[has[:, source[out]].T | (pool[out, None] != group_pool[None])] = np.inf
             cost = np.where(dg <= gate, dg, 1e9)
             for s in np.unique(source[out]):
                 r = np.flatnonzero(source[out] == s)
@@ -447,13 +458,14 @@ class Fusion:
             known = np.flatnonzero(cam_idx >= 0)
             seen = (d[np.ix_(rest, known)] <= gate) & owners[np.ix_(rest, cam_idx[known])]
             rest = rest[~seen.any(axis=1)]
-            labels[rest] = g + self._cluster(rest, d, source, weight, p_ref)
+            labels[rest] = g + self._cluster(rest, d, source, weight, p_ref, pool)
         return labels, extend & (labels >= 0)
 
     def _cluster(self, rows: np.ndarray, d: np.ndarray, source: np.ndarray, weight: np.ndarray,
-                 p_ref: np.ndarray) -> np.ndarray:
-        """Labels 0.. for `rows`: objects of different frames within the gate of a group's weighted centre
-        form one group (frame by frame, Hungarian assignment); objects with no such neighbour stand alone."""
+                 p_ref: np.ndarray, pool: np.ndarray) -> np.ndarray:
+        """Labels 0.. for `rows`: objects of different frames (and the same pool) within the gate of a group's
+        weighted centre form one group (frame by frame, Hungarian assignment); objects with no such neighbour stand
+        alone."""
         gate = self.config.merge_gate_m
         out = np.full(len(rows), -1)
         linked = (d[np.ix_(rows, rows)] <= gate).any(axis=1)
@@ -462,13 +474,14 @@ class Fusion:
         first = len(lone)
         members = np.flatnonzero(linked)
         centre, wsum, has = np.zeros((0, 2)), np.zeros(0), np.zeros((0, source.max() + 1), bool)
+        centre_pool = np.zeros(0, np.int64)
         for s in np.unique(source[rows[members]]):
             mine = members[source[rows[members]] == s]
-            p, w = p_ref[rows[mine]], weight[rows[mine]]
+            p, w, mine_pool = p_ref[rows[mine]], weight[rows[mine]], pool[rows[mine]]
             taken = np.zeros(len(mine), bool)
             if len(centre):
                 dg = np.hypot(p[:, None, 0] - centre[None, :, 0], p[:, None, 1] - centre[None, :, 1])
-                cost = np.where((dg <= gate) & ~has[:, s], dg, 1e9)
+                cost = np.where((dg <= gate) & ~has[:, s] & (mine_pool[:, None] == centre_pool[None]), dg, 1e9)
                 i, j = linear_sum_assignment(cost)
                 ok = cost[i, j] <= gate
                 i, j = i[ok], j[ok]
@@ -480,6 +493,7 @@ class Fusion:
             new = np.flatnonzero(~taken)
             out[mine[new]] = first + len(centre) + np.arange(len(new))
             centre = np.concatenate([centre, p[new]])
+            centre_pool = np.concatenate([centre_pool, mine_pool[new]])
             wsum = np.concatenate([wsum, w[new]])
             fresh = np.zeros((len(new), has.shape[1]), bool)
             fresh[:, s] = True
@@ -487,17 +501,22 @@ class Fusion:
         return out
 
     def _merge(self, objects: ObjectBatch, vel: np.ndarray, weight: np.ndarray, labels: np.ndarray,
-               extend: np.ndarray, cam_idx: np.ndarray, source: np.ndarray) -> ObjectBatch:
+               extend: np.ndarray, cam_idx: np.ndarray, source: np.ndarray, pool: np.ndarray) -> ObjectBatch:
         """One object per group; a group is extend-only when all its members are. cam_idx: each object's camera
-        as an index into the regions, -1 for a camera without one; source: the frame each object comes from."""
+        as an index into the regions, -1 for a camera without one; source: the frame each object comes from;
+        pool: each object's pool (a group's members share one; each pool's times count from its own earliest)."""
         kept = np.flatnonzero(labels >= 0)
         lab, w = labels[kept], weight[kept]
         g = int(lab.max()) + 1 if len(lab) else 0
         if g == 0:
             return ObjectBatch.empty()
         wsum = np.bincount(lab, w, g)
-        t0 = int(objects.t_ns[kept].min())
-        t_rel_s = (objects.t_ns[kept] - t0) / NS_PER_S
+        kept_pool = pool[kept]
+        t0_pool = np.array([objects.t_ns[kept][kept_pool == k].min() if (kept_pool == k).any() else 0 for k in
+                            range(int(kept_pool.max()) + 1)], np.int64)
+        t0 = np.zeros(g, np.int64)
+        t0[lab] = t0_pool[kept_pool]  # each group's pool's earliest capture time
+        t_rel_s = (objects.t_ns[kept] - t0[lab]) / NS_PER_S
         if self._sigma is None:
             t_out_s = np.bincount(lab, w * t_rel_s, g) / wsum
             xy_at = objects.xy[kept] + vel[kept] * (t_out_s[lab] - t_rel_s)[:, None]
@@ -509,9 +528,9 @@ class Fusion:
             if own.any():
                 info[own] = position_information(objects.xy[kept][own], self._pos[cam[own]], self._sigma)
                 if self.config.crowded_sigma_factor > 1:
-                    mine = kept[own]
-                    hidden = crowded(objects.xy[mine], self._pos[cam[own]], source[mine], self.config.crowd_ahead_m,
-                                     self.config.crowd_across_m)
+                    mine = kept[own]  # in front only within its own pool, as if the pool were fused alone
+                    hidden = crowded(objects.xy[mine], self._pos[cam[own]], 2 * source[mine] + pool[mine],
+                                     self.config.crowd_ahead_m, self.config.crowd_across_m)
                     info[np.flatnonzero(own)[hidden]] /= self.config.crowded_sigma_factor**2
             info *= w[:, None, None]
             a = np.zeros((g, 2, 2))
