@@ -417,13 +417,14 @@ class Fusion:
         """(N,) group label per object, -1 for dropped objects, and (N,) bool: kept as extend-only. Objects of
         different pools (N,) never meet: as far as grouping goes, they lie beyond every gate of each other."""
         gate = self.config.merge_gate_m
-        d = np.hypot(p_ref[:, None, 0] - p_ref[None, :, 0], p_ref[:, None, 1] - p_ref[None, :, 1])
-        # one frame never sees a vehicle twice; the other pool's objects are not there
-        d[(source[:, None] == source[None]) | (pool[:, None] != pool[None])] = np.inf
+        dx, dy = p_ref[:, None, 0] - p_ref[None, :, 0], p_ref[:, None, 1] - p_ref[None, :, 1]
+        # (N, N): within the gate of each other; one frame never sees a vehicle twice; the other pool's objects are
+        # not there
+        near = (dx * dx + dy * dy <= gate * gate) & (source[:, None] != source[None]) & (pool[:, None] == pool[None])
         labels = np.full(len(objects), -1)
         # 1. Objects in their own camera's region seed the groups.
         seeds = np.flatnonzero(in_region)
-        labels[seeds] = self._cluster(seeds, d, source, weight, p_ref, pool)
+        labels[seeds] = self._cluster(seeds, near, source, weight, p_ref, pool)
         g = int(labels.max()) + 1
         # 2. The others join a group within the gate (one object per frame and group).
         out = np.flatnonzero(~in_region)
@@ -456,19 +457,19 @@ class Fusion:
         rest = rest[full | extend[rest]]
         if len(rest):
             known = np.flatnonzero(cam_idx >= 0)
-            seen = (d[np.ix_(rest, known)] <= gate) & owners[np.ix_(rest, cam_idx[known])]
+            seen = near[np.ix_(rest, known)] & owners[np.ix_(rest, cam_idx[known])]
             rest = rest[~seen.any(axis=1)]
-            labels[rest] = g + self._cluster(rest, d, source, weight, p_ref, pool)
+            labels[rest] = g + self._cluster(rest, near, source, weight, p_ref, pool)
         return labels, extend & (labels >= 0)
 
-    def _cluster(self, rows: np.ndarray, d: np.ndarray, source: np.ndarray, weight: np.ndarray,
+    def _cluster(self, rows: np.ndarray, near: np.ndarray, source: np.ndarray, weight: np.ndarray,
                  p_ref: np.ndarray, pool: np.ndarray) -> np.ndarray:
         """Labels 0.. for `rows`: objects of different frames (and the same pool) within the gate of a group's
-        weighted centre form one group (frame by frame, Hungarian assignment); objects with no such neighbour stand
-        alone."""
+        weighted centre form one group (frame by frame, Hungarian assignment); objects with no such neighbour
+        (`near`, (N, N) bool, `_group`) stand alone."""
         gate = self.config.merge_gate_m
         out = np.full(len(rows), -1)
-        linked = (d[np.ix_(rows, rows)] <= gate).any(axis=1)
+        linked = near[np.ix_(rows, rows)].any(axis=1)
         lone = np.flatnonzero(~linked)
         out[lone] = np.arange(len(lone))
         first = len(lone)

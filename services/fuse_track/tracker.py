@@ -335,7 +335,8 @@ class Tracker:
         d_s = (objects.t_ns[rows] - self._t_ns) / NS_PER_S
         x = self._x[tracks]
         at = x[None, :, :2] + x[None, :, 4:6] * d_s[:, None, None]
-        return np.linalg.norm(objects.xy[rows, None, :] - at, axis=2)
+        dx, dy = objects.xy[rows, None, 0] - at[:, :, 0], objects.xy[rows, None, 1] - at[:, :, 1]
+        return np.sqrt(dx * dx + dy * dy)  # what np.linalg.norm computes, without its overhead
 
     def _associate(self, objects: ObjectBatch, rows: np.ndarray, tracks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Hungarian assignment of the objects at `rows` to the tracks at `tracks` on ground distance with the
@@ -415,14 +416,18 @@ class Tracker:
         needs `need` consecutive hits to be confirmed."""
         if len(rows) == 0:
             return
-        taken = self._x[:, :2]
-        born = []
-        for i in rows[np.argsort(-objects.score[rows], kind="stable")]:
-            xy = objects.xy[i]
-            if len(taken) and np.min(np.linalg.norm(taken - xy, axis=1)) < self.config.birth_separation_m:
-                continue
-            born.append(i)
-            taken = np.vstack([taken, xy])
+        sep = self.config.birth_separation_m
+        rows = rows[np.argsort(-objects.score[rows], kind="stable")]  # the surest first
+        xy = objects.xy[rows]
+        if len(self._ids):  # none within sep of a track: all tracks at once
+            dx, dy = xy[:, None, 0] - self._x[None, :, 0], xy[:, None, 1] - self._x[None, :, 1]
+            keep = np.sqrt(np.min(dx * dx + dy * dy, axis=1)) >= sep
+            rows, xy = rows[keep], xy[keep]
+        born, placed = [], []  # nor within sep of one born before it in this tick
+        for i, (x, y) in zip(rows.tolist(), xy.tolist(), strict=True):
+            if all(math.sqrt((x - px) * (x - px) + (y - py) * (y - py)) >= sep for px, py in placed):
+                born.append(i)
+                placed.append((x, y))
         if not born:
             return
         born = np.array(born)
