@@ -18,6 +18,7 @@ from services.fuse_track.fusion import (
     ObjectBatch,
     crowded,
     frame_labels,
+    inverse_2x2,
     points_in_polygon,
 )
 from services.fuse_track.ticks import TickBuffer, TickConfig
@@ -203,6 +204,15 @@ def test_fusion_split_score_keeps_low_and_high_score_objects_apart():
     assert len(split) == 1 and split.score[0] == pytest.approx(0.3) and split.sources_of(0) == ["A"]
     high_only = Fusion(regions, FusionConfig(merge_gate_m=2.5)).fuse(objects.select(np.array([1])), 0)
     assert len(high_only) == 0
+
+
+def test_inverse_2x2_is_numpys_and_marks_a_singular_matrix():
+    rng = np.random.default_rng(0)
+    m = rng.normal(size=(50, 2, 2))
+    a = m @ m.transpose(0, 2, 1) + 0.1 * np.eye(2)  # information matrices: symmetric positive definite
+    np.testing.assert_allclose(inverse_2x2(a), np.linalg.inv(a), rtol=1e-10, atol=1e-12)
+    assert not np.isfinite(inverse_2x2(np.array([[[1.0, 2.0], [2.0, 4.0]]]))).all()
+    assert inverse_2x2(np.zeros((0, 2, 2))).shape == (0, 2, 2)
 
 
 @pytest.mark.parametrize("seed", range(4))

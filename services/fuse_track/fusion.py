@@ -94,6 +94,15 @@ def frame_labels(camera: np.ndarray, t_ns: np.ndarray) -> np.ndarray:
     return labels
 
 
+def inverse_2x2(a: np.ndarray) -> np.ndarray:
+    """(G, 2, 2) -> (G, 2, 2) inverses in closed form (for 2 x 2 a batched LAPACK solve costs more than the
+    arithmetic); inf or NaN where a matrix is singular."""
+    det = a[:, 0, 0] * a[:, 1, 1] - a[:, 0, 1] * a[:, 1, 0]
+    inv = np.stack([a[:, 1, 1], -a[:, 0, 1], -a[:, 1, 0], a[:, 0, 0]], axis=1).reshape(-1, 2, 2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return inv / det[:, None, None]
+
+
 def wrap_angle(a: np.ndarray) -> np.ndarray:
     """Angles (rad) wrapped to [-pi, pi)."""
     return (a + np.pi) % (2 * np.pi) - np.pi
@@ -536,7 +545,8 @@ class Fusion:
             info *= w[:, None, None]
             a = np.zeros((g, 2, 2))
             np.add.at(a, lab, info)
-            share = np.linalg.solve(a[lab], info)  # each member's part of its group's position: A^-1 I_i
+            a_inv = inverse_2x2(a)
+            share = a_inv[lab] @ info  # each member's part of its group's position: A^-1 I_i
             # The group's time: each member's capture time weighted by its part along its motion, so that an
             # error in the velocity hints cancels along the motion, as scalar weights make it cancel altogether.
             speed = np.hypot(vel[kept, 0], vel[kept, 1])
@@ -550,7 +560,7 @@ class Fusion:
             xy_at = objects.xy[kept] + vel[kept] * (t_out_s[lab] - t_rel_s)[:, None]
             b = np.zeros((g, 2))
             np.add.at(b, lab, np.einsum("nij,nj->ni", info, xy_at))
-            xy = np.linalg.solve(a, b[:, :, None])[:, :, 0]
+            xy = np.einsum("gij,gj->gi", a_inv, b)
         # The heaviest member of each group anchors its yaw, camera and preferred values.
         order = np.lexsort((-w, lab))
         first = order[np.r_[True, lab[order][1:] != lab[order][:-1]]]
@@ -574,7 +584,10 @@ class Fusion:
         ext = None
         if extend[kept].any():
             ext = np.bincount(lab, ~extend[kept], g) == 0
-        return ObjectBatch(
+        if not np.isfinite(xy).all():  # finite members, positive weights: only a degenerate information matrix
+            raise ValueError("fusion gave a non-finite position (a group's information matrix is singular)")
+        # means, maxima and votes of validated rows: the constructor's checks are not run again on this per-tick path
+        return ObjectBatch._validated(
             camera=objects.camera[kept][first], t_ns=t0 + np.round(t_out_s * NS_PER_S).astype(np.int64), xy=xy,
             yaw=yaw, size_lwh=size, vtype=np.argmax(votes, axis=1), score=score, sources=[sorted(s) for s in sources],
             extend_only=ext)
