@@ -215,14 +215,15 @@ def test_inverse_2x2_is_numpys_and_marks_a_singular_matrix():
     assert inverse_2x2(np.zeros((0, 2, 2))).shape == (0, 2, 2)
 
 
-@pytest.mark.parametrize("seed", range(4))
-def test_fusion_of_two_pools_in_one_pass_equals_each_pool_fused_alone(seed):
+@pytest.mark.parametrize("seed, cfg", [(0, {}), (1, {}), (2, {"occlusion_fallback": True}),
+                                       (3, {"position_sigma": None}), (4, {"crowded_sigma_factor": 1.0})])
+def test_fusion_of_two_pools_in_one_pass_equals_each_pool_fused_alone(seed, cfg):
     """Both pools of a tick go through one pass (fusion's cost is mostly per call), with exactly the result of
     fusing the high-scoring objects alone, then the low-scoring ones alone: a crowded, noisy tick of three cameras
-    (one of them without a region: extend-only and fallback objects too), at several capture times."""
+    and one without a region (extend-only and fallback objects too), at several capture times."""
     rng = np.random.default_rng(seed)
     regions = [CameraRegion("A", (-20.0, 0.0)), CameraRegion("B", (20.0, 0.0)), CameraRegion("C", (0.0, 30.0))]
-    cfg = dict(merge_gate_m=3.0, extend_range_m=40.0)
+    cfg = dict(merge_gate_m=3.0, extend_range_m=40.0, **cfg)
     truth = rng.uniform(-35, 35, (25, 2))
     batches = []
     for cam, t_ms in (("A", -30), ("B", 10), ("C", 40), ("D", 0)):  # D: a camera without a region
@@ -244,7 +245,8 @@ def test_fusion_of_two_pools_in_one_pass_equals_each_pool_fused_alone(seed):
     for k in ("xy", "yaw", "size_lwh", "score"):
         np.testing.assert_allclose(getattr(got, k), getattr(want, k), rtol=0, atol=1e-9, err_msg=k)
     assert [got.sources_of(i) for i in range(len(got))] == [want.sources_of(i) for i in range(len(want))]
-    assert got.extend_mask().tolist() == want.extend_mask().tolist() and want.extend_mask().any()
+    assert got.extend_mask().tolist() == want.extend_mask().tolist()
+    assert want.extend_mask().any() != cfg.get("occlusion_fallback", False)  # the fallback keeps them whole instead
 
 
 def test_empty_ticks_age_tracks_out_after_max_age():
