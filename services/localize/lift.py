@@ -87,9 +87,10 @@ def lift(masks: GroundLookup | LookupMasks, uv: np.ndarray, heading_uv: np.ndarr
     n = len(uv)
     if n == 0:
         return Lifted(np.zeros(0, bool), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0))
-    latlon, xy, ok = masks.lookup(uv)
-    _, ends, ok_ends = masks.lookup(np.concatenate([uv + step_px * heading, uv - step_px * heading]), geodetic=False)
-    fwd, back, ok_f, ok_b = ends[:n], ends[n:], ok_ends[:n], ok_ends[n:]
+    # one lookup for the bottom centres and both ends (its cost is mostly per call): the ends' latitudes unused
+    latlon, pts, ok_all = masks.lookup(np.concatenate([uv, uv + step_px * heading, uv - step_px * heading]))
+    latlon, xy, ok = latlon[:n], pts[:n], ok_all[:n]
+    fwd, back, ok_f, ok_b = pts[n:2 * n], pts[2 * n:], ok_all[n:2 * n], ok_all[2 * n:]
     d = np.where(ok_f[:, None], fwd - xy, xy - back)
     yaw = np.arctan2(d[:, 1], d[:, 0])
     valid = ok & (ok_f | ok_b) & (np.hypot(d[:, 0], d[:, 1]) > 1e-6)
