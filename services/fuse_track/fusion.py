@@ -584,8 +584,9 @@ class Fusion:
         ext = None
         if extend[kept].any():
             ext = np.bincount(lab, ~extend[kept], g) == 0
-        if not np.isfinite(xy).all():  # finite members, positive weights: only a degenerate information matrix
-            raise ValueError("fusion gave a non-finite position (a group's information matrix is singular)")
+        if not (np.isfinite(xy).all() and np.isfinite(t_out_s).all()):  # finite members, positive weights: only a
+            # degenerate information matrix
+            raise ValueError("fusion gave a non-finite position or time (a group's information matrix is singular)")
         # means, maxima and votes of validated rows: the constructor's checks are not run again on this per-tick path
         return ObjectBatch._validated(
             camera=objects.camera[kept][first], t_ns=t0 + np.round(t_out_s * NS_PER_S).astype(np.int64), xy=xy,
