@@ -5,9 +5,10 @@ algorithm's alone. Prints one JSON document.
 The scene: four cameras 30 m out on the diagonals of a 20 m ring; vehicles circulating on the ring, crossing on two
 straight roads and parked beside them; every camera sees what lies within `--range` m of it, at its own capture
 time in the tick (-30, -10, +10, +30 ms), placed with noise that grows with range (more along the line of sight
-than across it), missing 5 % and adding false alarms. Fusion and tracker use the site defaults with the roundabout's
-`high_score` (0.33), as `roadside demo` runs them. Per tick: milliseconds p50 / p99 / mean of the whole step and of
-its fusion and tracking parts, objects in and tracks out. The load average is recorded: on a shared machine the
+than across it), missing 5 % and adding false alarms. Fusion and tracker are configured as fuse_track configures
+them from a site's settings (`fusion_config`, `tracker_config`): the defaults, with `roadside demo`'s
+`high_score`. Per tick: milliseconds p50 / p99 / mean of the whole step and of its fusion and tracking parts,
+objects in and tracks out. The load average is recorded: on a shared machine the
 figures are upper bounds; compare two variants within one run or back to back.
 
     python -m bench.fuse_track [--vehicles 40] [--ticks 600] [--warmup 30] [--range 60] [--seed 0]
@@ -22,16 +23,18 @@ import time
 
 import numpy as np
 
-from services.fuse_track.fusion import CameraRegion, Fusion, FusionConfig, ObjectBatch
-from services.fuse_track.tracker import Tracker, TrackerConfig
+from roadside.demo import DemoConfig
+from services.fuse_track.__main__ import fusion_config, tracker_config
+from services.fuse_track.fusion import CameraRegion, Fusion, ObjectBatch
+from services.fuse_track.tracker import Tracker
 from shared.jsonio import dumps
+from shared.settings import FuseTrackSettings
 
 NS_PER_MS = 1_000_000
 TICK_MS = 100
 CAMERAS = {"NE": (30.0, 30.0), "NW": (-30.0, 30.0), "SE": (30.0, -30.0), "SW": (-30.0, -30.0)}
 OFFSETS_MS = {"NE": -30, "NW": -10, "SE": 10, "SW": 30}
 RING_M = 20.0
-HIGH_SCORE = 0.33
 
 
 class Scene:
@@ -86,8 +89,9 @@ def camera_frame(scene: Scene, camera: str, t_ns: int, range_m: float, rng: np.r
 def run(vehicles: int, ticks: int, warmup: int, range_m: float, seed: int) -> dict:
     rng = np.random.default_rng(seed)
     scene = Scene(vehicles, rng)
-    fusion = Fusion([CameraRegion(name, pos) for name, pos in CAMERAS.items()], FusionConfig(split_score=HIGH_SCORE))
-    tracker = Tracker(TrackerConfig(high_score=HIGH_SCORE))
+    cfg = FuseTrackSettings(high_score=DemoConfig().high_score)
+    fusion = Fusion([CameraRegion(name, pos) for name, pos in CAMERAS.items()], fusion_config(cfg))
+    tracker = Tracker(tracker_config(cfg))
     total, fuse, track, n_in, n_out = [], [], [], [], []
     for k in range(warmup + ticks):
         t_ref = (k * TICK_MS + TICK_MS // 2) * NS_PER_MS

@@ -31,7 +31,7 @@ from shared.geo import GeoFrame
 from shared.keys import all_cameras_key, latest_tracks_key, tracks_key
 from shared.messages import MAX_ROWS, Objects, Tracks
 from shared.service import run
-from shared.settings import Settings
+from shared.settings import FuseTrackSettings, Settings
 
 log = logging.getLogger("roadside.fuse_track")
 POLL_S = 0.02  # the longest sleep without a message: max_wait is checked this often
@@ -164,11 +164,7 @@ def build(settings: Settings) -> tuple[Fusion, Tracker, TickBuffer, dict[str, tu
     positions, geo = camera_positions(settings)
     regions = [CameraRegion(c.name, positions[c.name], np.asarray(c.region_m) if c.region_m else None)
                for c in settings.cameras]
-    fusion = Fusion(regions, FusionConfig(merge_gate_m=cfg.merge_gate_m, out_of_region_weight=cfg.out_of_region_weight,
-                                          position_sigma=cfg.position_sigma,
-                                          crowded_sigma_factor=cfg.crowded_sigma_factor,
-                                          occlusion_fallback=cfg.occlusion_fallback,
-                                          extend_range_m=cfg.extend_range_m, split_score=cfg.high_score))
+    fusion = Fusion(regions, fusion_config(cfg))
     tracker = new_tracker(settings)
     ticks: TickBuffer = TickBuffer(positions, TickConfig(tick_ms=cfg.tick_ms, watermark_ms=cfg.watermark_ms,
                                                          max_wait_ms=cfg.max_wait_ms,
@@ -176,11 +172,23 @@ def build(settings: Settings) -> tuple[Fusion, Tracker, TickBuffer, dict[str, tu
     return fusion, tracker, ticks, positions, geo
 
 
+def fusion_config(cfg: FuseTrackSettings) -> FusionConfig:
+    """The fusion's configuration from a site's fuse_track settings (its score pools split at high_score)."""
+    return FusionConfig(merge_gate_m=cfg.merge_gate_m, out_of_region_weight=cfg.out_of_region_weight,
+                        position_sigma=cfg.position_sigma, crowded_sigma_factor=cfg.crowded_sigma_factor,
+                        occlusion_fallback=cfg.occlusion_fallback, extend_range_m=cfg.extend_range_m,
+                        split_score=cfg.high_score)
+
+
+def tracker_config(cfg: FuseTrackSettings) -> TrackerConfig:
+    """The tracker's configuration from a site's fuse_track settings."""
+    return TrackerConfig(gate_m=cfg.gate_m, max_age_ticks=cfg.max_age_ticks, min_hits=cfg.min_hits,
+                         high_score=cfg.high_score, standing_hits=cfg.standing_hits)
+
+
 def new_tracker(settings: Settings) -> Tracker:
     """A tracker of a site's settings (a new id, no tracks)."""
-    cfg = settings.fuse_track
-    return Tracker(TrackerConfig(gate_m=cfg.gate_m, max_age_ticks=cfg.max_age_ticks, min_hits=cfg.min_hits,
-                                 high_score=cfg.high_score, standing_hits=cfg.standing_hits))
+    return Tracker(tracker_config(settings.fuse_track))
 
 
 def capped(batches: list[ObjectBatch], limit: int = MAX_ROWS) -> tuple[list[ObjectBatch], int]:
