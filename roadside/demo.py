@@ -359,7 +359,7 @@ def track_single_camera(objects: list[Objects], camera: str, tracker_config, geo
 def run_demo(cfg: DemoConfig, log=print) -> dict:
     from eval.tracking import GroundTruth, TrackingEvalConfig, evaluate_many, evaluate_tracks
     from roadside.launcher import Launcher, UpConfig
-    from services.fuse_track.tracker import TrackerConfig
+    from services.fuse_track.__main__ import tracker_config
     from services.rerun_sink import tracks_file_to_rrd
     from shared.settings import load_settings
 
@@ -399,8 +399,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
     (cfg.out / "objects.jsonl").write_text("".join(json.dumps(r) + "\n" for r in objects_rows(objects)))
 
     log("scoring against the ground truth")
-    tcfg = TrackerConfig(gate_m=settings.fuse_track.gate_m, max_age_ticks=settings.fuse_track.max_age_ticks,
-                         min_hits=settings.fuse_track.min_hits, high_score=settings.fuse_track.high_score)
+    tcfg = tracker_config(settings.fuse_track)  # each camera alone tracked as fuse_track tracks them all
     geo = GeoFrame.from_dict(settings.origin)
     sources = {"fused": tracks_path, **{c: track_single_camera(objects, c, tcfg, geo) for c in cams}}
     gt = GroundTruth(rec_dir)
