@@ -347,6 +347,10 @@ def _add_export(sub) -> None:
     p = sub.add_parser("export", help="export a trained detector to fp32 and fp16 ONNX (needs torch)")
     p.add_argument("model", type=Path, help="model.pt written by roadside train")
     p.add_argument("--out", type=Path, required=True, help="fp32 ONNX file; the fp16 copy gets a _fp16 suffix")
+    p.add_argument("--size-recording", type=Path, action="append", default=[],
+                   help="a training recording (repeat for more) on which to fit the size calibration written into "
+                        "both files' metadata (training/sizes.py); never a held-out one")
+    p.add_argument("--size-every", type=int, default=4, help="every N-th frame of those recordings (default 4)")
 
 
 def _add_mix(sub) -> None:
@@ -377,9 +381,39 @@ def _run_export(args) -> int:
     if not args.model.is_file():
         raise ValueError(f"model not found: {args.model}")
     fp16 = args.out.with_name(args.out.stem + "_fp16" + args.out.suffix)
-    export_onnx(load_detector(args.model), args.out, fp16)
+    model = load_detector(args.model)
+    export_onnx(model, args.out, fp16)
     print(f"fp32: {args.out}\nfp16: {fp16}")
+    if args.size_recording:
+        _size_calibration([args.out, fp16], args.size_recording, args.size_every)
     return 0
+
+
+def _add_sizes(sub) -> None:
+    p = sub.add_parser("sizes", help="fit an exported detector's size calibration on training recordings and write "
+                                     "it into its ONNX files (training/sizes.py; roadside export --size-recording "
+                                     "does it on export; needs onnx, the train extra)")
+    p.add_argument("model", type=Path, nargs="+",
+                   help="the fp32 ONNX file (fitted on), then any copies to write the same calibration into (its fp16)")
+    p.add_argument("--recording", type=Path, action="append", required=True,
+                   help="a training recording (repeat for more); never a held-out one")
+    p.add_argument("--every", type=int, default=4, help="every N-th frame of those recordings (default 4)")
+
+
+def _run_sizes(args) -> int:
+    missing = [str(p) for p in args.model if not p.is_file()]
+    if missing:
+        raise ValueError(f"model not found: {', '.join(missing)}")
+    _size_calibration(args.model, args.recording, args.every)
+    return 0
+
+
+def _size_calibration(paths: list[Path], recordings: list[Path], every: int) -> None:
+    from training.sizes import calibrate_files
+
+    calib, before, after = calibrate_files(paths, recordings, every, log=print)
+    print(f"size calibration written into {', '.join(map(str, paths))}: matched detections per type "
+          f"{list(calib.pairs)}; their mean size error {before:.3f} -> {after:.3f} m")
 
 
 def _add_eval(sub) -> None:
@@ -415,6 +449,8 @@ def _add_eval(sub) -> None:
     p.add_argument("--votes", action="store_true",
                    help="detector, real: a vote-head model's peaks whose votes point far away are read where they "
                         "point (detect.votes)")
+    p.add_argument("--raw-sizes", action="store_true",
+                   help="detector, real: the size head's sizes as they are, without the model's size calibration")
     p.add_argument("--demo", type=Path, action="append",
                    help="budget: a roadside demo output folder (objects.jsonl, site/, the recording; default "
                         "out/demo); repeatable: each run's budget and the mean over them")
@@ -475,7 +511,7 @@ def _run_eval(args) -> int:
         thr = 0.3 if args.score_thr is None else args.score_thr
         curve = tuple(round(0.05 * k, 2) for k in range(1, 13))  # 0.05 ... 0.6
         det = OnnxDetector(args.model, threads=args.threads, score_thr=min(thr, *curve), mirror=args.mirror,
-                           votes=args.votes)
+                           votes=args.votes, calibrated_sizes=not args.raw_sizes)
         has_settings = args.site.is_file() or (args.site / "site.yaml").is_file()  # a bare labels + masks folder too
         settings = load_settings(args.site) if has_settings else None
         cams = settings.cameras if settings else []
@@ -495,9 +531,11 @@ def _run_eval(args) -> int:
     if args.recording is None:
         raise ValueError("eval detector needs --recording")
     thr = 0.05 if args.score_thr is None else args.score_thr  # 0 is a threshold too
-    det = OnnxDetector(args.model, threads=args.threads, score_thr=thr, mirror=args.mirror, votes=args.votes)
+    det = OnnxDetector(args.model, threads=args.threads, score_thr=thr, mirror=args.mirror, votes=args.votes,
+                       calibrated_sizes=not args.raw_sizes)
     result = evaluate(args.recording, det.detect, every=args.every, fisheye_area_deg=args.fisheye_area_deg,
                       near_m=args.near_m, near_score=args.near_score)
+    result["size_calibration"] = det.size_calibration is not None  # the model's, unless --raw-sizes
     line = ("{name:8s} ap50 {ap50} loc {loc_err_m} m yaw {yaw_err_deg} deg size {size_err_m} m ({frames} frames); "
             "false alarms at {breakdown_score_thr}: {false_alarms[box]} boxes off a found vehicle, "
             "{false_alarms[duplicate]} duplicates, {false_alarms[background]} on the background")
@@ -947,6 +985,7 @@ def main(argv: list[str] | None = None) -> int:
     _add_area(sub)
     _add_composite(sub)
     _add_export(sub)
+    _add_sizes(sub)
     _add_mix(sub)
     _add_eval(sub)
     _add_up(sub)
@@ -956,7 +995,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     runners = {"sim": _run_sim, "demo": _run_demo, "calibrate": _run_calibrate, "bench": _run_bench,
                "train": _run_train, "autolabel": _run_autolabel, "static": _run_static, "area": _run_area,
-               "composite": _run_composite, "export": _run_export, "mix": _run_mix,
+               "composite": _run_composite, "export": _run_export, "sizes": _run_sizes, "mix": _run_mix,
                "eval": _run_eval, "up": _run_up,
                "tracks": _run_tracks, "health": _run_health, "viz": _run_viz}
     try:

@@ -11,12 +11,13 @@ slower on CPU execution providers).
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from shared.decode import CONFIG_KEY, Detections, decode
+from shared.decode import CONFIG_KEY, SIZE_CALIBRATION_KEY, Detections, SizeCalibration, decode
 
 PAD_MULTIPLE = 32
 AREA_CONTEXT_PX = 32  # network pixels of the image kept around a camera's detect area (see `OnnxDetector.detect`)
@@ -59,7 +60,9 @@ class OnnxDetector:
 
     def __init__(self, path: str | Path, providers: list[str] | None = None, threads: int = 2,
                  score_thr: float = 0.3, top_k: int = 200, spin: bool = True, mirror: bool = False,
-                 votes: bool = False) -> None:
+                 votes: bool = False, calibrated_sizes: bool = True) -> None:
+        """`calibrated_sizes`: apply the model's size calibration (`SizeCalibration`, in its metadata when its export
+        fitted one) to the size head's output; False gives the head's sizes as they are."""
         import onnxruntime as ort
 
         path = Path(path)
@@ -78,6 +81,9 @@ class OnnxDetector:
         if CONFIG_KEY not in meta:
             raise ValueError(f"{path}: model metadata has no {CONFIG_KEY!r} (export it with `roadside export`)")
         self.config = json.loads(meta[CONFIG_KEY])
+        self.size_calibration = None
+        if calibrated_sizes and SIZE_CALIBRATION_KEY in meta:
+            self.size_calibration = SizeCalibration.from_json(meta[SIZE_CALIBRATION_KEY], f"{path}: metadata")
         self.stride = int(self.config["stride"])
         self.long_side = int(self.config.get("input_long_side", 640))
         self.input_name = self.session.get_inputs()[0].name
@@ -168,6 +174,8 @@ class OnnxDetector:
         if not self.votes:
             maps.pop("vote", None)
         det = decode(**maps, stride=self.stride, score_thr=self.score_thr, top_k=self.top_k)
+        if self.size_calibration is not None and len(det):
+            det = replace(det, size_lwh=self.size_calibration.apply(det.size_lwh, det.vtype))
         # network pixel p (centre convention) <- image pixel q: p + 0.5 = (q + 0.5) * scale
         inv = 1.0 / scale
         return det.scaled(inv, inv, 0.5 * inv - 0.5, 0.5 * inv - 0.5)

@@ -1,0 +1,157 @@
+"""The detector's size calibration: the per-type map, its fit by least absolute deviations, the ONNX metadata it
+travels in."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from shared.decode import SIZE_CALIBRATION_KEY, Detections, SizeCalibration
+from shared.inference import OnnxDetector
+from training.data import samples_from_recording
+from training.sizes import collect_pairs, fit_size_calibration, least_absolute, write_size_calibration
+
+
+def _calibration(num_types: int = 5, type_: int = 0, gain: tuple[float, float, float] = (2.0, 1.0, 0.5)):
+    """Type `type_` multiplies l, w, h by `gain`; the others keep their sizes."""
+    calib = SizeCalibration.identity(num_types)
+    coef = calib.coef.copy()
+    coef[type_, :, 0] = np.log(gain)
+    return SizeCalibration(coef, tuple(100 if t == type_ else 0 for t in range(num_types)))
+
+
+def test_identity_and_a_per_type_map():
+    size = np.array([[4.5, 1.8, 1.5], [12.0, 2.5, 3.2], [4.0, 1.7, 1.4]])
+    vtype = np.array([0, 3, -1])
+    assert np.array_equal(SizeCalibration.identity(5).apply(size, vtype), size)
+    out = _calibration().apply(size, vtype)
+    assert out[0] == pytest.approx([9.0, 1.8, 0.75])
+    assert np.array_equal(out[1:], size[1:])  # another type; an unknown one (-1)
+    # an index beyond the calibration keeps its size
+    assert np.array_equal(_calibration().apply(size, np.array([0, 3, 7])), np.vstack([out[:2], size[2:]]))
+    # a zero from the size head's ReLU is read as 5 cm, not as log 0
+    assert np.isfinite(_calibration().apply(np.zeros((1, 3)), np.array([0]))).all()
+    assert _calibration().apply(np.zeros((0, 3)), np.zeros(0, int)).shape == (0, 3)
+
+
+def test_the_calibration_mixes_the_three_sizes():
+    coef = SizeCalibration.identity(1).coef.copy()
+    coef[0, 2] = [0.1, 0.5, 0.0, 0.5]  # log h' = 0.1 + (log l + log h) / 2
+    out = SizeCalibration(coef, (60,)).apply(np.array([[4.0, 2.0, 1.0]]), np.array([0]))
+    assert out[0] == pytest.approx([4.0, 2.0, np.exp(0.1) * 2.0])
+
+
+def test_json_round_trip_and_bad_values():
+    calib = _calibration()
+    back = SizeCalibration.from_json(calib.to_json())
+    assert np.allclose(back.coef, calib.coef, atol=1e-6) and back.pairs == calib.pairs
+    with pytest.raises(ValueError, match=r"model\.onnx: metadata: not a size calibration"):
+        SizeCalibration.from_json("{not json", "model.onnx: metadata")
+    with pytest.raises(ValueError, match="not a size calibration"):
+        SizeCalibration.from_json('{"coef": [[[1, 2, 3]]], "pairs": [1]}')
+    with pytest.raises(ValueError, match=r"coef must have shape \(C, 3, 4\)"):
+        SizeCalibration(np.zeros((2, 3, 3)), (0, 0))
+    with pytest.raises(ValueError, match="finite"):
+        SizeCalibration(np.full((1, 3, 4), np.nan), (0,))
+    with pytest.raises(ValueError, match="pairs must be 1 counts"):
+        SizeCalibration(np.zeros((1, 3, 4)), (0, 0))
+    with pytest.raises(ValueError, match="3 sizes but 2 types"):
+        calib.apply(np.ones((3, 3)), np.zeros(2, int))
+
+
+def test_least_absolute_ignores_gross_outliers_that_pull_least_squares():
+    rng = np.random.default_rng(0)
+    x = np.column_stack([np.ones(200), rng.uniform(0, 1, 200)])
+    y = 0.5 + 2.0 * x[:, 1] + rng.normal(0, 0.01, 200)
+    y[:20] += 5.0  # one in ten badly off
+    assert least_absolute(x, y) == pytest.approx([0.5, 2.0], abs=0.02)
+    assert abs(np.linalg.lstsq(x, y, rcond=None)[0][0] - 0.5) > 0.2
+
+
+def test_fit_recovers_a_log_linear_map_per_type_and_keeps_rare_types_as_they_are():
+    rng = np.random.default_rng(1)
+    pred = np.exp(rng.normal(np.log([4.5, 1.8, 1.5]), 0.1, (300, 3)))
+    vtype = np.r_[np.zeros(260, int), np.full(40, 3)]  # type 3: fewer than the 50 pairs a fit needs
+    true = pred.copy()
+    true[vtype == 0] = 1.1 * pred[vtype == 0] ** [1.0, 0.8, 1.2]  # log-linear in each size
+    calib = fit_size_calibration(pred, vtype, true, 5)
+    assert calib.pairs == (260, 0, 0, 0, 0)
+    assert calib.apply(pred, vtype) == pytest.approx(true, rel=1e-4)
+    assert np.array_equal(calib.coef[1:], SizeCalibration.identity(5).coef[1:])
+
+
+def test_fit_rejects_bad_input():
+    ok = np.ones((60, 3))
+    with pytest.raises(ValueError, match="60 predicted sizes, 59 true, 60 types"):
+        fit_size_calibration(ok, np.zeros(60, int), ok[:59], 5)
+    with pytest.raises(ValueError, match="true ones > 0"):
+        fit_size_calibration(ok, np.zeros(60, int), np.zeros((60, 3)), 5)
+    with pytest.raises(ValueError, match="finite"):
+        fit_size_calibration(np.full((60, 3), np.nan), np.zeros(60, int), ok, 5)
+    with pytest.raises(ValueError, match="min_pairs must be >= 5"):
+        fit_size_calibration(ok, np.zeros(60, int), ok, 5, min_pairs=3)
+
+
+def test_pairs_from_a_recording_fit_a_detector_that_reads_sizes_short(small_recording):
+    """A detector that finds every vehicle but reads l, w, h at 0.8, 0.9, 1.1 times their size: the pairs are the
+    matched detections and the fit undoes the error."""
+    labels = {}
+    for ref in samples_from_recording(small_recording):
+        s = ref.load()
+        labels[(s.image.shape, int(s.image.sum()))] = s
+
+    def short(grey: np.ndarray) -> Detections:
+        s = labels[(grey.shape, int(grey.sum()))]
+        keep = s.weight > 0
+        n = int(keep.sum())
+        vtype = np.zeros(n, int)  # all typed as cars, so one type has the pairs
+        return Detections(np.linspace(1.0, 0.5, n), s.bottom_uv[keep], s.box[keep], np.tile([1.0, 0.0], (n, 1)),
+                          s.size_lwh[keep] * [0.8, 0.9, 1.1], vtype, np.eye(5)[vtype])
+
+    pairs = collect_pairs(short, [small_recording], every=1)
+    assert len(pairs["pred"]) > 5 and np.allclose(pairs["pred"], pairs["true"] * [0.8, 0.9, 1.1])
+    calib = fit_size_calibration(pairs["pred"], pairs["vtype"], pairs["true"], 5, min_pairs=5)
+    assert calib.apply(pairs["pred"], pairs["vtype"]) == pytest.approx(pairs["true"], rel=1e-3)
+    with pytest.raises(ValueError, match="no detection matched a vehicle"):
+        collect_pairs(lambda grey: Detections(np.zeros(0), np.zeros((0, 2)), np.zeros((0, 4)), np.zeros((0, 2)),
+                                              np.zeros((0, 3)), np.zeros(0, int), np.zeros((0, 5))),
+                      [small_recording])
+
+
+def test_the_calibration_travels_in_the_onnx_metadata(tmp_path):
+    from tests.pipeline_fixtures import export_tiny_detector
+
+    path = export_tiny_detector(tmp_path / "tiny.onnx")
+    grey = np.random.default_rng(2).integers(0, 255, (96, 128), dtype=np.uint8)
+    raw = OnnxDetector(path, threads=1, score_thr=0.0).detect(grey)  # before: no calibration in the file
+    assert len(raw) > 0
+    write_size_calibration([path], _calibration(type_=int(raw.vtype[0])))
+    det = OnnxDetector(path, threads=1, score_thr=0.0)
+    assert det.size_calibration is not None and det.config["stride"] == 4  # the other metadata kept
+    got = det.detect(grey)
+    mine = raw.vtype == raw.vtype[0]
+    assert np.allclose(got.size_lwh[mine], raw.size_lwh[mine] * [2.0, 1.0, 0.5])
+    assert np.array_equal(got.size_lwh[~mine], raw.size_lwh[~mine])
+    assert np.array_equal(got.uv, raw.uv) and np.array_equal(got.score, raw.score)
+    off = OnnxDetector(path, threads=1, score_thr=0.0, calibrated_sizes=False)
+    assert off.size_calibration is None and np.array_equal(off.detect(grey).size_lwh, raw.size_lwh)
+
+
+def test_a_broken_calibration_in_a_model_file_is_named(tmp_path):
+    import onnx
+
+    from tests.pipeline_fixtures import export_tiny_detector
+
+    path = export_tiny_detector(tmp_path / "tiny.onnx")
+    proto = onnx.load(str(path))
+    onnx.helper.set_model_props(proto, {**{p.key: p.value for p in proto.metadata_props}, SIZE_CALIBRATION_KEY: "[]"})
+    onnx.save(proto, str(path))
+    with pytest.raises(ValueError, match=r"tiny\.onnx: metadata: not a size calibration"):
+        OnnxDetector(path, threads=1)
+
+
+def test_roadside_sizes_names_a_missing_model(tmp_path, capsys):
+    from roadside.cli import main
+
+    assert main(["sizes", str(tmp_path / "nope.onnx"), "--recording", str(tmp_path)]) != 0
+    assert "model not found" in capsys.readouterr().err
