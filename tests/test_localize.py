@@ -61,7 +61,7 @@ def test_objects_without_a_finite_position_yaw_or_size_are_left_alone():
 
 
 def test_settings_default_and_refuse_a_negative_scale():
-    assert LocalizeSettings().footprint_overlap == 1.5
+    assert LocalizeSettings().footprint_overlap == 1.4
     with pytest.raises(ValueError, match="footprint_overlap"):
         LocalizeSettings(footprint_overlap=-1)
 

@@ -1,7 +1,9 @@
 """The detector's size calibration: the per-type map, its fit by least absolute deviations, the ONNX metadata it
-travels in."""
+travels in, and the shipped model carrying one."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,6 +12,8 @@ from shared.decode import SIZE_CALIBRATION_KEY, Detections, SizeCalibration
 from shared.inference import OnnxDetector
 from training.data import samples_from_recording
 from training.sizes import collect_pairs, fit_size_calibration, least_absolute, write_size_calibration
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 def _calibration(num_types: int = 5, type_: int = 0, gain: tuple[float, float, float] = (2.0, 1.0, 0.5)):
@@ -148,6 +152,13 @@ def test_a_broken_calibration_in_a_model_file_is_named(tmp_path):
     onnx.save(proto, str(path))
     with pytest.raises(ValueError, match=r"tiny\.onnx: metadata: not a size calibration"):
         OnnxDetector(path, threads=1)
+
+
+def test_the_shipped_detector_carries_its_calibration_in_both_files():
+    fp32 = OnnxDetector(REPO / "models" / "detector_fp32.onnx", threads=1).size_calibration
+    fp16 = OnnxDetector(REPO / "models" / "detector_fp16.onnx", threads=1).size_calibration
+    assert fp32 is not None and fp16 is not None
+    assert np.array_equal(fp32.coef, fp16.coef) and min(fp32.pairs) >= 50  # every type fitted
 
 
 def test_roadside_sizes_names_a_missing_model(tmp_path, capsys):
