@@ -347,10 +347,11 @@ def _add_export(sub) -> None:
     p = sub.add_parser("export", help="export a trained detector to fp32 and fp16 ONNX (needs torch)")
     p.add_argument("model", type=Path, help="model.pt written by roadside train")
     p.add_argument("--out", type=Path, required=True, help="fp32 ONNX file; the fp16 copy gets a _fp16 suffix")
-    p.add_argument("--size-recording", type=Path, action="append", default=[],
-                   help="a training recording (repeat for more) on which to fit the size calibration written into "
-                        "both files' metadata (training/sizes.py); never a held-out one")
-    p.add_argument("--size-every", type=int, default=4, help="every N-th frame of those recordings (default 4)")
+    p.add_argument("--calibration-recording", type=Path, action="append", default=[],
+                   help="a training recording (repeat for more) on which to fit the box and size calibrations written "
+                        "into both files' metadata (training/heads_calibration.py); never a held-out one")
+    p.add_argument("--calibration-every", type=int, default=4,
+                   help="every N-th frame of those recordings (default 4)")
 
 
 def _add_mix(sub) -> None:
@@ -381,18 +382,18 @@ def _run_export(args) -> int:
     if not args.model.is_file():
         raise ValueError(f"model not found: {args.model}")
     fp16 = args.out.with_name(args.out.stem + "_fp16" + args.out.suffix)
-    model = load_detector(args.model)
-    export_onnx(model, args.out, fp16)
+    export_onnx(load_detector(args.model), args.out, fp16)
     print(f"fp32: {args.out}\nfp16: {fp16}")
-    if args.size_recording:
-        _size_calibration([args.out, fp16], args.size_recording, args.size_every)
+    if args.calibration_recording:
+        _heads_calibration([args.out, fp16], args.calibration_recording, args.calibration_every)
     return 0
 
 
-def _add_sizes(sub) -> None:
-    p = sub.add_parser("sizes", help="fit an exported detector's size calibration on training recordings and write "
-                                     "it into its ONNX files (training/sizes.py; roadside export --size-recording "
-                                     "does it on export; needs onnx, the train extra)")
+def _add_calibrate_heads(sub) -> None:
+    p = sub.add_parser("calibrate-heads",
+                       help="fit an exported detector's box and size calibrations on training recordings and write "
+                            "them into its ONNX files (training/heads_calibration.py; roadside export "
+                            "--calibration-recording does it on export; needs onnx, the train extra)")
     p.add_argument("model", type=Path, nargs="+",
                    help="the fp32 ONNX file (fitted on), then any copies to write the same calibration into (its fp16)")
     p.add_argument("--recording", type=Path, action="append", required=True,
@@ -400,20 +401,23 @@ def _add_sizes(sub) -> None:
     p.add_argument("--every", type=int, default=4, help="every N-th frame of those recordings (default 4)")
 
 
-def _run_sizes(args) -> int:
+def _run_calibrate_heads(args) -> int:
     missing = [str(p) for p in args.model if not p.is_file()]
     if missing:
         raise ValueError(f"model not found: {', '.join(missing)}")
-    _size_calibration(args.model, args.recording, args.every)
+    _heads_calibration(args.model, args.recording, args.every)
     return 0
 
 
-def _size_calibration(paths: list[Path], recordings: list[Path], every: int) -> None:
-    from training.sizes import calibrate_files
+def _heads_calibration(paths: list[Path], recordings: list[Path], every: int) -> None:
+    from training.heads_calibration import BOX_IOU, calibrate_files
 
-    calib, before, after = calibrate_files(paths, recordings, every, log=print)
-    print(f"size calibration written into {', '.join(map(str, paths))}: matched detections per type "
-          f"{list(calib.pairs)}; their mean size error {before:.3f} -> {after:.3f} m")
+    r = calibrate_files(paths, recordings, every, log=print)
+    print(f"box and size calibrations written into {', '.join(map(str, paths))}:\n"
+          f"  boxes: {r['boxes'].pairs} detections at IoU {BOX_IOU:g} or more with a vehicle, at IoU 0.5 or more "
+          f"{r['box_pairs_at_iou50_before']:.3f} -> {r['box_pairs_at_iou50_after']:.3f} of them\n"
+          f"  sizes: matched detections per type {list(r['sizes'].pairs)}, their mean size error "
+          f"{r['size_error_before']:.3f} -> {r['size_error_after']:.3f} m")
 
 
 def _add_eval(sub) -> None:
@@ -449,8 +453,9 @@ def _add_eval(sub) -> None:
     p.add_argument("--votes", action="store_true",
                    help="detector, real: a vote-head model's peaks whose votes point far away are read where they "
                         "point (detect.votes)")
-    p.add_argument("--raw-sizes", action="store_true",
-                   help="detector, real: the size head's sizes as they are, without the model's size calibration")
+    p.add_argument("--raw-heads", action="store_true",
+                   help="detector, real: the 2D boxes and sizes as the heads give them, without the model's box and "
+                        "size calibrations")
     p.add_argument("--demo", type=Path, action="append",
                    help="budget: a roadside demo output folder (objects.jsonl, site/, the recording; default "
                         "out/demo); repeatable: each run's budget and the mean over them")
@@ -511,7 +516,7 @@ def _run_eval(args) -> int:
         thr = 0.3 if args.score_thr is None else args.score_thr
         curve = tuple(round(0.05 * k, 2) for k in range(1, 13))  # 0.05 ... 0.6
         det = OnnxDetector(args.model, threads=args.threads, score_thr=min(thr, *curve), mirror=args.mirror,
-                           votes=args.votes, calibrated_sizes=not args.raw_sizes)
+                           votes=args.votes, calibrated_heads=not args.raw_heads)
         has_settings = args.site.is_file() or (args.site / "site.yaml").is_file()  # a bare labels + masks folder too
         settings = load_settings(args.site) if has_settings else None
         cams = settings.cameras if settings else []
@@ -532,10 +537,11 @@ def _run_eval(args) -> int:
         raise ValueError("eval detector needs --recording")
     thr = 0.05 if args.score_thr is None else args.score_thr  # 0 is a threshold too
     det = OnnxDetector(args.model, threads=args.threads, score_thr=thr, mirror=args.mirror, votes=args.votes,
-                       calibrated_sizes=not args.raw_sizes)
+                       calibrated_heads=not args.raw_heads)
     result = evaluate(args.recording, det.detect, every=args.every, fisheye_area_deg=args.fisheye_area_deg,
                       near_m=args.near_m, near_score=args.near_score)
-    result["size_calibration"] = det.size_calibration is not None  # the model's, unless --raw-sizes
+    # the model's calibrations as applied (none with --raw-heads, or for a model exported without them)
+    result["heads_calibrated"] = {"boxes": det.box_calibration is not None, "sizes": det.size_calibration is not None}
     line = ("{name:8s} ap50 {ap50} loc {loc_err_m} m yaw {yaw_err_deg} deg size {size_err_m} m ({frames} frames); "
             "false alarms at {breakdown_score_thr}: {false_alarms[box]} boxes off a found vehicle, "
             "{false_alarms[duplicate]} duplicates, {false_alarms[background]} on the background")
@@ -985,7 +991,7 @@ def main(argv: list[str] | None = None) -> int:
     _add_area(sub)
     _add_composite(sub)
     _add_export(sub)
-    _add_sizes(sub)
+    _add_calibrate_heads(sub)
     _add_mix(sub)
     _add_eval(sub)
     _add_up(sub)
@@ -995,8 +1001,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     runners = {"sim": _run_sim, "demo": _run_demo, "calibrate": _run_calibrate, "bench": _run_bench,
                "train": _run_train, "autolabel": _run_autolabel, "static": _run_static, "area": _run_area,
-               "composite": _run_composite, "export": _run_export, "sizes": _run_sizes, "mix": _run_mix,
-               "eval": _run_eval, "up": _run_up,
+               "composite": _run_composite, "export": _run_export, "calibrate-heads": _run_calibrate_heads,
+               "mix": _run_mix, "eval": _run_eval, "up": _run_up,
                "tracks": _run_tracks, "health": _run_health, "viz": _run_viz}
     try:
         return runners[args.job](args)

@@ -17,10 +17,8 @@ import numpy as np
 BOX_SCALE_PX = 32.0  # the size head predicts 2D box width and height in input pixels / BOX_SCALE_PX
 HEADING_EPS = 1e-12
 PEAK_KERNEL = np.ones((3, 3), np.uint8)
-MIN_SIZE_M = 0.05  # sizes below this are read as this before a size calibration takes their logarithm
 VOTE_MIN_CELLS = 1.5  # a peak whose vote points further than this (output cells) is moved to the vehicle's centre
 CONFIG_KEY = "detector_config"  # ONNX metadata written by training.export: the DetectorConfig as JSON
-SIZE_CALIBRATION_KEY = "size_calibration"  # ONNX metadata: a SizeCalibration as JSON (training/sizes.py fits it)
 
 
 def model_stride(metadata: Mapping[str, str]) -> int:
@@ -85,66 +83,6 @@ class Detections:
         heading /= np.maximum(np.linalg.norm(heading, axis=1, keepdims=True), HEADING_EPS)
         return Detections(self.score.copy(), self.uv * scale + shift, self.box * np.tile(scale, 2) + np.tile(shift, 2),
                           heading, self.size_lwh.copy(), self.vtype.copy(), self.vtype_prob.copy())
-
-
-@dataclass(frozen=True)
-class SizeCalibration:
-    """A per-type correction of the size head, fitted after training on matched detections of the training
-    recordings (training/sizes.py) and kept in the exported model's metadata (`SIZE_CALIBRATION_KEY`).
-
-    coef (C, 3, 4) float64: for a detection typed t (its argmax type), log s'_k = coef[t, k, 0] +
-    sum_j coef[t, k, 1 + j] * log s_j, with s = (l, w, h) from the size head (m) and s' the calibrated size; a type
-    without enough pairs to fit keeps the identity (0, e_k). pairs (C,) int: the matched detections each type's
-    rows were fitted on (0: identity)."""
-
-    coef: np.ndarray
-    pairs: tuple[int, ...]
-
-    def __post_init__(self) -> None:
-        coef = np.asarray(self.coef, np.float64)
-        if coef.ndim != 3 or coef.shape[1:] != (3, 4) or len(coef) == 0:
-            raise ValueError(f"SizeCalibration.coef must have shape (C, 3, 4), got {coef.shape}")
-        if not np.isfinite(coef).all():
-            raise ValueError("SizeCalibration.coef must be finite")
-        pairs = tuple(int(p) for p in self.pairs)
-        if len(pairs) != len(coef) or min(pairs) < 0:
-            raise ValueError(f"SizeCalibration.pairs must be {len(coef)} counts >= 0, got {self.pairs!r}")
-        object.__setattr__(self, "coef", coef)
-        object.__setattr__(self, "pairs", pairs)
-
-    @classmethod
-    def identity(cls, num_types: int) -> SizeCalibration:
-        coef = np.zeros((num_types, 3, 4))
-        coef[:, :, 1:] = np.eye(3)
-        return cls(coef, (0,) * num_types)
-
-    def apply(self, size_lwh: np.ndarray, vtype: np.ndarray) -> np.ndarray:
-        """size_lwh (N, 3) m from the size head, vtype (N,) int type index -> (N, 3) float64 calibrated sizes (m);
-        a type index outside the calibration keeps its size."""
-        size = np.asarray(size_lwh, np.float64).reshape(-1, 3)
-        vtype = np.asarray(vtype, np.int64).reshape(-1)
-        if len(vtype) != len(size):
-            raise ValueError(f"SizeCalibration.apply: {len(size)} sizes but {len(vtype)} types")
-        known = (vtype >= 0) & (vtype < len(self.coef))
-        if not known.any():
-            return size.copy()
-        out = size.copy()
-        # the size head ends in a ReLU: a zero would have no logarithm (MIN_SIZE_M, as the fit clamps it)
-        log_s = np.log(np.maximum(size[known], MIN_SIZE_M))
-        c = self.coef[vtype[known]]  # (M, 3, 4)
-        out[known] = np.exp(c[:, :, 0] + np.einsum("mkj,mj->mk", c[:, :, 1:], log_s))
-        return out
-
-    def to_json(self) -> str:
-        return json.dumps({"coef": np.round(self.coef, 6).tolist(), "pairs": list(self.pairs)})
-
-    @classmethod
-    def from_json(cls, text: str, where: str = "size calibration") -> SizeCalibration:
-        try:
-            d = json.loads(text)
-            return cls(np.asarray(d["coef"], np.float64), tuple(d["pairs"]))
-        except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-            raise ValueError(f"{where}: not a size calibration ({exc})") from None
 
 
 def peak_mask(heat: np.ndarray) -> np.ndarray:

@@ -17,7 +17,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from shared.decode import CONFIG_KEY, SIZE_CALIBRATION_KEY, Detections, SizeCalibration, decode
+from shared.decode import CONFIG_KEY, Detections, decode
+from shared.heads_calibration import BOX_CALIBRATION_KEY, SIZE_CALIBRATION_KEY, BoxCalibration, SizeCalibration
 
 PAD_MULTIPLE = 32
 AREA_CONTEXT_PX = 32  # network pixels of the image kept around a camera's detect area (see `OnnxDetector.detect`)
@@ -60,9 +61,9 @@ class OnnxDetector:
 
     def __init__(self, path: str | Path, providers: list[str] | None = None, threads: int = 2,
                  score_thr: float = 0.3, top_k: int = 200, spin: bool = True, mirror: bool = False,
-                 votes: bool = False, calibrated_sizes: bool = True) -> None:
-        """`calibrated_sizes`: apply the model's size calibration (`SizeCalibration`, in its metadata when its export
-        fitted one) to the size head's output; False gives the head's sizes as they are."""
+                 votes: bool = False, calibrated_heads: bool = True) -> None:
+        """`calibrated_heads`: apply the model's box and size calibrations (shared/heads_calibration.py, in its
+        metadata when they were fitted) to the decoded 2D boxes and sizes; False gives the heads' own."""
         import onnxruntime as ort
 
         path = Path(path)
@@ -81,9 +82,15 @@ class OnnxDetector:
         if CONFIG_KEY not in meta:
             raise ValueError(f"{path}: model metadata has no {CONFIG_KEY!r} (export it with `roadside export`)")
         self.config = json.loads(meta[CONFIG_KEY])
-        self.size_calibration = None
-        if calibrated_sizes and SIZE_CALIBRATION_KEY in meta:
+        self.size_calibration = self.box_calibration = None
+        if calibrated_heads and SIZE_CALIBRATION_KEY in meta:
             self.size_calibration = SizeCalibration.from_json(meta[SIZE_CALIBRATION_KEY], f"{path}: metadata")
+        if calibrated_heads and BOX_CALIBRATION_KEY in meta:
+            self.box_calibration = BoxCalibration.from_json(meta[BOX_CALIBRATION_KEY], f"{path}: metadata")
+            types = int(self.config.get("num_types", self.box_calibration.num_types))
+            if self.box_calibration.num_types != types:
+                raise ValueError(f"{path}: metadata: the box calibration is for {self.box_calibration.num_types} "
+                                 f"vehicle types, the model has {types}")
         self.stride = int(self.config["stride"])
         self.long_side = int(self.config.get("input_long_side", 640))
         self.input_name = self.session.get_inputs()[0].name
@@ -142,10 +149,23 @@ class OnnxDetector:
         beside it are not computed) and its surroundings (`area_crop`), at the scale of the whole image, so the
         vehicles keep the size the model learnt."""
         if area_px is None:
-            return self._detect(grey, source_scale, None)
-        x0, y0, x1, y1 = self.area_crop(grey.shape, source_scale, area_px)
-        scale = self.scale_for(*grey.shape, source_scale)
-        return self._detect(grey[y0:y1, x0:x1], source_scale, scale).scaled(1.0, 1.0, x0, y0)
+            det = self._detect(grey, source_scale, None)
+        else:
+            x0, y0, x1, y1 = self.area_crop(grey.shape, source_scale, area_px)
+            scale = self.scale_for(*grey.shape, source_scale)
+            det = self._detect(grey[y0:y1, x0:x1], source_scale, scale).scaled(1.0, 1.0, x0, y0)
+        return self.calibrate(det, grey.shape[1], grey.shape[0])
+
+    def calibrate(self, det: Detections, width: int, height: int) -> Detections:
+        """Decoded detections of a width x height image with the model's box and size calibrations applied (the box
+        from the heads' own sizes, then the sizes); as given for a model without them."""
+        if len(det) == 0:
+            return det
+        if self.box_calibration is not None:
+            det = self.box_calibration.apply(det, width, height)
+        if self.size_calibration is not None:
+            det = replace(det, size_lwh=self.size_calibration.apply(det.size_lwh, det.vtype))
+        return det
 
     def area_crop(self, shape: tuple[int, int], source_scale: float,
                   area_px: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
@@ -174,8 +194,6 @@ class OnnxDetector:
         if not self.votes:
             maps.pop("vote", None)
         det = decode(**maps, stride=self.stride, score_thr=self.score_thr, top_k=self.top_k)
-        if self.size_calibration is not None and len(det):
-            det = replace(det, size_lwh=self.size_calibration.apply(det.size_lwh, det.vtype))
         # network pixel p (centre convention) <- image pixel q: p + 0.5 = (q + 0.5) * scale
         inv = 1.0 / scale
         return det.scaled(inv, inv, 0.5 * inv - 0.5, 0.5 * inv - 0.5)

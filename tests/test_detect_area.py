@@ -195,7 +195,8 @@ def test_mirrored_detection_sees_a_mirrored_frame_as_the_mirror_of_the_frame(sma
     w = img.shape[1]
     model = REPO / "models" / "detector_fp32.onnx"
 
-    mirrored = OnnxDetector(model, threads=1, score_thr=0.3, mirror=True)
+    # the heads' own boxes: the box calibration is fitted on a world whose traffic keeps right, not mirror-symmetric
+    mirrored = OnnxDetector(model, threads=1, score_thr=0.3, mirror=True, calibrated_heads=False)
     a, b = mirrored.detect(img), mirrored.detect(np.ascontiguousarray(img[:, ::-1]))
     assert len(a) >= 5 and len(a) == len(b)
     ia, ib = np.argsort(a.uv[:, 1] * 1e4 + a.uv[:, 0]), np.argsort(b.uv[:, 1] * 1e4 + (w - 1 - b.uv[:, 0]))
