@@ -2,6 +2,7 @@
 
 - a site folder built from a simulator recording in seconds: lookup masks from the recording's exact ground
   lookup (no calibration) and a tiny untrained detector exported to ONNX;
+- `labels_of_image`: a recording's labelled frames looked up by their pixels (for detectors made of the labels);
 - free loopback ports for one test's bus (`port_base` .. `port_base + 9`);
 - `ServiceProcess`: `python -m services.<name> --site ... --set ...` with its stderr in a file;
 - `Peer`: the test's own Zenoh session on the bus (a client of the embedded peer-to-peer layout) that
@@ -60,6 +61,18 @@ def export_tiny_detector(path: Path) -> Path:
     model = Detector(DetectorConfig(width_mult=0.25, decoder_channels=16, head_channels=8, stride=4))
     export_onnx(model, path, None, (64, 64))
     return path
+
+
+def labels_of_image(recording_dir: Path) -> Callable[[np.ndarray], object]:
+    """grey image of one of the recording's frames -> that frame's Sample (training.data), found by its pixels (for
+    test detectors made from the labels themselves)."""
+    from training.data import samples_from_recording
+
+    labels = {}
+    for ref in samples_from_recording(recording_dir):
+        s = ref.load()
+        labels[(s.image.shape, int(s.image.sum()))] = s
+    return lambda grey: labels[(grey.shape, int(grey.sum()))]
 
 
 def site_config(recording_dir: Path, masks: str = f"masks/{CAMERA}.npz") -> dict:

@@ -20,7 +20,6 @@ from eval.detector import (
 )
 from shared.decode import Detections
 from shared.inference import OnnxDetector
-from training.data import samples_from_recording
 
 
 def _dets(boxes, scores, uv=None) -> Detections:
@@ -75,13 +74,12 @@ def test_ground_lifter_is_bilinear_and_nan_outside():
 def test_an_oracle_detector_scores_perfectly(small_recording):
     """Detections made from the labels themselves: AP 1 and (near) zero pose errors, which checks the
     matching, the lift to the ground and the heading conversion against the recorded truth."""
-    labels = {}
-    for ref in samples_from_recording(small_recording):
-        s = ref.load()
-        labels[(s.image.shape, int(s.image.sum()))] = s
+    from tests.pipeline_fixtures import labels_of_image
+
+    labels = labels_of_image(small_recording)
 
     def oracle(grey: np.ndarray) -> Detections:
-        s = labels[(grey.shape, int(grey.sum()))]
+        s = labels(grey)
         n = len(s)
         prob = np.eye(5)[np.clip(s.vtype, 0, 4)]
         heading = np.where(np.isfinite(s.heading_uv), s.heading_uv, [1.0, 0.0])

@@ -11,7 +11,6 @@ import pytest
 from shared.decode import Detections
 from shared.heads_calibration import SIZE_CALIBRATION_KEY, BoxCalibration, SizeCalibration, box_features
 from shared.inference import OnnxDetector
-from training.data import samples_from_recording
 from training.heads_calibration import (
     box_pairs,
     collect_frames,
@@ -108,13 +107,12 @@ def test_fit_rejects_bad_input():
 def _oracle(small_recording, size_gain=(1.0, 1.0, 1.0), box_gain=(1.0, 1.0), box_shift=(0.0, 0.0)):
     """A detector that finds every vehicle to detect of the small recording, reading its sizes times size_gain and
     its 2D box widened by box_gain about a centre moved by box_shift (in box sizes); every vehicle typed car."""
-    labels = {}
-    for ref in samples_from_recording(small_recording):
-        s = ref.load()
-        labels[(s.image.shape, int(s.image.sum()))] = s
+    from tests.pipeline_fixtures import labels_of_image
+
+    labels = labels_of_image(small_recording)
 
     def detect(grey: np.ndarray) -> Detections:
-        s = labels[(grey.shape, int(grey.sum()))]
+        s = labels(grey)
         keep = s.weight > 0
         n = int(keep.sum())
         box = s.box[keep]
