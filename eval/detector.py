@@ -82,9 +82,10 @@ def voc07_ap(scores: np.ndarray, hits: np.ndarray, n_pos: int) -> float:
     return float(ap)
 
 
-def match_frame(det: Detections, box: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def match_frame(det: Detections, box: np.ndarray, weight: np.ndarray,
+                min_iou: float = IOU_MATCH) -> tuple[np.ndarray, np.ndarray]:
     """Greedy VOC matching by score: per detection, its matched positive (index, -1 none) and whether
-    it counts at all (False when it only overlaps an ignore vehicle)."""
+    it counts at all (False when it only overlaps an ignore vehicle); a match overlaps by `min_iou` or more."""
     gt_of = -np.ones(len(det), int)
     counts = np.ones(len(det), bool)
     if len(det) == 0 or len(box) == 0:
@@ -95,9 +96,9 @@ def match_frame(det: Detections, box: np.ndarray, weight: np.ndarray) -> tuple[n
         pos = (weight > 0) & ~taken
         cand = np.where(pos, iou[i], -1.0)
         j = int(np.argmax(cand))
-        if cand[j] >= IOU_MATCH:
+        if cand[j] >= min_iou:
             gt_of[i], taken[j] = j, True
-        elif (iou[i][weight == 0] >= IOU_MATCH).any():
+        elif (iou[i][weight == 0] >= min_iou).any():
             counts[i] = False
     return gt_of, counts
 

@@ -73,6 +73,11 @@ class Detections:
     def __len__(self) -> int:
         return len(self.score)
 
+    def select(self, index: np.ndarray) -> Detections:
+        """The detections at `index` (int indices or a boolean mask), in that order."""
+        return Detections(self.score[index], self.uv[index], self.box[index], self.heading_uv[index],
+                          self.size_lwh[index], self.vtype[index], self.vtype_prob[index])
+
     def scaled(self, sx: float, sy: float, dx: float = 0.0, dy: float = 0.0) -> Detections:
         """The same detections in another image where u' = sx*u + dx and v' = sy*v + dy (e.g. the original
         image of a resized or cropped network input); headings are rescaled by (sx, sy) and renormalised."""

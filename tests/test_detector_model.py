@@ -288,6 +288,15 @@ def test_detections_scaled():
         d.scaled(0.0, 1.0)
 
 
+def test_detections_select():
+    d = decode(*hand_maps(), stride=4)
+    assert len(d) == 2
+    back = d.select(np.array([1, 0]))
+    np.testing.assert_array_equal(back.uv, d.uv[::-1])
+    np.testing.assert_array_equal(back.vtype_prob, d.vtype_prob[::-1])
+    assert len(d.select(np.zeros(2, bool))) == 0 and d.select(np.array([True, False])).score.tolist() == [d.score[0]]
+
+
 def test_decode_and_detections_reject_bad_shapes():
     heat, size, heading, prob, offset = hand_maps()
     with pytest.raises(ValueError, match="size"):

@@ -63,40 +63,25 @@ def collect_frames(detect: Callable[[np.ndarray], Detections], recordings: Seque
 def box_pairs(frames: Sequence[tuple[Detections, object, tuple[int, int]]]) -> tuple[np.ndarray, np.ndarray]:
     """(features (N, K), targets (N, 4)) for the box fit: per frame, each vehicle to detect and the highest-scoring
     detection left that overlaps its box at BOX_IOU or more (greedy by score)."""
-    from eval.detector import box_iou
+    from eval.detector import match_frame
 
     feats, targets = [], []
     for det, s, (width, height) in frames:
-        pos = s.weight > 0
-        if len(det) == 0 or not pos.any():
+        gt_of, _ = match_frame(det, s.box, s.weight, min_iou=BOX_IOU)
+        rows = np.flatnonzero(gt_of >= 0)
+        if not len(rows):
             continue
-        iou = np.where(pos[None, :], box_iou(det.box, s.box), -1.0)
-        taken = np.zeros(len(s.box), bool)
-        rows, cols = [], []
-        for i in np.argsort(-det.score, kind="stable"):
-            cand = np.where(taken, -1.0, iou[i])
-            j = int(np.argmax(cand))
-            if cand[j] >= BOX_IOU:
-                taken[j] = True
-                rows.append(i)
-                cols.append(j)
-        if not rows:
-            continue
-        d = _select(det, np.array(rows))
+        cols = gt_of[rows]
+        d = det.select(rows)
         feats.append(box_features(d, width, height))
         wh = np.maximum(d.box[:, 2:4] - d.box[:, 0:2], MIN_BOX_FRACTION * width)
-        true = s.box[np.array(cols)]
+        true = s.box[cols]
         true_wh = np.maximum(true[:, 2:4] - true[:, 0:2], MIN_BOX_FRACTION * width)
         move = ((true[:, 0:2] + true[:, 2:4]) / 2 - (d.box[:, 0:2] + d.box[:, 2:4]) / 2) / wh
         targets.append(np.column_stack([np.log(true_wh / wh), move]))
     if not feats:
         return np.zeros((0, 0)), np.zeros((0, 4))
     return np.concatenate(feats), np.concatenate(targets)
-
-
-def _select(det: Detections, index: np.ndarray) -> Detections:
-    return Detections(det.score[index], det.uv[index], det.box[index], det.heading_uv[index], det.size_lwh[index],
-                      det.vtype[index], det.vtype_prob[index])
 
 
 def fit_box_calibration(features: np.ndarray, targets: np.ndarray, min_pairs: int = MIN_BOX_PAIRS) -> BoxCalibration:
