@@ -82,6 +82,12 @@ class SizeCalibration:
             raise ValueError(f"{where}: not a size calibration ({exc})") from None
 
 
+def box_sides(box: np.ndarray, width: int) -> np.ndarray:
+    """(N, 2) width and height of boxes x1, y1, x2, y2 (N, 4) in an image `width` pixels wide, each at least
+    MIN_BOX_FRACTION of that width (the maps take their logarithms and divide by them)."""
+    return np.maximum(box[:, 2:4] - box[:, 0:2], MIN_BOX_FRACTION * width)
+
+
 def box_features(det: Detections, width: int, height: int) -> np.ndarray:
     """(N, 17 + C) float64: what the box calibration reads of each detection in an image of width x height pixels
     (C: the number of types). In order: 1; the box's log width and height as fractions of the image width; the box
@@ -93,7 +99,7 @@ def box_features(det: Detections, width: int, height: int) -> np.ndarray:
     if not (width > 0 and height > 0):
         raise ValueError(f"box_features: image size must be > 0, got {width} x {height}")
     n = len(det)
-    wh = np.maximum(det.box[:, 2:4] - det.box[:, 0:2], MIN_BOX_FRACTION * width)
+    wh = box_sides(det.box, width)
     centre = (det.box[:, 0:2] + det.box[:, 2:4]) / 2
     a = np.arctan2(det.heading_uv[:, 1], det.heading_uv[:, 0])
     # from the image centre, (width - 1) / 2 in pixel-centre coordinates
@@ -139,7 +145,7 @@ class BoxCalibration:
         if len(det) == 0:
             return det
         change = box_features(det, width, height) @ self.coef
-        wh = np.maximum(det.box[:, 2:4] - det.box[:, 0:2], MIN_BOX_FRACTION * width)
+        wh = box_sides(det.box, width)
         centre = (det.box[:, 0:2] + det.box[:, 2:4]) / 2 + change[:, 2:4] * wh
         wh = wh * np.exp(np.clip(change[:, 0:2], -MAX_BOX_LOG_CHANGE, MAX_BOX_LOG_CHANGE))
         return replace(det, box=np.concatenate([centre - wh / 2, centre + wh / 2], axis=1))

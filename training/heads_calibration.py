@@ -26,12 +26,12 @@ from shared.decode import Detections
 from shared.heads_calibration import (
     BOX_CALIBRATION_KEY,
     MAX_BOX_LOG_CHANGE,
-    MIN_BOX_FRACTION,
     MIN_SIZE_M,
     SIZE_CALIBRATION_KEY,
     BoxCalibration,
     SizeCalibration,
     box_features,
+    box_sides,
 )
 
 MIN_PAIRS = 50  # a type with fewer matched detections keeps the size head's sizes
@@ -74,9 +74,9 @@ def box_pairs(frames: Sequence[tuple[Detections, object, tuple[int, int]]]) -> t
         cols = gt_of[rows]
         d = det.select(rows)
         feats.append(box_features(d, width, height))
-        wh = np.maximum(d.box[:, 2:4] - d.box[:, 0:2], MIN_BOX_FRACTION * width)
+        wh = box_sides(d.box, width)
         true = s.box[cols]
-        true_wh = np.maximum(true[:, 2:4] - true[:, 0:2], MIN_BOX_FRACTION * width)
+        true_wh = box_sides(true, width)
         move = ((true[:, 0:2] + true[:, 2:4]) / 2 - (d.box[:, 0:2] + d.box[:, 2:4]) / 2) / wh
         targets.append(np.column_stack([np.log(true_wh / wh), move]))
     if not feats:
