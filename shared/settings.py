@@ -211,6 +211,10 @@ class FuseTrackSettings(Strict):
     # with high_score: a lower-scoring object may start a track too, confirmed after this many consecutive ticks
     # (a parked or queued vehicle the detector is unsure of; static clutter goes in cameras[].exclude_px). 0: off
     standing_hits: int = Field(0, ge=0)
+    # a track confirmed within relink_s of a confirmed track's loss takes its id when the lost track's motion brings
+    # it within relink_gate_m (a vehicle lost for a moment keeps its identity; services/fuse_track/tracker.py). 0: off
+    relink_s: float = Field(3.0, ge=0, le=30)
+    relink_gate_m: float = Field(3.0, gt=0)
     record: Path | None = None  # append every Tracks message to this JSON-lines file
 
     @field_validator("position_sigma")

@@ -155,13 +155,14 @@ def test_low_score_objects_extend_confirmed_tracks_but_never_start_one():
     one_round, _ = run(0.0)  # every object alike: the lone object and the duplicate start tracks of their own
     assert len(set().union(*one_round)) > 1
     # with one round and only the vehicle above the threshold (what a detector threshold of 0.5 gives): the
-    # dip breaks the track and the vehicle comes back under a new id
-    tracker = Tracker(TrackerConfig(max_age_ticks=1, report_coasting_ticks=0))
-    ids = []
-    for k in range(20):
-        objs = frame("A", k * 100 * MS, [[1.0 * k, 0.0]], score=0.9) if not 6 <= k < 12 else ObjectBatch.empty()
-        ids.append(set(tracker.update(objs, k * 100 * MS).id.tolist()))
-    assert ids[2] == {1} and ids[19] == {2}
+    # dip breaks the track and the vehicle comes back under a new id, unless relink gives it its old one back
+    for relink_s, last in ((0.0, {2}), (3.0, {1})):
+        tracker = Tracker(TrackerConfig(max_age_ticks=1, report_coasting_ticks=0, relink_s=relink_s))
+        ids = []
+        for k in range(20):
+            objs = frame("A", k * 100 * MS, [[1.0 * k, 0.0]], score=0.9) if not 6 <= k < 12 else ObjectBatch.empty()
+            ids.append(set(tracker.update(objs, k * 100 * MS).id.tolist()))
+        assert ids[2] == {1} and ids[9] == set() and ids[19] == last
 
 
 def test_standing_hits_confirms_a_persistent_low_score_object_and_nothing_that_flickers():
@@ -271,6 +272,37 @@ def test_empty_ticks_age_tracks_out_after_max_age():
     ticks = buffer.pop_ready(2.5) + buffer.flush()
     assert [t.index for t in ticks] == list(range(20, 26))
     assert [t.empty for t in ticks] == [True] * 5 + [False]
+
+
+def test_a_vehicle_lost_for_a_moment_keeps_its_id():
+    """A vehicle at 8 m/s missed for 1 s (ten ticks, far beyond max_age) comes back on its path: the new track takes
+    the lost one's id (relink, default on), not while it is lost, and never an id of a vehicle elsewhere; without
+    relink, or lost for longer than relink_s, it is a new id."""
+    def run(config: TrackerConfig, gap: range, other_at: tuple[float, float] | None = None) -> list[TrackState]:
+        tracker = Tracker(config)
+        states = []
+        for k in range(60):
+            t_ns = k * 100 * MS
+            xy = [] if k in gap else [[0.8 * k, 0.0]]
+            if other_at is not None and k >= gap.start + 5:  # appears once the first is lost (tick 24)
+                xy.append(list(other_at))
+            states.append(tracker.update(frame("A", t_ns, np.array(xy, float).reshape(-1, 2)), t_ns))
+        return states
+
+    def ids_on_path(states):
+        return sorted({int(i) for s in states for i, (x, y) in zip(s.id, s.xy, strict=True) if abs(y) < 1.0})
+
+    states = run(TrackerConfig(), range(20, 30))
+    assert ids_on_path(states) == [1]
+    assert all(len(s) == 0 for s in states[25:32])  # max_age ends the lost track; the new one is confirmed at 32
+    assert ids_on_path(run(TrackerConfig(relink_s=0), range(20, 30))) == [1, 2]
+    assert ids_on_path(run(TrackerConfig(), range(20, 55))) == [1, 2]  # lost (at tick 24) 3.3 s before it is back
+    # a second vehicle appears 6 m from where the lost one would be by now: it gets its own id, the first keeps its own
+    states = run(TrackerConfig(), range(20, 30), other_at=(21.6, 6.0))
+    assert ids_on_path(states) == [1]
+    other = {int(i) for s in states for i, (x, y) in zip(s.id, s.xy, strict=True) if abs(y - 6.0) < 1.0}
+    assert len(other) == 1 and 1 not in other
+    assert all(len(set(s.id.tolist())) == len(s) for s in states)
 
 
 def test_no_track_is_born_next_to_an_existing_one():
@@ -910,6 +942,8 @@ def test_bad_configs_and_calls_raise_value_errors_naming_the_parameter():
         (lambda: TrackerConfig(turn_speed_mps=math.inf), "turn_speed_mps"),
         (lambda: TrackerConfig(report_coasting_ticks=5), "report_coasting_ticks"),
         (lambda: TrackerConfig(yaw_gain=0.0), "yaw_gain"),
+        (lambda: TrackerConfig(relink_s=-1.0), "relink_s"),
+        (lambda: TrackerConfig(relink_gate_m=0.0), "relink_gate_m"),
         (lambda: TickConfig(tick_ms=0), "tick_ms"),
         (lambda: TickConfig(watermark_ms=-1), "watermark_ms"),
         (lambda: TickConfig(max_empty_ticks=0), "max_empty_ticks"),

@@ -183,7 +183,8 @@ def fusion_config(cfg: FuseTrackSettings) -> FusionConfig:
 def tracker_config(cfg: FuseTrackSettings) -> TrackerConfig:
     """The tracker's configuration from a site's fuse_track settings."""
     return TrackerConfig(gate_m=cfg.gate_m, max_age_ticks=cfg.max_age_ticks, min_hits=cfg.min_hits,
-                         high_score=cfg.high_score, standing_hits=cfg.standing_hits)
+                         high_score=cfg.high_score, standing_hits=cfg.standing_hits,
+                         relink_s=cfg.relink_s, relink_gate_m=cfg.relink_gate_m)
 
 
 def new_tracker(settings: Settings) -> Tracker:
