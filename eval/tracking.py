@@ -45,6 +45,10 @@ the ROI radius of a chosen camera), the distance to the ground-truth trajectory 
 (the polyline of its samples within +-`traj_window_s` of the tick; the projection distance, so a time lag along
 the path is not counted), averaged; `traj_err_out_roi_m` the same for matched positions outside the ROI.
 `pos_err_m` is the time-synchronised distance (track position vs GT at the same `t_ns`) of all matches.
+`yaw_err_in_roi_deg` (mean; `_median_deg`, `_n`) is the tracked heading's error for the same positions, where the
+tracks carry a `yaw` (rad, ENU, counter-clockwise from east): the full-circle angle to the vehicle's true heading
+at its ground-truth sample nearest the tick (a reversed heading is 180 deg); `yaw_err_in_roi_moving_deg` and
+`_standing_deg` split it at `moving_mps` of true speed.
 
 Handoff: each GT object's region at t is its nearest chosen camera on the ground. A crossing is a change of
 region between two consecutive GT-object samples of a vehicle at most `handoff_window_s` apart; it is tracked
@@ -91,6 +95,7 @@ class TrackingEvalConfig:
     ignore_unscored_tracks: bool = True  # tracks on non-GT vehicles / outside the area are not false positives
     fill_silent_ticks: bool = True  # frame times without any tracks line count as empty ticks
     handoff_window_s: float = 1.0  # a crossing is tracked if matched within this time before and after it
+    moving_mps: float = 1.0  # the tracked heading's error is also given for vehicles at least this fast, and slower
 
 
 @dataclass
@@ -102,6 +107,21 @@ class Trajectory:
     xyz: np.ndarray  # (N, 3) float64
     parked: bool = False
     type: str = ""
+    yaw: np.ndarray | None = None  # (N,) float64 rad ENU, the heading at each sample; None: not known
+
+    def heading_at(self, t_ns: int) -> tuple[float, float]:
+        """(yaw rad, speed m/s) at the sample nearest t_ns (NaN yaw when not known); the speed from the samples
+        either side of it."""
+        ts, n = self.t_ns, len(self.t_ns)
+        if n == 0:
+            return math.nan, math.nan
+        j = int(np.clip(np.searchsorted(ts, int(t_ns)), 0, n - 1))
+        if j > 0 and abs(int(ts[j - 1]) - int(t_ns)) < abs(int(ts[j]) - int(t_ns)):
+            j -= 1
+        a, b = max(j - 1, 0), min(j + 1, n - 1)
+        dt = (int(ts[b]) - int(ts[a])) / 1e9
+        speed = float(np.linalg.norm(self.xyz[b, :2] - self.xyz[a, :2]) / dt) if dt > 0 else math.nan
+        return (float(self.yaw[j]) if self.yaw is not None else math.nan), speed
 
     def _extrapolate(self, t: int, i: int, j: int, max_gap_ns: int) -> np.ndarray:
         """Position at t on the line through samples i and j (constant at i when that segment is a gap)."""
@@ -186,6 +206,7 @@ class GroundTruth:
         self.cameras: dict[str, _CameraFrames] = {}
         samples: dict[Any, list[tuple[int, list[float]]]] = {}
         info: dict[Any, tuple[bool, str]] = {}
+        yaws: dict[Any, list[float]] = {}
         for entry in meta["cameras"]:
             name = entry["name"]
             try:
@@ -204,6 +225,7 @@ class GroundTruth:
                         inim.append(bool(v.get("in_image", False)))
                         vf.append(float(v.get("visible_fraction") or 0.0))
                         samples.setdefault(vid, []).append((t, [float(c) for c in v["xyz"][:3]]))
+                        yaws.setdefault(vid, []).append(float(v.get("yaw", math.nan)))
                         info.setdefault(vid, (bool(v.get("parked", False)), str(v.get("type", ""))))
                 except (KeyError, TypeError, ValueError) as exc:
                     raise ValueError(f"{self.recording.path / entry['gt']}:{n}: bad ground truth: {exc!r}") from None
@@ -224,8 +246,10 @@ class GroundTruth:
             acc = np.zeros((len(ut), 3))
             np.add.at(acc, inv, xyz)
             acc /= np.bincount(inv, minlength=len(ut))[:, None]
+            yaw = np.full(len(ut), np.nan)
+            yaw[inv] = yaws[vid]  # several cameras at one instant: one vehicle, one heading
             parked, vtype = info[vid]
-            self.trajectories[vid] = Trajectory(vid, ut, acc, parked, vtype)
+            self.trajectories[vid] = Trajectory(vid, ut, acc, parked, vtype, yaw)
         self._ids = list(self.trajectories)
         self._start = np.array([self.trajectories[v].t_ns[0] for v in self._ids], np.int64)
         self._end = np.array([self.trajectories[v].t_ns[-1] for v in self._ids], np.int64)
@@ -331,6 +355,7 @@ class TrackLine:
     tracker: str
     ids: list[int]
     xy: np.ndarray
+    yaw: np.ndarray | None = None  # (N,) rad, NaN where a track has none
 
     def keys(self) -> list[tuple[str, int]]:
         return [(self.tracker, i) for i in self.ids]
@@ -356,7 +381,7 @@ def _parse_line(obj: Any, where: str) -> TrackLine:
         raise ValueError(f"{where}: tracker must be a string, got {obj['tracker']!r}")
     if not isinstance(obj["tracks"], list):
         raise ValueError(f"{where}: tracks must be a list")
-    ids, xy = [], []
+    ids, xy, yaw = [], [], []
     for k, tr in enumerate(obj["tracks"]):
         if not isinstance(tr, dict):
             raise ValueError(f"{where}: track {k} is not an object")
@@ -370,9 +395,10 @@ def _parse_line(obj: Any, where: str) -> TrackLine:
                              f"x={tr['x']!r} y={tr['y']!r}")
         ids.append(tr["id"])
         xy.append((float(tr["x"]), float(tr["y"])))
+        yaw.append(float(tr["yaw"]) if _is_finite_number(tr.get("yaw")) else math.nan)
     if len(set(ids)) != len(ids):
         raise ValueError(f"{where}: duplicate track id in one line")
-    return TrackLine(0, obj["t_ns"], obj["tracker"], ids, np.array(xy, float).reshape(-1, 2))
+    return TrackLine(0, obj["t_ns"], obj["tracker"], ids, np.array(xy, float).reshape(-1, 2), np.array(yaw, float))
 
 
 def load_tracks(source: str | Path | Iterable[Mapping | Any]) -> list[TrackLine]:
@@ -417,6 +443,7 @@ class FrameMatch:
     gt_xy: dict[Any, np.ndarray]
     track_xy: dict[tuple[str, int], np.ndarray]
     matched: dict[Any, tuple[str, int]]  # GT id -> track identity, for the matched GT objects
+    track_yaw: dict[tuple[str, int], float] = field(default_factory=dict)  # the scored tracks' headings (rad)
 
 
 @dataclass
@@ -464,6 +491,7 @@ def match_tracks(ground_truth: GroundTruth, tracks: str | Path | Iterable, camer
         g_xy = np.array([objs[v][:2] for v in gids], float).reshape(-1, 2)
         keys = line.keys() if line is not None else []
         h_xy = line.xy if line is not None else np.zeros((0, 2))
+        h_yaw = line.yaw if line is not None and line.yaw is not None else np.full(len(keys), np.nan)
         res.track_identities.update(keys)
         if cfg.ignore_unscored_tracks and len(keys):
             d2_gt = np.sum((h_xy[:, None, :] - g_xy[None, :, :]) ** 2, axis=2)
@@ -475,7 +503,7 @@ def match_tracks(ground_truth: GroundTruth, tracks: str | Path | Iterable, camer
             keep = near_gt | ~(near_other | outside)
             res.ignored_track_positions += int(np.sum(~keep))
             keys = [k for k, ok in zip(keys, keep, strict=True) if ok]
-            h_xy = h_xy[keep]
+            h_xy, h_yaw = h_xy[keep], h_yaw[keep]
         oids = [gt_index.setdefault(v, len(gt_index)) for v in gids]
         hids = [hyp_index.setdefault(k, len(hyp_index)) for k in keys]
         if oids and hids:
@@ -484,7 +512,8 @@ def match_tracks(ground_truth: GroundTruth, tracks: str | Path | Iterable, camer
             dist = np.empty((len(oids), len(hids)))
         res.accumulator.update(oids, hids, dist, frameid=frame_id)
         res.frames.append(FrameMatch(t, {v: g_xy[i] for i, v in enumerate(gids)},
-                                     {k: h_xy[i] for i, k in enumerate(keys)}, {}))
+                                     {k: h_xy[i] for i, k in enumerate(keys)}, {},
+                                     {k: float(h_yaw[i]) for i, k in enumerate(keys)}))
     if res.frames:
         ev = res.accumulator.mot_events
         ev = ev[ev.Type.isin(_MATCH_TYPES)]
@@ -591,6 +620,7 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
     window = round(cfg.traj_window_s * 1e9)
     gap = gt.max_gap_ns(cfg)
     err_in, err_out, pos_err = [], [], []
+    yaw_err, yaw_moving = [], []
     for fm in res.frames:
         if not fm.matched:
             continue
@@ -601,10 +631,21 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
             d = gt.trajectories[v].distance_to_path(xy, fm.t_ns, window, gap)
             (err_in if roi else err_out).append(d)
             pos_err.append(float(np.linalg.norm(xy - fm.gt_xy[v])))
+            tracked = fm.track_yaw.get(fm.matched[v], math.nan)
+            true, speed = gt.trajectories[v].heading_at(fm.t_ns)
+            if roi and math.isfinite(tracked) and math.isfinite(true):
+                yaw_err.append(math.degrees(abs((tracked - true + math.pi) % (2 * math.pi) - math.pi)))
+                yaw_moving.append(speed >= cfg.moving_mps)
     for name, vals in (("in_roi", err_in), ("out_roi", err_out)):
         m, sd = _mean_std(vals)
         out[f"traj_err_{name}_m"], out[f"traj_err_{name}_std_m"], out[f"traj_err_{name}_n"] = m, sd, len(vals)
     out["pos_err_m"], out["pos_err_std_m"] = _mean_std(pos_err)
+    yaw_err_a, moving = np.array(yaw_err), np.array(yaw_moving, bool)
+    out["yaw_err_in_roi_deg"] = float(yaw_err_a.mean()) if len(yaw_err_a) else math.nan
+    out["yaw_err_in_roi_median_deg"] = float(np.median(yaw_err_a)) if len(yaw_err_a) else math.nan
+    out["yaw_err_in_roi_n"] = len(yaw_err_a)
+    for name, part in (("moving", moving), ("standing", ~moving)):
+        out[f"yaw_err_in_roi_{name}_deg"] = float(yaw_err_a[part].mean()) if part.any() else math.nan
     scored = {k for fm in res.frames for k in fm.track_xy}
     out.update({
         "tracks": len(scored), "tracks_total": len(res.track_identities),

@@ -421,6 +421,9 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
         "traj_err_in_roi_m": fused["traj_err_in_roi_m"], "traj_err_in_roi_std_m": fused["traj_err_in_roi_std_m"],
         "traj_err_best_single_camera_m": scores["traj_err_best_single_camera_m"],
         "best_single_camera": scores["best_single_camera"],
+        # the tracks' heading against the vehicles' (full circle), in the ROI; moving: 1 m/s or faster
+        **{k: fused[k] for k in ("yaw_err_in_roi_deg", "yaw_err_in_roi_median_deg", "yaw_err_in_roi_moving_deg",
+                                 "yaw_err_in_roi_standing_deg")},
         # over `handoff_radius_m` around the cameras: region crossings seen tracked on both sides, the fraction that
         # kept their id, and the fraction of vehicles that kept theirs through every crossing (eval.tracking)
         "handoff_radius_m": cfg.handoff_radius_m,
@@ -463,6 +466,9 @@ def summary_table(s: dict) -> str:
         ("  fused / alone in each camera's ROI", ", ".join(
             f"{c} {v['fused_traj_err_in_roi_m']:.2f} / {v['traj_err_in_roi_m']:.2f}"
             for c, v in s["single_camera"].items()) + " m"),
+        ("heading error in ROI: mean (median)", f"{s['yaw_err_in_roi_deg']:.1f} ({s['yaw_err_in_roi_median_deg']:.1f}) "
+                                                f"deg; moving {s['yaw_err_in_roi_moving_deg']:.1f}, standing "
+                                                f"{s['yaw_err_in_roi_standing_deg']:.1f} deg"),
         ("region crossings kept", f"{s['handoff_crossing_kept_fraction']:.3f} of {s['handoff_crossings']} "
                                   f"(within {s['handoff_radius_m']:g} m of a camera)"),
         ("end to end p50 / p99", f"{lat['end_to_end_p50']} / {lat['end_to_end_p99']} ms"),

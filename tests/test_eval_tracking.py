@@ -42,6 +42,7 @@ def pos(vid: int, s: float) -> np.ndarray:
 NORMAL = {1: np.array([0.0, 1.0]), 2: np.array([-1.0, 0.0]), 3: np.array([-0.8, 0.6]), 5: np.array([0.0, 1.0])}
 DIRECTION = {1: np.array([1.0, 0.0]), 2: np.array([0.0, 1.0]), 3: np.array([0.6, 0.8]), 5: np.array([0.0, 0.0])}
 GT_IDS = (1, 2, 3, 5)
+YAW = {1: 0.0, 2: math.pi / 2, 3: math.atan2(0.8, 0.6), 4: 0.0, 5: 1.0}  # headings (rad ENU), 5 parked
 
 
 def _write_recording(out: Path) -> Path:
@@ -61,7 +62,7 @@ def _write_recording(out: Path) -> Path:
                 xy = pos(vid, s)
                 if np.linalg.norm(xy - np.array(p[:2])) > LISTED_M:
                     continue
-                vehicles.append({"id": vid, "type": "car", "lwh": [4.5, 1.8, 1.5], "yaw": 0.0, "speed": 0.0,
+                vehicles.append({"id": vid, "type": "car", "lwh": [4.5, 1.8, 1.5], "yaw": YAW[vid], "speed": 0.0,
                                  "xyz": [float(xy[0]), float(xy[1]), 0.0], "in_image": True,
                                  "visible_fraction": 0.1 if vid == 4 else 0.8 if vid == 5 else 1.0,
                                  "parked": vid in (4, 5)})
@@ -146,6 +147,28 @@ def test_perfect_tracks(gt):
     assert math.isnan(r["traj_err_out_roi_m"])
     assert r["tracks"] == 4 and r["gt_vehicles"] == 4 and r["trackers"] == 1
     assert r["silent_ticks_filled"] == 0 and r["ignored_track_positions"] == 0
+
+
+def test_tracked_heading_error_is_full_circle_and_split_by_speed(gt):
+    """The moving vehicles' tracks head 10 deg off, the parked one's reversed: 10 and 180 deg; tracks with no yaw
+    give no heading error and change nothing else."""
+    rows = make_rows()
+    for row in rows:
+        for t in row["tracks"]:
+            vid = t["id"] - 10
+            t["yaw"] = YAW[vid] + (math.pi if vid == 5 else math.radians(10))
+    r = evaluate_tracks(gt, rows)
+    assert r["yaw_err_in_roi_n"] == 4 * N_FRAMES
+    assert r["yaw_err_in_roi_moving_deg"] == pytest.approx(10.0)
+    assert r["yaw_err_in_roi_standing_deg"] == pytest.approx(180.0)
+    assert r["yaw_err_in_roi_deg"] == pytest.approx((3 * 10.0 + 180.0) / 4)
+    assert r["yaw_err_in_roi_median_deg"] == pytest.approx(10.0)
+    for row in rows:
+        for t in row["tracks"]:
+            del t["yaw"]
+    r2 = evaluate_tracks(gt, rows)
+    assert r2["yaw_err_in_roi_n"] == 0 and math.isnan(r2["yaw_err_in_roi_deg"])
+    assert r2["mota"] == r["mota"] == 1.0 and r2["traj_err_in_roi_m"] == r["traj_err_in_roi_m"]
 
 
 def test_recorder_file_and_rows_give_the_same_result(gt, tmp_path):
