@@ -20,6 +20,7 @@ from services.fuse_track.fusion import (
     frame_labels,
     inverse_2x2,
     points_in_polygon,
+    wrap_angle,
 )
 from services.fuse_track.ticks import TickBuffer, TickConfig
 from services.fuse_track.tracker import (
@@ -272,6 +273,36 @@ def test_empty_ticks_age_tracks_out_after_max_age():
     ticks = buffer.pop_ready(2.5) + buffer.flush()
     assert [t.index for t in ticks] == list(range(20, 26))
     assert [t.empty for t in ticks] == [True] * 5 + [False]
+
+
+def test_a_moving_track_heads_where_it_goes_and_a_standing_one_as_detected():
+    """Detections whose heading is 12 deg off (and reversed one time in four): a vehicle at 8 m/s is reported heading
+    along its motion (within 2 deg); without yaw_motion_full_mps the detections' 12 deg stay; a standing vehicle
+    keeps the detections' heading either way, and one that stops keeps the heading it had."""
+    off = math.radians(12.0)
+
+    def run(config: TrackerConfig, speed: float, stop_at: int | None = None) -> TrackState:
+        rng = np.random.default_rng(5)
+        tracker = Tracker(config)
+        x = 0.0
+        for k in range(40):
+            v = 0.0 if stop_at is not None and k >= stop_at else speed
+            x += v * 0.1
+            yaw = math.pi / 2 + off + (math.pi if rng.random() < 0.25 else 0.0)  # the vehicle heads north
+            state = tracker.update(frame("A", k * 100 * MS, [[0.0, x]], yaw=yaw), k * 100 * MS)
+        return state
+
+    def err_deg(state: TrackState) -> float:
+        return math.degrees(abs(wrap_angle(np.array([state.yaw[0] - math.pi / 2]))[0]))
+
+    assert err_deg(run(TrackerConfig(), 8.0)) < 2.0
+    assert err_deg(run(TrackerConfig(yaw_motion_full_mps=0.0), 8.0)) == pytest.approx(12.0, abs=1.0)
+    # standing: the detections' heading, its sign the detections' majority at birth (no motion to tell)
+    standing = err_deg(run(TrackerConfig(), 0.0))
+    assert min(standing, 180.0 - standing) == pytest.approx(12.0, abs=1.0)
+    # stopped after 2 s of motion: the heading of its motion, drawn back towards the detections' as they come
+    stopped = err_deg(run(TrackerConfig(), 8.0, stop_at=38))
+    assert stopped < 12.0
 
 
 def test_a_vehicle_lost_for_a_moment_keeps_its_id():
@@ -944,6 +975,7 @@ def test_bad_configs_and_calls_raise_value_errors_naming_the_parameter():
         (lambda: TrackerConfig(yaw_gain=0.0), "yaw_gain"),
         (lambda: TrackerConfig(relink_s=-1.0), "relink_s"),
         (lambda: TrackerConfig(relink_gate_m=0.0), "relink_gate_m"),
+        (lambda: TrackerConfig(yaw_motion_full_mps=1.0), "yaw_motion_full_mps"),
         (lambda: TickConfig(tick_ms=0), "tick_ms"),
         (lambda: TickConfig(watermark_ms=-1), "watermark_ms"),
         (lambda: TickConfig(max_empty_ticks=0), "max_empty_ticks"),
