@@ -218,6 +218,10 @@ class Tracks(Message):
     velocity (N, 2) float32 m/s (east, north); yaw (N,) float32 rad ENU; size_lwh (N, 3) float32 m;
     vtype (N,) int8; score (N,) float32; age (N,) int32 ticks since the track started; hits (N,) int32
     ticks with a measurement; cameras: per track, the cameras whose objects updated it this tick.
+    An id that drops out and comes back within a few seconds where the lost track was heading is the same vehicle
+    (fuse_track's `relink_s`). yaw: of a moving track, its direction of motion (from 4 m/s; drawn towards it from
+    1.5 m/s); of a track that stopped, the heading it had; of a vehicle never seen moving, the detector's, whose
+    front and back may be reversed (read it as an axis).
     `frames`: (camera, seq, t_capture_ns, t_arrival_ns at fuse_track) of every frame whose objects went
     into this tick (latency accounting).
     """
