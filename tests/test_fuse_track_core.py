@@ -307,7 +307,8 @@ def test_a_moving_track_heads_where_it_goes_and_a_standing_one_as_detected():
 
 def test_a_vehicle_lost_for_a_moment_keeps_its_id():
     """A vehicle at 8 m/s missed for 1 s (ten ticks, far beyond max_age) comes back on its path: the new track takes
-    the lost one's id (relink, default on), not while it is lost, and never an id of a vehicle elsewhere; without
+    the lost one's id, age and hits (relink, default on), not while it is lost, and never an id of a vehicle elsewhere;
+    without
     relink, or lost for longer than relink_s, it is a new id."""
     def run(config: TrackerConfig, gap: range, other_at: tuple[float, float] | None = None) -> list[TrackState]:
         tracker = Tracker(config)
@@ -326,6 +327,8 @@ def test_a_vehicle_lost_for_a_moment_keeps_its_id():
     states = run(TrackerConfig(), range(20, 30))
     assert ids_on_path(states) == [1]
     assert all(len(s) == 0 for s in states[25:32])  # max_age ends the lost track; the new one is confirmed at 32
+    # and it goes on as the lost track: its age counts from the lost one's birth, its hits add up
+    assert states[40].age.tolist() == [40] and states[40].hits.tolist() == [20 + 11]
     assert ids_on_path(run(TrackerConfig(relink_s=0), range(20, 30))) == [1, 2]
     assert ids_on_path(run(TrackerConfig(), range(20, 55))) == [1, 2]  # lost (at tick 24) 3.3 s before it is back
     # a second vehicle appears 6 m from where the lost one would be by now: it gets its own id, the first keeps its own

@@ -280,10 +280,11 @@ class Tracker:
         self._score = np.zeros(0)
         self._votes = np.zeros((0, 1))  # score-weighted type votes, (T, types)
         self._cameras: list[list[str]] = []
-        # Confirmed tracks dropped in the last relink_s: id, state x at time t_ns (ns), their death time
-        self._lost_ids = np.zeros(0, np.int64)
-        self._lost_x = np.zeros((0, DIM_X))
-        self._lost_t = np.zeros(0, np.int64)
+        self._tick = 0  # updates so far: a track's age is the ticks since the one it was born in
+        # Confirmed tracks dropped in the last relink_s, struct of arrays: id, state x at the tick t (ns) they were
+        # dropped in, the tick they were born in, their hits and heading
+        self._lost = {"id": np.zeros(0, np.int64), "x": np.zeros((0, DIM_X)), "t": np.zeros(0, np.int64),
+                      "born": np.zeros(0, np.int64), "hits": np.zeros(0, np.int64), "yaw": np.zeros(0)}
 
     def __len__(self) -> int:
         """Live tracks, tentative ones included."""
@@ -317,6 +318,7 @@ class Tracker:
                                  f"{t_ns}, one is {offset_s:.3f} s away")
         dt_s = 0.0 if self._t_ns is None else (t_ns - self._t_ns) / NS_PER_S
         self._t_ns = t_ns
+        self._tick += 1
         if len(self._ids):
             if self._fq[0] != dt_s:
                 self._fq = (dt_s, transition(dt_s), process_noise(dt_s, self._q_var))
@@ -444,29 +446,37 @@ class Tracker:
         if stale.any():
             if c.relink_s > 0:
                 lost = stale & self._confirmed
-                self._lost_ids = np.concatenate([self._lost_ids, self._ids[lost]])
-                self._lost_x = np.concatenate([self._lost_x, self._x[lost]])
-                self._lost_t = np.concatenate([self._lost_t, np.full(int(lost.sum()), t_ns, np.int64)])
+                add = {"id": self._ids[lost], "x": self._x[lost], "t": np.full(int(lost.sum()), t_ns, np.int64),
+                       "born": self._tick - self._age[lost], "hits": self._hits[lost], "yaw": self._yaw[lost]}
+                self._lost = {k: np.concatenate([v, add[k]]) for k, v in self._lost.items()}
             self._keep(~stale)
 
     def _relink(self, tracks: np.ndarray, t_ns: int) -> None:
         """Tracks confirmed this tick take the id of a confirmed track lost within relink_s whose motion,
-        carried on from where it was lost, brings it within relink_gate_m of them (Hungarian on that distance)."""
+        carried on from where it was lost, brings it within relink_gate_m of them (Hungarian on that distance), and
+        with it the lost track's age (ticks since it was born), hits (added) and heading's sign."""
         c = self.config
-        recent = (t_ns - self._lost_t) / NS_PER_S <= c.relink_s
-        self._lost_ids, self._lost_x, self._lost_t = self._lost_ids[recent], self._lost_x[recent], self._lost_t[recent]
-        if len(tracks) == 0 or len(self._lost_ids) == 0:
+        lost = self._lost
+        recent = (t_ns - lost["t"]) / NS_PER_S <= c.relink_s
+        lost = {k: v[recent] for k, v in lost.items()}
+        self._lost = lost
+        if len(tracks) == 0 or len(lost["id"]) == 0:
             return
-        dt = (t_ns - self._lost_t) / NS_PER_S
-        at = self._lost_x[:, :2] + self._lost_x[:, 4:6] * dt[:, None]
+        dt = (t_ns - lost["t"]) / NS_PER_S
+        at = lost["x"][:, :2] + lost["x"][:, 4:6] * dt[:, None]
         d = np.linalg.norm(self._x[tracks, None, :2] - at[None], axis=2)
         cost = np.where(d <= c.relink_gate_m, d, 1e6)
         r, k = linear_sum_assignment(cost)
         ok = cost[r, k] <= c.relink_gate_m
-        self._ids[tracks[r[ok]]] = self._lost_ids[k[ok]]
-        keep = np.ones(len(self._lost_ids), bool)
-        keep[k[ok]] = False
-        self._lost_ids, self._lost_x, self._lost_t = self._lost_ids[keep], self._lost_x[keep], self._lost_t[keep]
+        new, old = tracks[r[ok]], k[ok]
+        self._ids[new] = lost["id"][old]
+        self._age[new] = self._tick - lost["born"][old]
+        self._hits[new] += lost["hits"][old]
+        reversed_ = np.abs(wrap_angle(self._yaw[new] - lost["yaw"][old])) > np.pi / 2
+        self._yaw[new] = np.where(reversed_, wrap_angle(self._yaw[new] + np.pi), self._yaw[new])
+        keep = np.ones(len(lost["id"]), bool)
+        keep[old] = False
+        self._lost = {k_: v[keep] for k_, v in lost.items()}
 
     def _keep(self, keep: np.ndarray) -> None:
         for name in ("_x", "_p", "_ids", "_age", "_hits", "_streak", "_since_hit", "_last_hit_ns", "_confirmed",
