@@ -308,8 +308,7 @@ def test_a_moving_track_heads_where_it_goes_and_a_standing_one_as_detected():
 def test_a_vehicle_lost_for_a_moment_keeps_its_id():
     """A vehicle at 8 m/s missed for 1 s (ten ticks, far beyond max_age) comes back on its path: the new track takes
     the lost one's id, age and hits (relink, default on), not while it is lost, and never an id of a vehicle elsewhere;
-    without
-    relink, or lost for longer than relink_s, it is a new id."""
+    without relink, or lost for longer than relink_s, it is a new id."""
     def run(config: TrackerConfig, gap: range, other_at: tuple[float, float] | None = None) -> list[TrackState]:
         tracker = Tracker(config)
         states = []
