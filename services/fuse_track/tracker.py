@@ -419,16 +419,17 @@ class Tracker:
             self._cameras[j] = objects.sources_of(i)
 
     def _smooth_yaw(self, yaw: np.ndarray, measured: np.ndarray, velocity: np.ndarray, hits: np.ndarray) -> np.ndarray:
-        """Circular smoothing of yaw (rad); the heading's sign from motion once the track moves."""
+        """Circular smoothing of yaw (rad); the heading's sign from motion once the track moves, and the heading
+        itself drawn towards the direction of motion (module doc)."""
+        full, low = self.config.yaw_motion_full_mps, self.config.yaw_from_motion_mps
         heading = np.arctan2(velocity[:, 1], velocity[:, 0])
-        moving = (np.hypot(velocity[:, 0], velocity[:, 1]) > self.config.yaw_from_motion_mps) & (hits >= 2)
+        speed = np.hypot(velocity[:, 0], velocity[:, 1])
+        moving = (speed > low) & (hits >= 2)
         yaw = np.where(moving & (np.abs(wrap_angle(yaw - heading)) > np.pi / 2), yaw + np.pi, yaw)
         d = wrap_angle(measured - yaw)
         d = wrap_angle(np.where(np.abs(d) > np.pi / 2, d + np.pi, d))  # the detector's heading may be reversed
         yaw = wrap_angle(yaw + self.config.yaw_gain * d)
-        full, low = self.config.yaw_motion_full_mps, self.config.yaw_from_motion_mps
         if full > 0:  # towards the direction of motion, all the way from `full` on
-            speed = np.hypot(velocity[:, 0], velocity[:, 1])
             w = np.where(moving, np.clip((speed - low) / (full - low), 0.0, 1.0), 0.0)
             yaw = wrap_angle(yaw + w * wrap_angle(heading - yaw))
         return yaw
