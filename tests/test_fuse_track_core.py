@@ -303,6 +303,8 @@ def test_a_moving_track_heads_where_it_goes_and_a_standing_one_as_detected():
     # stopped after 2 s of motion: the heading of its motion, drawn back towards the detections' as they come
     stopped = err_deg(run(TrackerConfig(), 8.0, stop_at=38))
     assert stopped < 12.0
+    assert stopped < 2.0  # the motion's heading, not the detections' 12 deg (which it gives without the setting)
+    assert err_deg(run(TrackerConfig(yaw_motion_full_mps=0.0), 8.0, stop_at=38)) == pytest.approx(12.0, abs=1.0)
 
 
 def test_a_vehicle_lost_for_a_moment_keeps_its_id():
