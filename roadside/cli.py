@@ -8,42 +8,24 @@ import math
 import sys
 from pathlib import Path
 
+from roadside.argtypes import finite_float, positive_float, site_path
+from roadside.cli_bus import add_bus_jobs
 from shared.jsonio import dumps
 from shared.messages import check_name
-
-
-def _finite_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(v):
-        raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
-    return v
-
-
-def _positive_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (v > 0 and math.isfinite(v)):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
-    return v
 
 
 def _add_sim(sub) -> None:
     p = sub.add_parser("sim", help="simulate a clip of a site and write a recording")
     p.add_argument("--site", required=True, help="site name (state_ellsworth, intersection) or a site YAML path")
-    p.add_argument("--seconds", type=_positive_float, required=True, help="clip length, seconds")
-    p.add_argument("--hz", type=_positive_float, default=10.0, help="frames per second per camera")
+    p.add_argument("--seconds", type=positive_float, required=True, help="clip length, seconds")
+    p.add_argument("--hz", type=positive_float, default=10.0, help="frames per second per camera")
     p.add_argument("--seed", type=int, default=0, help="random seed; the same seed gives byte-identical output")
     p.add_argument("--out", required=True, type=Path, help="output folder (must not exist unless --overwrite)")
     p.add_argument("--cameras", default="all", help="all | fisheye | thermal | pinhole | visible | NAME,NAME")
     p.add_argument("--weather", default="auto", help="auto | clear | overcast | dusk | fog | rain")
     p.add_argument("--workers", type=int, default=2, help="render processes")
     p.add_argument("--max-vehicles", type=int, default=100, help="most moving vehicles at once")
-    p.add_argument("--demand-scale", type=_finite_float, default=1.0, help="scale the site's traffic demand")
+    p.add_argument("--demand-scale", type=finite_float, default=1.0, help="scale the site's traffic demand")
     p.add_argument("--type-weights", type=_type_weights, default=None, metavar="TYPE=W,...",
                    help="multiply vehicle types' shares of the mix, e.g. bus=4,truck=3 (types: car, suv_van, truck, "
                         "bus, motorcycle)")
@@ -103,8 +85,8 @@ def _run_sim(args) -> int:
 def _add_demo(sub) -> None:
     p = sub.add_parser("demo", help="the demo: the simulated State/Ellsworth roundabout through the live pipeline")
     p.add_argument("--out", type=Path, default=Path("out/demo"))
-    p.add_argument("--seconds", type=_positive_float, default=60.0)
-    p.add_argument("--hz", type=_positive_float, default=10.0)
+    p.add_argument("--seconds", type=positive_float, default=60.0)
+    p.add_argument("--hz", type=positive_float, default=10.0)
     p.add_argument("--seed", type=int, default=2024)
     p.add_argument("--landmarks", type=int, default=20, help="landmarks per camera for calibration")
     p.add_argument("--model", type=Path, help="detector ONNX (default: the shipped models/detector_fp32.onnx)")
@@ -151,13 +133,13 @@ def _add_calibrate(sub) -> None:
     p.add_argument("--report", type=Path, help="report JSON (default: next to --out)")
     p.add_argument("--segments", type=int, help="ground segments (default 2 pinhole range bands, 4 fisheye sectors)")
     p.add_argument("--image-circle", type=_floats(3), help="fisheye image circle CX,CY,RADIUS in pixels")
-    p.add_argument("--fov-deg", type=_finite_float, default=188.0,
+    p.add_argument("--fov-deg", type=finite_float, default=188.0,
                    help="fisheye field of view at the image circle's edge")
     p.add_argument("--origin", type=_floats(3), help="site frame origin LAT,LON,ALT (default: the landmarks' median)")
     p.add_argument(
         "--roi-center", type=_floats(2), help="ROI centre LAT,LON (default: the camera, 25 m fisheye / 200 m)"
     )
-    p.add_argument("--roi-radius", type=_finite_float, default=25.0, help="ROI radius in metres (with --roi-center)")
+    p.add_argument("--roi-radius", type=finite_float, default=25.0, help="ROI radius in metres (with --roi-center)")
     p.add_argument("--plot", type=Path, help="draw residual arrows to this PNG")
     p.add_argument("--image", type=Path, help="camera frame to draw the plot on")
     p.add_argument("--shared-ground", type=_shared_ground, action="append", default=[],
@@ -216,12 +198,12 @@ def _add_train(sub) -> None:
     p.add_argument("--coco", action="append", default=[], help="COCO-style annotation JSON (repeatable)")
     p.add_argument("--out", required=True, help="output folder (model.pt, train_log.jsonl, train.json)")
     p.add_argument("--steps", type=int, help="number of steps (default 4000, or as many as --minutes allows)")
-    p.add_argument("--minutes", type=_positive_float,
+    p.add_argument("--minutes", type=positive_float,
                    help="time budget: the learning-rate schedule follows the clock to its end (with --steps too, "
                         "whichever comes first ends the run)")
     p.add_argument("--batch-size", type=int, default=16)
     p.add_argument("--crop", type=int, default=256)
-    p.add_argument("--lr", type=_positive_float, default=2e-3)
+    p.add_argument("--lr", type=positive_float, default=2e-3)
     p.add_argument("--every", type=int, default=1, help="use every n-th frame")
     p.add_argument("--center", choices=["bottom", "box"], default="bottom", help="box: the 2D-box-centre ablation")
     p.add_argument("--no-topk", action="store_true", help="ablation: plain mean squared heat-map loss")
@@ -239,18 +221,18 @@ def _add_train(sub) -> None:
     p.add_argument("--vote-head", action="store_true",
                    help="train the centre votes (--beta-vote) in a head of their own rather than the offset head "
                         "(training/model.py; detect.votes lets decoding use them); with --init, adds it to that model")
-    p.add_argument("--beta-heading", type=_positive_float,
+    p.add_argument("--beta-heading", type=positive_float,
                    help="weight of the heading term (default 0.01, the paper's; with --init, the checkpoint's)")
-    p.add_argument("--beta-size", type=_positive_float,
+    p.add_argument("--beta-size", type=positive_float,
                    help="weight of the size term (default 0.01, the paper's; with --init, the checkpoint's)")
-    p.add_argument("--beta-vtype", type=_positive_float,
+    p.add_argument("--beta-vtype", type=positive_float,
                    help="weight of the type term (default 0.01, the paper's; with --init, the checkpoint's)")
-    p.add_argument("--beta-offset", type=_positive_float,
+    p.add_argument("--beta-offset", type=positive_float,
                    help="weight of the sub-cell offset term (default 0.1; with --init, the checkpoint's)")
-    p.add_argument("--beta-box", type=_finite_float,
+    p.add_argument("--beta-box", type=finite_float,
                    help="extra weight of the 2D box (width, height, centre offset); default 0, the paper's loss "
                         "(with --init, the checkpoint's)")
-    p.add_argument("--beta-vote", type=_finite_float,
+    p.add_argument("--beta-vote", type=finite_float,
                    help="weight of the centre votes: every cell of a vehicle's 2D box trained to point at its centre "
                         "(training/targets.py); default 0 (with --init, the checkpoint's)")
     p.add_argument("--loss-type-weights", type=_loss_type_weights_arg, metavar="TYPE=W,...",
@@ -431,20 +413,20 @@ def _add_eval(sub) -> None:
                    "of the footage played through the pipeline instead of a model's detections)")
     p.add_argument("--recording", type=Path, help="simulator recording (detector)")
     p.add_argument("--every", type=int, default=1, help="use every n-th frame (detector)")
-    p.add_argument("--score-thr", type=_finite_float, help="lowest score kept (default: 0.05 for detector, as AP needs "
+    p.add_argument("--score-thr", type=finite_float, help="lowest score kept (default: 0.05 for detector, as AP needs "
                    "the low ones; the detect service's 0.3 for real)")
     p.add_argument("--site", type=Path, default=Path("deploy/sites/state_ellsworth"),
                    help="site folder with labels/ and masks/ (real), or its site.yaml's cameras (handoff)")
     p.add_argument("--footage", type=Path, default=Path("../shared/data/state_ellsworth/sample_data"),
                    help="folder of the cameras' frame folders (real)")
     p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--fisheye-area-deg", type=_positive_float,
+    p.add_argument("--fisheye-area-deg", type=positive_float,
                    help="detector: look at fisheye frames only inside the image circle up to this angle off axis "
                         "(e.g. 90), as a camera's detect_area_px does in the detect service")
-    p.add_argument("--near-m", type=_positive_float, default=25.0,
+    p.add_argument("--near-m", type=positive_float, default=25.0,
                    help="detector: the near-camera metrics count vehicles and detections within this many metres "
                         "of the camera on the ground (its region, as fusion uses it)")
-    p.add_argument("--near-score", type=_finite_float, default=0.3,
+    p.add_argument("--near-score", type=finite_float, default=0.3,
                    help="detector: the lowest score of a detection the near-camera metrics count (the detect "
                         "service's threshold)")
     p.add_argument("--mirror", action="store_true",
@@ -566,11 +548,11 @@ def _add_autolabel(sub) -> None:
     p.add_argument("--camera", required=True, help="camera name written into the labels")
     p.add_argument("--out", type=Path, required=True, help="folder for labels.json, images/ and report.json")
     p.add_argument("--until", help="leave out frames at or after this time of day HH:MM:SS (a held-out slice)")
-    p.add_argument("--roi-m", type=_positive_float, default=30.0, help="label within this distance of the camera")
+    p.add_argument("--roi-m", type=positive_float, default=30.0, help="label within this distance of the camera")
     p.add_argument("--truth", type=Path, help="simulator recording of these frames: score the labels against it")
     p.add_argument("--teacher", type=Path, help="detector ONNX model whose detections away from the labels become "
                    "ignore regions: parked and waiting vehicles, which the background model cannot see")
-    p.add_argument("--teacher-thr", type=_finite_float, default=0.1, help="teacher detections at least this confident")
+    p.add_argument("--teacher-thr", type=finite_float, default=0.1, help="teacher detections at least this confident")
     p.add_argument("--ignore-small", action="store_true",
                    help="foreground regions too small for a vehicle become ignore regions instead of being dropped")
 
@@ -582,8 +564,8 @@ def _add_static(sub) -> None:
     p.add_argument("--frames", type=Path, required=True, help="one camera's frames (capture time in the names)")
     p.add_argument("--until", help="only frames before this time of day HH:MM:SS (leave a held-out slice alone)")
     p.add_argument("--every", type=int, default=4, help="use every n-th frame (default 4)")
-    p.add_argument("--score-thr", type=_finite_float, default=0.3, help="detections at least this confident (detect's)")
-    p.add_argument("--min-fraction", type=_finite_float, default=0.5,
+    p.add_argument("--score-thr", type=finite_float, default=0.3, help="detections at least this confident (detect's)")
+    p.add_argument("--min-fraction", type=finite_float, default=0.5,
                    help="report places detected in this share of frames")
     p.add_argument("--crops", type=Path, help="folder: write the image around each place (spot_<k>.png) to look at")
 
@@ -593,8 +575,8 @@ def _add_area(sub) -> None:
                                     "circle): its cameras[].detect_area_px")
     p.add_argument("--frames", type=Path, required=True, help="one camera's frames (a folder of images)")
     p.add_argument("--every", type=int, default=60, help="use every n-th frame (default 60)")
-    p.add_argument("--level", type=_finite_float, default=40.0, help="grey level above which a pixel shows something")
-    p.add_argument("--share", type=_finite_float, default=0.02,
+    p.add_argument("--level", type=finite_float, default=40.0, help="grey level above which a pixel shows something")
+    p.add_argument("--share", type=finite_float, default=0.02,
                    help="a column (row) belongs to the area when more than this share of its pixels do")
 
 
@@ -695,15 +677,15 @@ def _add_composite(sub) -> None:
     p.add_argument("--sim-site", default="state_ellsworth",
                    help="simulator site in the masks' site frame (name or YAML path): its traffic where no "
                    "--placements are given, and its vehicle models")
-    p.add_argument("--seconds", type=_positive_float, default=60.0, help="simulated traffic")
-    p.add_argument("--hz", type=_positive_float, default=1.0, help="images per simulated second")
+    p.add_argument("--seconds", type=positive_float, default=60.0, help="simulated traffic")
+    p.add_argument("--hz", type=positive_float, default=1.0, help="images per simulated second")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--demand-scale", type=_positive_float, default=1.0, help="more (> 1) or less traffic")
-    p.add_argument("--roi-m", type=_positive_float, default=30.0, help="shown and labelled within this distance "
+    p.add_argument("--demand-scale", type=positive_float, default=1.0, help="more (> 1) or less traffic")
+    p.add_argument("--roi-m", type=positive_float, default=30.0, help="shown and labelled within this distance "
                    "of the camera")
     p.add_argument("--teacher", type=Path, help="detector ONNX model whose detections on the background become "
                    "ignore regions: vehicles standing through the whole slice are in the background")
-    p.add_argument("--teacher-thr", type=_finite_float, default=0.5, help="teacher detections at least this confident")
+    p.add_argument("--teacher-thr", type=finite_float, default=0.5, help="teacher detections at least this confident")
 
 
 def _run_composite(args) -> int:
@@ -734,16 +716,6 @@ def _add_up(sub) -> None:
     p.add_argument("--log-dir", type=Path, help="write each service's log to LOG_DIR/<service>.log")
 
 
-def site_path(site: Path) -> Path:
-    """A site argument: a file, a folder, or the name of a folder under deploy/sites/."""
-    if site.exists():
-        return site
-    named = Path(__file__).resolve().parent.parent / "deploy" / "sites" / str(site)
-    if named.exists():
-        return named
-    raise ValueError(f"site not found: {site} (nor {named})")
-
-
 def _run_up(args) -> int:
     from roadside.launcher import Launcher, UpConfig
 
@@ -767,39 +739,6 @@ def _run_up(args) -> int:
         log=lambda s: print(s, file=sys.stderr))
 
 
-def _add_tracks(sub) -> None:
-    p = sub.add_parser("tracks", help="print live tracks (what a connected vehicle receives)")
-    p.add_argument("--site", default="state_ellsworth", help="site name")
-    p.add_argument("--connect", action="append", default=[],
-                   help="Zenoh endpoint: the cabinet's router tcp/HOST:7447 (default: the local fuse_track)")
-    p.add_argument("--port-base", type=int, default=7451, help="embedded default's first service port")
-    p.add_argument("--count", type=int, help="stop after this many messages")
-    p.add_argument("--timeout", type=_finite_float, help="stop after this many seconds without tracks")
-    p.add_argument("--json", action="store_true", help="one JSON line per message")
-
-
-def _run_tracks(args) -> int:
-    from shared.client import TrackClient
-    from shared.settings import BusSettings
-
-    n = 0
-    with TrackClient(args.site, args.connect or None, BusSettings(port_base=args.port_base)) as client:
-        for tracks in client.stream(timeout_s=args.timeout):
-            rows = tracks.rows()
-            if args.json:
-                print(dumps({"t_ns": tracks.t_capture_ns, "seq": tracks.seq, "tracks": rows}), flush=True)
-            else:
-                print(f"t={tracks.t_capture_ns / 1e9:.2f} s  {len(rows)} tracks", flush=True)
-                for r in rows:
-                    speed = math.hypot(r["vx"], r["vy"])
-                    print(f"  {r['id']:>5} {r['type']:<10} lat {r['lat']:.7f} lon {r['lon']:.7f} "
-                          f"yaw {r['yaw']:+.2f} speed {speed:5.1f} m/s  {','.join(r['cameras'])}")
-            n += 1
-            if args.count and n >= args.count:
-                break
-    return 0 if n else 1
-
-
 def _add_viz(sub) -> None:
     p = sub.add_parser("viz", help="turn a tracks file, or the live tracks, into a Rerun .rrd (trajectories over the "
                        "site map)")
@@ -815,7 +754,7 @@ def _add_viz(sub) -> None:
     p.add_argument("--viewer", help="with --live: also stream to a running Rerun viewer at this URL (e.g. "
                    "rerun+http://127.0.0.1:9876/proxy)")
     p.add_argument("--count", type=int, help="with --live: stop after this many messages")
-    p.add_argument("--timeout", type=_finite_float, help="with --live: stop after this many seconds without tracks")
+    p.add_argument("--timeout", type=finite_float, help="with --live: stop after this many seconds without tracks")
     p.add_argument("--basemap", type=Path, help="world file (YAML/JSON: image + corners) of an orthophoto")
     p.add_argument("--recording", type=Path, help="simulator recording: draw its site's ground as the map")
     p.add_argument("--frames", help="also log the camera frames of this source (recording, image folders; needs "
@@ -939,33 +878,6 @@ def _run_viz_live(args) -> int:
     return 0 if summary["messages"] else 1
 
 
-def _add_health(sub) -> None:
-    p = sub.add_parser("health", help="exit 0 when a service's liveliness token is on the bus")
-    p.add_argument("--site", required=True, type=Path)
-    p.add_argument("--service", required=True, choices=["ingest", "detect", "localize", "fuse_track"])
-    p.add_argument("--timeout", type=_finite_float, default=3.0)
-
-
-def _run_health(args) -> int:
-    from shared.bus import wait_for_peers
-    from shared.keys import alive_key
-    from shared.settings import load_settings
-
-    settings = load_settings(site_path(args.site))
-    import zenoh
-
-    from shared.bus import zenoh_config
-
-    session = zenoh.open(zenoh_config(settings.bus.model_copy(update={"listen": []}), None, 0))
-    try:
-        key = alive_key(settings.site, args.service, "x").rsplit("/", 1)[0] + "/*"
-        n = wait_for_peers(session, key, 1, args.timeout)
-    finally:
-        session.close()
-    print(f"{args.service}: {'alive' if n else 'not seen'} ({n} tokens)")
-    return 0 if n else 1
-
-
 def _add_bench(sub) -> None:
     p = sub.add_parser("bench", help="run a benchmark; prints one JSON document")
     p.add_argument("name", choices=sorted(BENCHMARKS))
@@ -995,15 +907,14 @@ def main(argv: list[str] | None = None) -> int:
     _add_mix(sub)
     _add_eval(sub)
     _add_up(sub)
-    _add_tracks(sub)
-    _add_health(sub)
+    bus_runners = add_bus_jobs(sub)  # tracks, status, health: what a running pipeline says
     _add_viz(sub)
     args = parser.parse_args(argv)
     runners = {"sim": _run_sim, "demo": _run_demo, "calibrate": _run_calibrate, "bench": _run_bench,
                "train": _run_train, "autolabel": _run_autolabel, "static": _run_static, "area": _run_area,
                "composite": _run_composite, "export": _run_export, "calibrate-heads": _run_calibrate_heads,
                "mix": _run_mix, "eval": _run_eval, "up": _run_up,
-               "tracks": _run_tracks, "health": _run_health, "viz": _run_viz}
+               "viz": _run_viz, **bus_runners}
     try:
         return runners[args.job](args)
     except (ValueError, FileNotFoundError, RuntimeError) as exc:

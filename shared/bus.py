@@ -113,6 +113,7 @@ class Receiver:
         self.buffer: deque[tuple[str, bytes]] = deque(maxlen=ring if ring > 0 else fifo)
         self.wake = wake or threading.Event()
         self.overflow = 0
+        self.skipped = 0  # ring: older samples pushed out unread by newer ones (a detector behind the cameras)
         self._reported = 0
         self.ring = ring > 0
         self.bytes = 0  # held in the FIFO
@@ -121,6 +122,8 @@ class Receiver:
         def on_sample(sample) -> None:
             payload = sample.payload.to_bytes()
             if self.ring:
+                if len(self.buffer) == self.buffer.maxlen:
+                    self.skipped += 1
                 self.buffer.append((str(sample.key_expr), payload))
             else:
                 with self._lock:

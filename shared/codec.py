@@ -1,15 +1,18 @@
 """msgpack codec for the wire contract (shared/messages.py); nothing on the wire is ever unpickled.
 
-A message is a msgpack map `{"kind": "<frame|detections|objects|tracks>", ...fields}`. A numpy array
+A message is a msgpack map `{"kind": "<frame|detections|objects|tracks|status>", ...fields}`. A numpy array
 travels as `{"dtype": "<f4", "shape": [N, 2], "data": <bytes>}` with its dtype from a small
-allow-list and is decoded with `numpy.frombuffer` (little-endian, C order). `decode` raises
+allow-list and is decoded with `numpy.frombuffer` (little-endian, C order); a field declared as a map (a Status
+message's counts) travels as a plain msgpack map. `decode` raises
 `DecodeError` with the reason for anything else: garbage bytes, an unknown kind, a wrong schema
 version, a disallowed dtype, a shape that does not match the bytes, a field that fails validation.
 """
 
 from __future__ import annotations
 
+import functools
 import math
+import typing
 
 import msgpack
 import numpy as np
@@ -58,6 +61,13 @@ def _unpack_array(field: str, d: dict) -> np.ndarray:
     return np.frombuffer(data, dtype=dtype).reshape(shape)
 
 
+@functools.cache  # per message type, once: decode runs per message
+def map_fields(cls: type[Message]) -> frozenset[str]:
+    """The fields of a message type that are maps (a Status message's counts): they travel as msgpack maps, and
+    every other map on the wire is an array."""
+    return frozenset(name for name, f in cls.model_fields.items() if typing.get_origin(f.annotation) is dict)
+
+
 def encode(msg: Message) -> bytes:
     """Message -> msgpack bytes."""
     out: dict = {"kind": msg.kind}
@@ -88,9 +98,10 @@ def decode(payload: bytes | bytearray | memoryview, expect: type[Message] | None
     if isinstance(raw.get("stamps"), list) and len(raw["stamps"]) > MAX_STAMPS:  # before validating each one
         raise DecodeError(f"{kind}: {len(raw['stamps'])} stamps, more than the {MAX_STAMPS} a message may carry")
     fields = {}
+    maps = map_fields(cls)
     try:
         for name, value in raw.items():
-            fields[name] = _unpack_array(name, value) if isinstance(value, dict) else value
+            fields[name] = _unpack_array(name, value) if isinstance(value, dict) and name not in maps else value
     except DecodeError:
         raise
     except Exception as exc:  # whatever else numpy makes of a crafted array: the message is bad, not the service

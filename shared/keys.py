@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-from shared.messages import check_name
+from shared.messages import SERVICES, check_name
 
 STAGES = ("frame", "detections", "objects")
-SERVICES = ("ingest", "detect", "localize", "fuse_track")
 
 
 def camera_key(site: str, camera: str, stage: str) -> str:
@@ -36,6 +35,17 @@ def alive_key(site: str, service: str, instance: str) -> str:
     if service not in SERVICES:
         raise ValueError(f"service must be one of {SERVICES}, got {service!r}")
     return f"roadside/{check_name('site', site)}/alive/{service}/{check_name('instance', instance)}"
+
+
+def status_key(site: str, service: str, instance: str) -> str:
+    """`roadside/<site>/status/<service>/<instance>`: a service's Status reports (shared/status.py)."""
+    if service not in SERVICES:
+        raise ValueError(f"service must be one of {SERVICES}, got {service!r}")
+    return f"roadside/{check_name('site', site)}/status/{service}/{check_name('instance', instance)}"
+
+
+def all_status_key(site: str) -> str:
+    return f"roadside/{check_name('site', site)}/status/**"
 
 
 def observer_alive_key(site: str, name: str) -> str:

@@ -9,6 +9,10 @@ Four messages flow ingest -> detect -> localize -> fuse_track -> vehicles:
 | Objects    | `roadside/<site>/cam/<camera>/objects`    | x, y (m), lat, lon, yaw (rad, ENU), size, type, score |
 | Tracks     | `roadside/<site>/tracks`                  | id, x, y, lat, lon, velocity, yaw, size, type, ... |
 
+and every service reports what it has done on the side (a traffic engineer's view, `roadside status`):
+
+| Status     | `roadside/<site>/status/<service>/<instance>` | counts and rates, bad input by reason, CPU, memory |
+
 Every message carries `v` (schema version), `site`, `seq`, `t_capture_ns` (when the frame was
 captured, from the source, not when it was processed) and `stamps`: `[stage, t_ns]` pairs, one
 appended by each stage (wall clock, `time.time_ns()`), from which per-stage latency is computed.
@@ -29,6 +33,7 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSeriali
 
 SCHEMA_VERSION = 1
 VEHICLE_TYPES = ("car", "suv_van", "truck", "bus", "motorcycle")
+SERVICES = ("ingest", "detect", "localize", "fuse_track")
 CAMERA_KINDS = ("pinhole", "fisheye")
 MAX_FRAME_BYTES = 32 * 1024 * 1024  # larger frames are refused (an oversized frame is bad input)
 MAX_ROWS = 4096  # detections, objects or tracks per message: more is bad input (fusion is quadratic)
@@ -273,5 +278,44 @@ class Tracks(Message):
                     self.cameras, strict=True)]
 
 
-MESSAGE_TYPES: dict[str, type[Message]] = {m.kind: m for m in (Frame, Detections, Objects, Tracks)}
+MAX_STATUS_ENTRIES = 300  # names in one of a Status message's maps (BadInput keeps at most 256 reasons, + 1)
+StatusName = Annotated[str, Field(min_length=1, max_length=160)]
+Count = Annotated[int, Field(ge=0, lt=INT64_END)]
+Reading = Annotated[float, Field(allow_inf_nan=False)]
+
+
+class Status(Message):
+    """What one running service has done so far, published every `bus.status_period_s` (shared/status.py).
+
+    `seq`: the report's number since the service started; `t_capture_ns`: when the report was taken (wall clock,
+    ns). `service`: one of SERVICES; `instance`: which of them (e.g. fuse_track's tracker, or "main");
+    `started_ns`: when the service started (wall clock). `counts`: messages by what they were, since the start
+    (e.g. frames_in, detections_out); `rates`: the same per second over the last `period_s`; `bad`: messages
+    dropped since the start, by reason (the reasons the service logs); `gauges`: readings of now (e.g. tracks
+    held, mean inference ms over the period); `last_output_ns`: when the service last published its output (0:
+    not yet); `cpu_s`: the process's CPU time; `peak_rss_mb`: its peak resident memory; `final`: the report of a
+    service that is stopping."""
+
+    kind: ClassVar[str] = "status"
+    service: Literal[SERVICES]  # type: ignore[valid-type]
+    instance: str
+    started_ns: int = Field(ge=0, lt=T_CAPTURE_END)
+    period_s: float = Field(gt=0, allow_inf_nan=False)
+    counts: dict[StatusName, Count] = Field(default_factory=dict, max_length=MAX_STATUS_ENTRIES)
+    rates: dict[StatusName, Annotated[float, Field(ge=0, allow_inf_nan=False)]] = Field(
+        default_factory=dict, max_length=MAX_STATUS_ENTRIES)
+    bad: dict[StatusName, Count] = Field(default_factory=dict, max_length=MAX_STATUS_ENTRIES)
+    gauges: dict[StatusName, Reading] = Field(default_factory=dict, max_length=MAX_STATUS_ENTRIES)
+    last_output_ns: int = Field(0, ge=0, lt=T_CAPTURE_END)
+    cpu_s: float = Field(ge=0, allow_inf_nan=False)
+    peak_rss_mb: float = Field(ge=0, allow_inf_nan=False)
+    final: bool = False
+
+    @field_validator("instance")
+    @classmethod
+    def _instance(cls, v: str) -> str:
+        return check_name("instance", v)
+
+
+MESSAGE_TYPES: dict[str, type[Message]] = {m.kind: m for m in (Frame, Detections, Objects, Tracks, Status)}
 

@@ -43,6 +43,8 @@ class BusSettings(Strict):
     # in every process that sends messages over 3 kB). Off: the demo measured no latency gained by it and 27 MB more
     # resident in ingest and fuse_track (docs/pipeline.md); containers do not share /dev/shm by default anyway
     shared_memory: bool = False
+    # every service publishes a Status report this often (`roadside status`, shared/status.py); 0 = never
+    status_period_s: float = Field(2.0, ge=0, le=3600, allow_inf_nan=False)
 
     def service_endpoint(self, service: str) -> str:
         return f"tcp/{self.host}:{self.port_base + SERVICES.index(service)}"

@@ -39,6 +39,7 @@ from shared.messages import (
     Detections,
     Frame,
     Objects,
+    Status,
     Tracks,
     check_name,
 )
@@ -97,7 +98,17 @@ def make_tracks(n: int = 3, **kw) -> Tracks:
     return Tracks(**{**fields, **kw})
 
 
-MAKERS = {"frame": make_frame, "detections": make_detections, "objects": make_objects, "tracks": make_tracks}
+def make_status(**kw) -> Status:
+    fields = {"site": SITE, "seq": 2, "t_capture_ns": T0 + 2_000_000_000, "service": "detect", "instance": "cab-1",
+              "started_ns": T0, "period_s": 2.0, "counts": {"frames_in": 40, "detections_out": 38},
+              "rates": {"frames_in": 20.0, "detections_out": 19.0}, "bad": {"not msgpack": 1},
+              "gauges": {"infer_ms": 21.5},
+              "last_output_ns": T0 + 1_990_000_000, "cpu_s": 3.25, "peak_rss_mb": 250.0}
+    return Status(**{**fields, **kw})
+
+
+MAKERS = {"frame": make_frame, "detections": make_detections, "objects": make_objects, "tracks": make_tracks,
+          "status": make_status}
 
 
 def assert_same(a, b) -> None:

@@ -40,13 +40,15 @@ from pipeline_fixtures import (
 
 from shared.codec import encode
 from shared.keys import alive_key, all_alive_key, all_cameras_key, camera_key, tracks_key
-from shared.messages import MAX_FRAME_BYTES, Detections, Frame, Objects, Tracks
+from shared.messages import MAX_FRAME_BYTES, Detections, Frame, Objects, Status, Tracks
+from shared.status import collect_status
 
 pytestmark = pytest.mark.slow
 
 T0 = 1_703_001_700_000_000_000
 TICK_NS = 100_000_000
 WAIT_S = 60.0  # generous: the machine may be busy; every wait ends as soon as its condition holds
+STATUS_EVERY = "bus.status_period_s=0.2"  # status reports five times a second, so the tests need not wait long
 
 
 # --- fixtures -------------------------------------------------------------------------------------------------------
@@ -160,6 +162,21 @@ def warm_up(peer: Peer, key: str, payload: bytes, done, what: str) -> None:
     raise AssertionError(f"no answer to {what} within {WAIT_S} s")
 
 
+def status_report(peer: Peer, site_name: str, service: str, condition) -> Status:
+    """The newest Status report of `service`, once `condition(report)` holds (asked for over the bus, as `roadside
+    status` does)."""
+    found: list[Status] = []
+
+    def check() -> list[Status]:
+        reports, errors = collect_status(peer.session, site_name, 1.0)
+        assert not errors, errors
+        found[:] = [r for r in reports if r.service == service]
+        return [r for r in found if condition(r)]
+
+    assert wait_until(check, WAIT_S, 0.1), f"{service} reports {found}"
+    return found[0]
+
+
 def jsonl(path: Path) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines()]
 
@@ -189,7 +206,8 @@ def test_chain_plays_two_frames_through_all_four_services(site, site_name, small
     peer.subscribe("detections", all_cameras_key(site_name, "detections"), Detections)
     peer.subscribe("objects", all_cameras_key(site_name, "objects"), Objects)
     peer.subscribe("tracks", tracks_key(site_name), Tracks)
-    sets = [*bus_sets(port_base), f"fuse_track.record={record}", "fuse_track.tick_ms=500", "fuse_track.min_hits=1"]
+    sets = [*bus_sets(port_base), f"fuse_track.record={record}", "fuse_track.tick_ms=500", "fuse_track.min_hits=1",
+            STATUS_EVERY]
     fuse = launch("fuse_track", site, *sets)
     localize = launch("localize", site, *sets)
     detect = launch("detect", site, *sets)
@@ -208,6 +226,14 @@ def test_chain_plays_two_frames_through_all_four_services(site, site_name, small
         return any((CAMERA, seq) in {(c, s) for c, s, _, _ in t.frames} for t in peer.got["tracks"])
 
     assert peer.wait_for(lambda: seqs("objects") == {0, 1} and tracked(1), WAIT_S), peer.got
+    # what each service says it has done (`roadside status`): the two frames in and out of each, nothing bad
+    det_status = status_report(peer, site_name, "detect", lambda r: r.counts.get("detections_out") == 2)
+    assert det_status.counts == {"frames_in": 2, "detections_out": 2} and det_status.bad == {}, det_status
+    assert det_status.last_output_ns > 0 and det_status.gauges["infer_ms_avg"] > 0 and det_status.peak_rss_mb > 0
+    loc_status = status_report(peer, site_name, "localize", lambda r: r.counts.get("objects_out") == 2)
+    assert loc_status.counts == {"detections_in": 2, "objects_out": 2} and loc_status.bad == {}, loc_status
+    fuse_status = status_report(peer, site_name, "fuse_track", lambda r: r.counts.get("objects_in") == 2)
+    assert fuse_status.counts["tracks_out"] >= 1 and fuse_status.gauges["not_recorded"] == 0, fuse_status
     for proc in (detect, localize, fuse):  # fuse_track last: it flushes and records what is still open
         assert_clean_exit(proc, proc.terminate())
     peer.poll()
@@ -363,7 +389,7 @@ def test_playback_keeps_no_more_frames_of_a_camera_in_flight_than_detect_keeps()
 def test_detect_drops_bad_frames_and_keeps_running(site, site_name, small_recording, port_base, peer, launch):
     peer.subscribe("detections", camera_key(site_name, CAMERA, "detections"), Detections)
     # ring 2: the case sent without waiting for its log line (None below) must not be pushed out by the next one
-    detect = launch("detect", site, *bus_sets(port_base), "detect.ring=2")
+    detect = launch("detect", site, *bus_sets(port_base), "detect.ring=2", STATUS_EVERY)
     assert peer.wait_alive(alive_key(site_name, "detect", CAMERA), 1, WAIT_S), detect.log()
     key = camera_key(site_name, CAMERA, "frame")
     frame = good_frame(site_name, small_recording, 0)
@@ -396,6 +422,9 @@ def test_detect_drops_bad_frames_and_keeps_running(site, site_name, small_record
     assert peer.wait_for(lambda: any(d.seq == 2 for d in peer.got["detections"]), WAIT_S), detect.log()
     small = next(d for d in peer.got["detections"] if d.seq == 2)
     assert (small.width, small.height) == (1280, 960) and len(small) > 0
+    report = status_report(peer, site_name, "detect", lambda r: sum(r.bad.values()) == len(cases)
+                           and r.counts.get("detections_out", 0) >= 3)  # reports come every 0.2 s, not at once
+    assert any("not msgpack" in reason for reason in report.bad) and report.counts["frames_in"] >= 3, report
     assert_clean_exit(detect, detect.terminate())
     assert "camera NE: frames come at 320x240, smaller than the model's input" in detect.log()
     assert "set ingest.decode_long_side to 640" in detect.log()
@@ -425,7 +454,7 @@ def test_detect_looks_only_inside_the_cameras_detect_area(site, site_name, small
 
 def test_localize_drops_bad_detections_and_keeps_running(site, site_name, port_base, peer, launch):
     peer.subscribe("objects", all_cameras_key(site_name, "objects"), Objects)
-    localize = launch("localize", site, *bus_sets(port_base))
+    localize = launch("localize", site, *bus_sets(port_base), STATUS_EVERY)
     assert peer.wait_alive(alive_key(site_name, "localize", CAMERA), 1, WAIT_S), localize.log()
     key = camera_key(site_name, CAMERA, "detections")
     det = good_detections(site_name, 0)
@@ -454,13 +483,17 @@ def test_localize_drops_bad_detections_and_keeps_running(site, site_name, port_b
     assert peer.wait_for(lambda: any(o.seq == 1 for o in peer.got["objects"]), WAIT_S), localize.log()
     out = next(o for o in peer.got["objects"] if o.seq == 1)
     assert stages(out)[-1] == "localize" and len(out) == 2 and np.isfinite(out.latlon).all()
+    report = status_report(peer, site_name, "localize", lambda r: sum(r.bad.values()) == len(cases)
+                           and r.counts.get("objects_out", 0) >= 2)
+    assert report.bad["detections from camera 'SW', not at this site"] == 1, report.bad
+    assert report.rates.keys() == report.counts.keys() and report.last_output_ns > report.started_ns
     assert_clean_exit(localize, localize.terminate())
     assert bad_count(localize, r"(\d+) bad") == len(cases)
 
 
 def test_fuse_track_drops_bad_objects_and_keeps_running(site, site_name, port_base, peer, launch):
     peer.subscribe("tracks", tracks_key(site_name), Tracks)
-    fuse = launch("fuse_track", site, *bus_sets(port_base), "fuse_track.min_hits=1")
+    fuse = launch("fuse_track", site, *bus_sets(port_base), "fuse_track.min_hits=1", STATUS_EVERY)
     assert peer.wait_alive(f"roadside/{site_name}/alive/fuse_track/*", 1, WAIT_S), fuse.log()
     key = camera_key(site_name, CAMERA, "objects")
     seq = iter(range(10_000))
@@ -497,6 +530,9 @@ def test_fuse_track_drops_bad_objects_and_keeps_running(site, site_name, port_ba
 
     assert peer.wait_for(tracked, WAIT_S), fuse.log()
     assert len(tracked()[0]) == 1 and tracked()[0].xy[0, 0] == pytest.approx(5.0 + last, abs=1.0)
+    report = status_report(peer, site_name, "fuse_track", lambda r: sum(r.bad.values()) >= len(cases)
+                           and r.gauges.get("tracks") == 1)
+    assert report.counts["objects_in"] >= 2 and report.counts["tracks_out"] >= 1, report
     assert_clean_exit(fuse, fuse.terminate())
     assert bad_count(fuse, r"(\d+) bad") >= len(cases)  # and any repeats of the warm-up message (late)
 

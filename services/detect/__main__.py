@@ -20,6 +20,7 @@ image's scale.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -35,6 +36,7 @@ from shared.keys import camera_key
 from shared.messages import Detections, Frame
 from shared.service import run
 from shared.settings import Settings
+from shared.status import StatusReporter
 
 log = logging.getLogger("roadside.detect")
 IDLE_WAIT_S = 0.1
@@ -100,6 +102,9 @@ def main(settings: Settings, stopper: Stopper) -> int:
                                  ring=settings.detect.ring, wake=wake) for c in cams}
         pubs = {c: session.declare_publisher(camera_key(settings.site, c, "detections")) for c in cams}
         tokens = declare_alive(session, settings.site, "detect", cams)  # after the subscribers: ready
+        status = StatusReporter(session, settings.site, "detect", bad, settings.bus.status_period_s)
+        infer_avg = math.nan  # exponential mean of the inference time over ~10 frames
+        ring_skipped = 0  # frames the channels' rings replaced by newer ones, counted so far
         waiting: list[tuple[int, Frame]] = []
         running: list[tuple[Future, Frame, int]] = []
         warned: set[str] = set()  # cameras whose frames come too small for the model
@@ -119,7 +124,14 @@ def main(settings: Settings, stopper: Stopper) -> int:
                         bad(f"frame for camera {msg.camera} on the key of camera {c}", c)
                         continue
                     waiting.append((time.time_ns(), msg))
+                    status.count("frames_in")
+            before = len(waiting)
             waiting = newest_per_camera(waiting, settings.detect.ring)
+            # frames a newer one of the same camera replaced before inference, in the channel or here
+            now_skipped = sum(r.skipped for r in receivers.values())
+            if now_skipped > ring_skipped or before > len(waiting):
+                status.count("frames_skipped", now_skipped - ring_skipped + before - len(waiting))
+                ring_skipped = now_skipped
             while waiting and len(running) < workers:
                 t_in, frame = waiting.pop(0)
                 try:
@@ -153,11 +165,15 @@ def main(settings: Settings, stopper: Stopper) -> int:
                     bad(f"camera {frame.camera} seq {frame.seq}: detections refused ({exc})", frame.camera)
                     continue
                 pubs[frame.camera].put(encode(msg))
+                status.count("detections_out", output=True)
+                infer_avg = infer_ms if math.isnan(infer_avg) else 0.9 * infer_avg + 0.1 * infer_ms
+                status.gauge("infer_ms_avg", infer_avg)
                 done += 1
             if not any(r[0].done() for r in running) and (not waiting or len(running) >= workers):
                 wake.wait(IDLE_WAIT_S)
                 wake.clear()
         log.info("stopped: %d frames detected, %d bad messages %s", done, bad.total, dict(bad.counts))
+        status.close()
         del tokens
     finally:
         pool.shutdown(wait=True, cancel_futures=True)

@@ -32,6 +32,7 @@ from shared.keys import all_cameras_key, latest_tracks_key, tracks_key
 from shared.messages import MAX_ROWS, Objects, Tracks
 from shared.service import run
 from shared.settings import FuseTrackSettings, Settings
+from shared.status import StatusReporter
 
 log = logging.getLogger("roadside.fuse_track")
 POLL_S = 0.02  # the longest sleep without a message: max_wait is checked this often
@@ -226,6 +227,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
         queryable = session.declare_queryable(latest_tracks_key(settings.site), answer)
         # after the subscriber and queryable: a token means ready
         tokens = declare_alive(session, settings.site, "fuse_track", [tracker.id.replace("tracker-", "t")])
+        status = StatusReporter(session, settings.site, "fuse_track", bad, settings.bus.status_period_s)
         seq = 0
         log.info("tracker %s, %d cameras, tick %g ms", tracker.id, len(fusion.regions), cfg.tick_ms)
 
@@ -258,11 +260,17 @@ def main(settings: Settings, stopper: Stopper) -> int:
                 pub.put(payload)
                 latest[:] = [payload]
                 recorder.write(msg)
+                status.count("tracks_out", output=True)
+                status.gauge("tracks", len(msg))
+                status.gauge("not_recorded", recorder.failed)
                 seq += 1
 
         while not stopper.is_set():
             now = time.monotonic()
-            for o in receiver.poll():
+            received = receiver.poll()
+            if received:
+                status.count("objects_in", len(received))
+            for o in received:
                 if o.camera not in positions:
                     bad(f"objects from camera {o.camera!r}, not at this site", o.camera)
                     continue
@@ -284,6 +292,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
         log.info("stopped: %d Tracks messages, %d ticks (%s), %d late, %d ahead, %d over a tick's share, %d restarts, "
                  "%d bad %s, %d not recorded", seq, ticks.emitted, ticks.closed_by, ticks.late, ticks.ahead, ticks.full,
                  ticks.restarts, bad.total, dict(bad.counts), recorder.failed)
+        status.close()
         queryable.undeclare()
         del tokens
     finally:

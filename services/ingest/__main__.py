@@ -26,6 +26,7 @@ from shared.keys import all_alive_key, all_cameras_key, camera_key
 from shared.messages import Detections, Frame
 from shared.service import run
 from shared.settings import CameraSettings, Settings
+from shared.status import StatusReporter
 
 log = logging.getLogger("roadside.ingest")
 PIPELINE_WAIT_S = 60.0
@@ -141,6 +142,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
                         cfg.max_in_flight or settings.detect.workers, stopper, cfg.ack_timeout_s,
                         per_camera=settings.detect.ring)
         tokens = declare_alive(session, settings.site, "ingest", list(cams))
+        status = StatusReporter(session, settings.site, "ingest", bad, settings.bus.status_period_s)
         seen = wait_for_peers(session, all_alive_key(settings.site), len(cams) * 3 + 1 + cfg.wait_extra_peers,
                               PIPELINE_WAIT_S)
         log.info("source %s, %d cameras, pace %s; %d liveliness tokens on the bus", cfg.source, len(cams),
@@ -179,8 +181,10 @@ def main(settings: Settings, stopper: Stopper) -> int:
                     acks.wait_for_room(sf.camera)
                 msg.stamps = [("ingest", time.time_ns())]  # when it leaves, after any wait for room
                 pubs[sf.camera].put(encode(msg))
+                status.count(f"frames_out.{sf.camera}", output=True)
                 if acks is not None:
                     acks.sent(sf.camera, msg.seq)
+                    status.gauge("ack_timeouts", acks.timeouts)
                 seq[sf.camera] += 1
                 published += 1
             if not cfg.loop or first is None:
@@ -194,6 +198,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
                 time.sleep(0.005)
         log.info("done: %d frames published, %d bad, %d ack timeouts", published, bad.total,
                  acks.timeouts if acks else 0)
+        status.close()
         del tokens
     finally:
         session.close()

@@ -25,6 +25,7 @@ from shared.keys import all_cameras_key, camera_key
 from shared.messages import Detections, Objects
 from shared.service import run
 from shared.settings import Settings
+from shared.status import StatusReporter
 
 log = logging.getLogger("roadside.localize")
 IDLE_WAIT_S = 0.1
@@ -73,12 +74,14 @@ def main(settings: Settings, stopper: Stopper) -> int:
         receiver = Receiver(session, all_cameras_key(settings.site, "detections"), Detections, bad)
         pubs = {c: session.declare_publisher(camera_key(settings.site, c, "objects")) for c in cams}
         tokens = declare_alive(session, settings.site, "localize", cams)  # after the subscriber: ready
+        status = StatusReporter(session, settings.site, "localize", bad, settings.bus.status_period_s)
         done = 0
         while not stopper.is_set():
             msgs = receiver.poll()
             if not msgs:
                 receiver.wait(IDLE_WAIT_S)
                 continue
+            status.count("detections_in", len(msgs))
             for det in msgs:
                 if det.camera not in masks:
                     bad(f"detections from camera {det.camera!r}, not at this site", det.camera)
@@ -90,8 +93,10 @@ def main(settings: Settings, stopper: Stopper) -> int:
                     bad(str(exc), det.camera)
                     continue
                 pubs[det.camera].put(encode(msg))
+                status.count("objects_out", output=True)
                 done += 1
         log.info("stopped: %d messages localized, %d bad %s", done, bad.total, dict(bad.counts))
+        status.close()
         del tokens
     finally:
         session.close()

@@ -1,0 +1,37 @@
+"""Flag types the `roadside` command line shares between its modules."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+
+def finite_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
+    return v
+
+
+def positive_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (v > 0 and math.isfinite(v)):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return v
+
+
+def site_path(site: Path) -> Path:
+    """A site argument: a file, a folder, or the name of a folder under deploy/sites/."""
+    if site.exists():
+        return site
+    named = Path(__file__).resolve().parent.parent / "deploy" / "sites" / str(site)
+    if named.exists():
+        return named
+    raise ValueError(f"site not found: {site} (nor {named})")

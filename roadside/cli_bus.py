@@ -1,0 +1,128 @@
+"""`roadside tracks | status | health`: what a running pipeline says on the bus (a vehicle's view, an operator's)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from pathlib import Path
+
+from roadside.argtypes import finite_float, positive_float, site_path
+from shared.jsonio import dumps
+from shared.messages import SERVICES
+
+
+def add_bus_jobs(sub) -> dict:
+    """Add the jobs' parsers; returns {job: runner}."""
+    _add_tracks(sub)
+    _add_status(sub)
+    _add_health(sub)
+    return {"tracks": _run_tracks, "status": _run_status, "health": _run_health}
+
+
+def _add_endpoint_flags(p: argparse.ArgumentParser, default_to: str) -> None:
+    p.add_argument("--site", default="state_ellsworth", help="site name")
+    p.add_argument("--connect", action="append", default=[],
+                   help=f"Zenoh endpoint: the cabinet's router tcp/HOST:7447 (default: {default_to})")
+    p.add_argument("--port-base", type=int, default=7451, help="embedded default's first service port")
+
+
+def _add_tracks(sub) -> None:
+    p = sub.add_parser("tracks", help="print live tracks (what a connected vehicle receives)")
+    _add_endpoint_flags(p, "the local fuse_track")
+    p.add_argument("--count", type=int, help="stop after this many messages")
+    p.add_argument("--timeout", type=finite_float, help="stop after this many seconds without tracks")
+    p.add_argument("--json", action="store_true", help="one JSON line per message")
+
+
+def _run_tracks(args) -> int:
+    from shared.client import TrackClient
+    from shared.settings import BusSettings
+
+    n = 0
+    with TrackClient(args.site, args.connect or None, BusSettings(port_base=args.port_base)) as client:
+        for tracks in client.stream(timeout_s=args.timeout):
+            rows = tracks.rows()
+            if args.json:
+                print(dumps({"t_ns": tracks.t_capture_ns, "seq": tracks.seq, "tracks": rows}), flush=True)
+            else:
+                print(f"t={tracks.t_capture_ns / 1e9:.2f} s  {len(rows)} tracks", flush=True)
+                for r in rows:
+                    speed = math.hypot(r["vx"], r["vy"])
+                    print(f"  {r['id']:>5} {r['type']:<10} lat {r['lat']:.7f} lon {r['lon']:.7f} "
+                          f"yaw {r['yaw']:+.2f} speed {speed:5.1f} m/s  {','.join(r['cameras'])}")
+            n += 1
+            if args.count and n >= args.count:
+                break
+    return 0 if n else 1
+
+
+def _add_status(sub) -> None:
+    p = sub.add_parser("status", help="what each running service has done: messages in and out and their rates, "
+                       "bad input by reason, CPU, memory (shared/status.py)")
+    _add_endpoint_flags(p, "the four local services")
+    p.add_argument("--timeout", type=positive_float, default=2.0, help="seconds to wait for the services' answers")
+    p.add_argument("--watch", type=positive_float, metavar="SECONDS",
+                   help="ask again every SECONDS until Ctrl-C (default: once)")
+    p.add_argument("--require", action="append", default=[], choices=SERVICES,
+                   help="exit 1 unless this service answers (repeatable)")
+    p.add_argument("--json", action="store_true", help="one JSON document per answer: the Status messages")
+
+
+def _run_status(args) -> int:
+    import zenoh
+
+    from shared.bus import zenoh_config
+    from shared.messages import check_name
+    from shared.settings import BusSettings
+    from shared.status import collect_status, status_table
+
+    check_name("site", args.site)
+    bus = (BusSettings(mode="client", connect=args.connect) if args.connect
+           else BusSettings(port_base=args.port_base))
+    session = zenoh.open(zenoh_config(bus, None, 0))
+    try:
+        while True:
+            reports, errors = collect_status(session, args.site, args.timeout)
+            if args.json:
+                print(dumps({"t_ns": time.time_ns(), "services": [r.model_dump() for r in reports],
+                             "errors": errors}), flush=True)
+            else:
+                print(status_table(reports) if reports else f"no service of site {args.site} answered", flush=True)
+                for e in errors:
+                    print(f"  not a status report: {e}", flush=True)
+            missing = sorted(set(args.require) - {r.service for r in reports})
+            if args.watch is None:
+                break
+            time.sleep(args.watch)
+    finally:
+        session.close()
+    if missing:
+        print(f"not answering: {', '.join(missing)}")
+        return 1
+    return 0 if reports else 1
+
+
+def _add_health(sub) -> None:
+    p = sub.add_parser("health", help="exit 0 when a service's liveliness token is on the bus")
+    p.add_argument("--site", required=True, type=Path)
+    p.add_argument("--service", required=True, choices=SERVICES)
+    p.add_argument("--timeout", type=finite_float, default=3.0)
+
+
+def _run_health(args) -> int:
+    import zenoh
+
+    from shared.bus import wait_for_peers, zenoh_config
+    from shared.keys import alive_key
+    from shared.settings import load_settings
+
+    settings = load_settings(site_path(args.site))
+    session = zenoh.open(zenoh_config(settings.bus.model_copy(update={"listen": []}), None, 0))
+    try:
+        key = alive_key(settings.site, args.service, "x").rsplit("/", 1)[0] + "/*"
+        n = wait_for_peers(session, key, 1, args.timeout)
+    finally:
+        session.close()
+    print(f"{args.service}: {'alive' if n else 'not seen'} ({n} tokens)")
+    return 0 if n else 1
