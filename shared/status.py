@@ -169,14 +169,16 @@ def collect_status(session: zenoh.Session, site: str, timeout_s: float = 2.0) ->
 
 
 def status_table(reports: list[Status], now_ns: int | None = None) -> str:
-    """A readable table of reports: one block per service."""
+    """A readable table of reports: one block per service. Each service reports on its own clock: counts of two
+    services may be up to a period apart (the header says how old each report is)."""
     now_ns = time.time_ns() if now_ns is None else now_ns
     lines = []
     for m in reports:
         up = (now_ns - m.started_ns) / 1e9
         idle = f"{(now_ns - m.last_output_ns) / 1e9:.1f} s ago" if m.last_output_ns else "never"
         lines.append(f"{m.service}/{m.instance}: up {up:.0f} s, last output {idle}, CPU {m.cpu_s:.1f} s, "
-                     f"peak memory {m.peak_rss_mb:.0f} MB{' (stopping)' if m.final else ''}")
+                     f"peak memory {m.peak_rss_mb:.0f} MB (reported {(now_ns - m.t_capture_ns) / 1e9:.1f} s ago)"
+                     f"{', stopping' if m.final else ''}")
         for name in sorted(m.counts):
             lines.append(f"  {name:<24} {m.counts[name]:>10}  {m.rates.get(name, 0.0):8.1f}/s")
         for name in sorted(m.gauges):

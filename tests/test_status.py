@@ -87,7 +87,8 @@ def test_a_status_map_on_the_wire_is_a_map_not_an_array():
 def test_status_table_reads_like_the_service_it_describes():
     text = status_table([status(counts={"objects_out": 10}, rates={"objects_out": 5.0}, bad={"not msgpack": 2},
                                 gauges={"held": 3.0}, last_output_ns=1_500_000_000)], now_ns=3_000_000_000)
-    assert text.splitlines()[0] == ("localize/main: up 2 s, last output 1.5 s ago, CPU 1.5 s, peak memory 80 MB")
+    assert text.splitlines()[0] == ("localize/main: up 2 s, last output 1.5 s ago, CPU 1.5 s, peak memory 80 MB "
+                                    "(reported 1.0 s ago)")
     assert "objects_out" in text and "5.0/s" in text and "bad x2: not msgpack" in text and "held" in text
 
 
