@@ -716,6 +716,9 @@ def _add_up(sub) -> None:
     p.add_argument("--log-dir", type=Path, help="write each service's log to LOG_DIR/<service>.log")
 
 
+PORTS_FREE_WAIT_S = 5.0  # `roadside up` waits this long for a pipeline that is stopping to free the ports
+
+
 def _run_up(args) -> int:
     from roadside.launcher import Launcher, UpConfig
 
@@ -731,10 +734,15 @@ def _run_up(args) -> int:
     if args.record:
         sets.append(f"fuse_track.record={json.dumps(str(args.record.resolve()))}")
     site = site_path(args.site)
+    from shared.bus import ports_in_use
     from shared.service import parse_sets
     from shared.settings import load_settings
 
-    load_settings(site, **parse_sets(sets))  # fail here, once, on a bad site file or flag
+    settings = load_settings(site, **parse_sets(sets))  # fail here, once, on a bad site file or flag
+    busy = ports_in_use(settings.bus, PORTS_FREE_WAIT_S)
+    if busy:  # each service would die on its port and be restarted, ever more slowly, until the other one stops
+        raise ValueError(f"the bus's ports are in use: {', '.join(busy)}; is another pipeline running on this "
+                         "machine (`roadside status` shows it)? Stop it, or give this one its own bus.port_base")
     return Launcher(UpConfig(site=site, sets=sets, restart=not args.no_restart, log_dir=args.log_dir)).run(
         log=lambda s: print(s, file=sys.stderr))
 

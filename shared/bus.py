@@ -7,10 +7,12 @@ the newest samples for frames, a FIFO for the small messages) and the service's 
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import re
 import signal
+import socket
 import threading
 import time
 from collections import Counter, deque
@@ -65,6 +67,29 @@ def set_shared_memory(conf, enabled: bool) -> None:
         if enabled:
             msg = f"bus.shared_memory is true but this Zenoh has no shared-memory transport ({exc})"
             raise ValueError(msg) from None
+
+
+def ports_in_use(bus: BusSettings, wait_s: float = 0.0) -> list[str]:
+    """Peer mode: the services' endpoints on this machine that something already listens on ("localize
+    tcp/127.0.0.1:7453"), after waiting up to `wait_s` for them to be freed (a pipeline that is stopping). A port
+    in TIME_WAIT is free, as it is to Zenoh, which reuses addresses; client mode listens nowhere: []."""
+    if bus.mode != "peer":
+        return []
+    deadline = time.monotonic() + wait_s
+    while True:
+        busy = []
+        for service in SERVICES:
+            port = bus.port_base + SERVICES.index(service)
+            with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+                s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                try:
+                    s.bind((bus.host, port))
+                except OSError as exc:
+                    if exc.errno == errno.EADDRINUSE:  # other errors (a host not of this machine): the service says
+                        busy.append(f"{service} {bus.service_endpoint(service)}")
+        if not busy or time.monotonic() >= deadline:
+            return busy
+        time.sleep(0.2)
 
 
 def open_session(settings: Settings, service: str | None = None, client_index: int = 0) -> zenoh.Session:

@@ -747,6 +747,23 @@ def _children(pid: int) -> list:
         return []
 
 
+def test_roadside_up_refuses_a_bus_whose_ports_another_pipeline_holds(site, port_base, monkeypatch, capsys):
+    """A second pipeline on the same ports would see each service die on its port and be restarted ever more slowly
+    until the first one stops: `roadside up` says so at once instead, naming the port and the service."""
+    import socket
+
+    import roadside.cli
+    from roadside.cli import main
+
+    monkeypatch.setattr(roadside.cli, "PORTS_FREE_WAIT_S", 0.3)
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as held:  # as a running localize holds its port
+        held.bind(("127.0.0.1", port_base + 2))
+        held.listen()
+        assert main(["up", "--site", str(site), "--set", f"bus.port_base={port_base}", "--no-restart"]) == 2
+    err = capsys.readouterr().err
+    assert f"the bus's ports are in use: localize tcp/127.0.0.1:{port_base + 2}; is another pipeline running" in err
+
+
 @pytest.mark.slow
 def test_roadside_up_plays_a_source_to_the_end_and_stops_every_service(site, small_recording, port_base, tmp_path):
     """`roadside up` starts the four services, ingest ends with its source, the others are drained and
