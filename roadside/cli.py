@@ -555,6 +555,9 @@ def _add_autolabel(sub) -> None:
     p.add_argument("--teacher-thr", type=finite_float, default=0.1, help="teacher detections at least this confident")
     p.add_argument("--ignore-small", action="store_true",
                    help="foreground regions too small for a vehicle become ignore regions instead of being dropped")
+    p.add_argument("--tracks", type=Path, help="the pipeline's tracks of the same footage (roadside up --record): "
+                   "vehicles they followed while moving become labels where the background model found none "
+                   "(training/track_labels.py)")
 
 
 def _add_static(sub) -> None:
@@ -653,8 +656,13 @@ def _run_autolabel(args) -> int:
         if args.camera not in Recording(args.truth).cameras:
             raise ValueError(f"--truth {args.truth} has no camera {args.camera!r}")
     teacher = _teacher(args.teacher, cfg.teacher_thr)
+    tracks = None
+    if args.tracks:
+        from training.track_labels import TrackTeacher
+
+        tracks = TrackTeacher(args.tracks)
     report = autolabel_camera(args.frames, args.masks, args.out, args.camera, until, cfg,
-                              log=lambda m: print(m, file=sys.stderr), teacher=teacher)
+                              log=lambda m: print(m, file=sys.stderr), teacher=teacher, tracks=tracks)
     if args.truth:
         report["score"] = score_labels(args.out / "labels.json", args.truth)
         (args.out / "report.json").write_text(dumps(report, indent=1))

@@ -52,6 +52,7 @@ from scipy.optimize import linear_sum_assignment
 from calibration.masks import LookupMasks, load_masks
 from services.ingest.sources import capture_time_from_name
 from shared.raster import bilinear, bilinear_cells
+from training.track_labels import label_from_track
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
 COCO_PIXEL_OFFSET = 0.5  # COCO coordinate = our pixel-centre coordinate + 0.5 (as training.data)
@@ -365,10 +366,12 @@ def teacher_regions(frames: list[np.ndarray], view: GroundView, detect, cfg: Aut
 
 def autolabel_camera(frames_dir: str | Path, masks_path: str | Path, out_dir: str | Path, camera: str,
                      until: time | None = None, cfg: AutolabelConfig | None = None, log=print,
-                     teacher=None) -> dict:
+                     teacher=None, tracks=None) -> dict:
     """Label one camera's frames; writes `out_dir`/images/*.png and `out_dir`/labels.json (COCO-style);
     returns the report (also in `out_dir`/report.json). `teacher`: a detector (grey image -> detections
-    with score, uv, box) whose detections become ignore regions (module doc, step 5); None: no teacher."""
+    with score, uv, box) whose detections become ignore regions (module doc, step 5); None: no teacher.
+    `tracks`: a `training.track_labels.TrackTeacher` (the pipeline's tracks of the same footage): its moving
+    vehicles away from the frame's labels and ignore regions become labels too (`from_tracks` in the file)."""
     cfg = cfg or AutolabelConfig()
     masks = load_masks(masks_path)
     view = GroundView(masks, cfg.scale, cfg.roi_m)
@@ -389,7 +392,7 @@ def autolabel_camera(frames_dir: str | Path, masks_path: str | Path, out_dir: st
     (out_dir / "images").mkdir(parents=True, exist_ok=True)
     images, annotations = [], []
     n = {"vehicles": 0, "with_heading": 0, "ignored_too_big": 0, "ignored_off_ground": 0, "ignored_short_track": 0,
-         "ignored_no_pixel": 0, "ignored_small": 0, "ignored_teacher": 0}
+         "ignored_no_pixel": 0, "ignored_small": 0, "ignored_teacher": 0, "from_tracks": 0, "tracks_off_view": 0}
     for i, ((t_ns, path), frame) in enumerate(zip(listed, frames, strict=True)):
         grey = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
         shown = np.where(view.roi, grey, np.uint8(round(float(grey[view.roi].mean())))).astype(np.uint8)
@@ -425,6 +428,24 @@ def autolabel_camera(frames_dir: str | Path, masks_path: str | Path, out_dir: st
                         n["with_heading"] += 1
             annotations.append(ann)
         taken = [b.centre_xy for b in per_frame[i] if np.all(np.isfinite(b.centre_xy))]
+        for tv in tracks.at(t_ns) if tracks is not None else []:
+            if taken and min(np.linalg.norm(tv.xy - t) for t in taken) < cfg.teacher_clear_m:
+                continue
+            lab = label_from_track(tv, view)
+            if lab is None:
+                n["tracks_off_view"] += 1
+                continue
+            x1, y1, x2, y2 = (float(c) for c in lab["box"])
+            annotations.append({"id": len(annotations), "image_id": i, "category_id": 0,
+                                "bbox": [x1, y1, x2 - x1, y2 - y1],
+                                "bottom_center": [float(c + COCO_PIXEL_OFFSET) for c in lab["uv"]],
+                                "ground_xy_m": [round(float(c), 3) for c in tv.xy],
+                                "heading_uv": [float(c) for c in lab["heading_uv"]],
+                                "ground_yaw_rad": round(tv.yaw, 4), "track_id": tv.key, "from_tracks": 1})
+            n["from_tracks"] += 1
+            n["vehicles"] += 1
+            n["with_heading"] += 1
+            taken.append(tv.xy)
         for xy, box in taught[i]:
             if taken and min(np.linalg.norm(xy - t) for t in taken) < cfg.teacher_clear_m:
                 continue

@@ -4,9 +4,10 @@ Rerun lives only here, at the edge: the pipeline's cores never import it. Every 
 `rr.RecordingStream` or makes its own; importing this package logs nothing.
 """
 
+from shared.tracks_file import TrackRow, TracksMessage, parse_tracks_message
+
 from .basemap import Basemap
 from .sink import TrackSink, live, track_color, tracks_file_to_rrd
-from .tracks_file import TrackRow, TracksMessage, parse_tracks_message
 
 __all__ = [
     "Basemap",

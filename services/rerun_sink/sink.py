@@ -53,9 +53,9 @@ import rerun.blueprint as rrb
 
 from shared.geo import GeoFrame
 from shared.messages import check_name
+from shared.tracks_file import TrackRow, TracksMessage, _int, parse_tracks_message
 
 from .basemap import Basemap
-from .tracks_file import TrackRow, TracksMessage, _int, parse_tracks_message
 
 log = logging.getLogger(__name__)
 

@@ -1,5 +1,6 @@
 """The tracks file (JSON lines, one Tracks message per line, as fuse_track's recorder writes it) parsed
-and validated for the Rerun sink: see sink.py for the format."""
+and validated for its readers (the Rerun sink, training.track_labels): see services/rerun_sink/sink.py for the
+format."""
 
 from __future__ import annotations
 
