@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_autolabel import CFG, HZ, MOVERS, _frames, _masks, _uv
+from test_autolabel import CFG, CY, HZ, M_PER_PX, MOVERS, H, W, _frames, _masks, _uv
 
 from training.autolabel import autolabel_camera, list_frames
 from training.track_labels import TrackLabelConfig, TrackTeacher, footprint_corners
@@ -100,3 +100,28 @@ def test_a_bad_tracks_file_is_named(tmp_path):
         TrackTeacher(bad)
     with pytest.raises(ValueError, match="moving_mps must be a positive number"):
         TrackLabelConfig(moving_mps=0.0)
+
+
+def test_a_vehicle_at_the_edge_of_the_calibrated_ground_gets_a_finite_box_or_none(tmp_path):
+    """Pixels off the calibrated ground hold NaN in the masks (sky, a pole): the corners of a vehicle there must
+    not make its box NaN (training refuses such a file)."""
+    from calibration.masks import load_masks
+    from training.autolabel import GroundView
+    from training.track_labels import TrackedVehicle, label_from_track
+
+    masks = load_masks(_masks(tmp_path / "masks.npz"))
+    masks.xy[:150] = np.nan  # the image's top rows: not ground
+    masks.valid[:150] = False
+    view = GroundView(masks, 1.0, 40.0)
+    # a point between the last row off the ground and the first on it: the Newton step lands at v = 149.7, on the
+    # edge's cells (the Jacobian, read at the nearest pixel, is fine; the bilinear lookup there reads NaN)
+    assert view.to_pixel(np.array([3.0, (CY - 149.7) * M_PER_PX]), (0, 0, W - 1, H - 1)) is None
+    made = 0
+    for k in range(60):  # northbound cars ever closer to the edge at v = 150 (y = 9 m), then past it
+        y = 4.0 + k * 0.125
+        lab = label_from_track(TrackedVehicle("t/1", np.array([3.0, y]), math.pi / 2, 4.5, 1.8, 1.5, "car"), view)
+        if lab is not None:
+            made += 1
+            assert np.isfinite(lab["box"]).all() and np.isfinite(lab["uv"]).all(), lab
+            assert lab["box"][1] >= 149.5  # the box stays on the calibrated ground
+    assert 0 < made < 60

@@ -167,7 +167,8 @@ class GroundView:
 
     def to_pixel(self, xy: np.ndarray, near: tuple[int, int, int, int]) -> np.ndarray | None:
         """Working pixel (u, v) whose ground point is `xy`, searched in the box `near` (x1, y1, x2, y2)
-        grown by 8 px and refined by two Newton steps on the local Jacobian; None if off the ground."""
+        grown by 8 px and refined by two Newton steps on the local Jacobian; None if off the ground (also where a
+        step lands within a pixel of the calibrated ground's edge, on cells holding no ground point)."""
         hs, ws = self.valid.shape
         x1, y1 = max(0, near[0] - 8), max(0, near[1] - 8)
         x2, y2 = min(ws - 1, near[2] + 8), min(hs - 1, near[3] + 8)
@@ -183,7 +184,7 @@ class GroundView:
             if jac is None:
                 return None
             p = p + np.linalg.solve(jac, xy - self.lookup(p))
-        return p
+        return p if np.isfinite(p).all() else None
 
     def lookup(self, p: np.ndarray) -> np.ndarray:
         """Ground point (2,) at working pixel p, bilinear (clamped to the outermost pixel centres)."""
