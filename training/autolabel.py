@@ -28,7 +28,9 @@ Per camera (one folder of frames, capture time in the file names, and the camera
    model), its detections (score >= `teacher_thr`, low: this is about what might be a vehicle) further
    than `teacher_clear_m` from every label and ignore region of the frame become ignore regions too.
    (Labelling them instead was tried: the persistent teacher detections at this site were mostly lamp
-   heads, painted words and grass patches.)
+   heads, painted words and grass patches.) With `tracks` (training/track_labels.py: the pipeline's own tracks
+   of the same footage), vehicles the cameras followed together while they moved become labels where the
+   frame has none near them.
 6. Output: each frame as a grey image at `scale` with everything outside the region of interest set to
    the frame's mean grey (parked vehicles there are never labelled, so they must not be shown as
    background), and the labels: bottom centre (the footprint centre, mapped back to the image through the
