@@ -17,6 +17,13 @@ def finite_float(text: str) -> float:
     return v
 
 
+def non_negative_float(text: str) -> float:
+    v = finite_float(text)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text}")
+    return v
+
+
 def positive_float(text: str) -> float:
     try:
         v = float(text)

@@ -7,7 +7,7 @@ import math
 import time
 from pathlib import Path
 
-from roadside.argtypes import finite_float, positive_float, site_path
+from roadside.argtypes import finite_float, non_negative_float, positive_float, site_path
 from shared.jsonio import dumps
 from shared.messages import SERVICES
 
@@ -104,10 +104,17 @@ def _run_status(args) -> int:
 
 
 def _add_health(sub) -> None:
-    p = sub.add_parser("health", help="exit 0 when a service's liveliness token is on the bus")
+    p = sub.add_parser("health", help="exit 0 when a service's liveliness token is on the bus and, where the site's "
+                       "services report their status, its status says it works")
     p.add_argument("--site", required=True, type=Path)
     p.add_argument("--service", required=True, choices=SERVICES)
-    p.add_argument("--timeout", type=finite_float, default=3.0)
+    p.add_argument("--timeout", type=finite_float, default=3.0, help="seconds to wait for the liveliness token")
+    p.add_argument("--stalled-after", type=non_negative_float, default=15.0, metavar="SECONDS",
+                   help="unhealthy when fed but silent this long, or its newest status report is this old "
+                   "(shared/status.py stall_reasons; 0: the liveliness token alone)")
+
+
+STATUS_ANSWER_S = 1.5  # how long `roadside health` waits for the status reports (a compose check has 5 s in all)
 
 
 def _run_health(args) -> int:
@@ -116,13 +123,28 @@ def _run_health(args) -> int:
     from shared.bus import wait_for_peers, zenoh_config
     from shared.keys import alive_key
     from shared.settings import load_settings
+    from shared.status import collect_status, stall_reasons
 
     settings = load_settings(site_path(args.site))
     session = zenoh.open(zenoh_config(settings.bus.model_copy(update={"listen": []}), None, 0))
+    reasons: list[str] = []
     try:
         key = alive_key(settings.site, args.service, "x").rsplit("/", 1)[0] + "/*"
         n = wait_for_peers(session, key, 1, args.timeout)
+        checked = n and args.stalled_after > 0 and settings.bus.status_period_s > 0
+        if checked:
+            reports, _ = collect_status(session, settings.site, STATUS_ANSWER_S)
+            if not any(r.service == args.service for r in reports):
+                reasons = [f"{args.service}: alive but its status does not answer within {STATUS_ANSWER_S} s"]
+            else:
+                reasons = stall_reasons(args.service, reports, time.time_ns(), args.stalled_after)
     finally:
         session.close()
-    print(f"{args.service}: {'alive' if n else 'not seen'} ({n} tokens)")
-    return 0 if n else 1
+    if not n:
+        print(f"{args.service}: not seen (0 tokens)")
+        return 1
+    for line in reasons:
+        print(line)
+    state = "not working" if reasons else "working" if checked else "alive"
+    print(f"{args.service}: {state} ({n} tokens)")
+    return 1 if reasons else 0

@@ -8,7 +8,9 @@ last published its output, its CPU time and peak memory. A queryable on the same
 report at once, so `roadside status` need not wait a period. The report is built and sent from the reporter's own
 thread; the service's loop only adds to counters (under a lock: a few hundred nanoseconds per call).
 
-`collect_status` is the other end: the newest report of every service of a site that answers.
+`collect_status` is the other end: the newest report of every service of a site that answers; `stall_reasons`
+reads them for `roadside health`: a service whose token is on the bus but that publishes nothing while it is fed,
+or whose reports stopped, is alive and not working.
 """
 
 from __future__ import annotations
@@ -31,6 +33,8 @@ from shared.keys import all_status_key, status_key
 from shared.messages import SERVICES, Status
 
 log = logging.getLogger("roadside.status")
+
+UPSTREAM = {"detect": "ingest", "localize": "detect", "fuse_track": "localize"}  # whose output feeds whom
 
 
 def peak_rss_mb() -> float:
@@ -78,6 +82,7 @@ class StatusReporter:
         if session is not None and period_s > 0:
             self._pub = session.declare_publisher(self.key)
             self._queryable = session.declare_queryable(self.key, self._answer)
+            self.publish()  # answers at once: a service that is up but has not yet reported is not a silent one
             self._thread = threading.Thread(target=self._run, name=f"status-{service}", daemon=True)
             self._thread.start()
 
@@ -186,3 +191,38 @@ def status_table(reports: list[Status], now_ns: int | None = None) -> str:
         for reason, n in sorted(m.bad.items(), key=lambda kv: -kv[1]):
             lines.append(f"  bad x{n}: {reason}")
     return "\n".join(lines)
+
+
+def _rate(report: Status, suffix: str) -> float:
+    """Messages per second over the report's period of the counts named `<what>_<suffix>` (or `..._out.<camera>`)."""
+    return sum(r for name, r in report.rates.items() if name.endswith(f"_{suffix}") or f"_{suffix}." in name)
+
+
+def stall_reasons(service: str, reports: list[Status], now_ns: int, stalled_after_s: float) -> list[str]:
+    """Why the instances of `service` among `reports` are not working though they answer, one line each (none: all
+    work). An instance is stalled when it was fed in its last period (its own inputs, or its upstream service's
+    output, which counts even when a wedged loop takes nothing in) and has published nothing for `stalled_after_s`
+    (since its start, when it never has); its reports are stale when the newest is older than that (its reporting
+    thread stopped); a final report says it is stopping. Ingest, fed by its source, is only checked for staleness:
+    a playback that ended is not a stall."""
+    if not stalled_after_s > 0:
+        raise ValueError(f"stalled_after_s must be > 0, got {stalled_after_s!r}")
+    fed_upstream = sum(_rate(r, "out") for r in reports if r.service == UPSTREAM.get(service) and not r.final)
+    reasons = []
+    for r in reports:
+        if r.service != service:
+            continue
+        name = f"{r.service}/{r.instance}"
+        age = (now_ns - r.t_capture_ns) / 1e9
+        quiet = (now_ns - (r.last_output_ns or r.started_ns)) / 1e9
+        fed = fed_upstream + _rate(r, "in")
+        bad = sum(r.bad.values())
+        if r.final:
+            reasons.append(f"{name}: stopping")
+        elif age > stalled_after_s:
+            reasons.append(f"{name}: its newest status report is {age:.0f} s old (reporting stopped)")
+        elif service in UPSTREAM and fed > 0 and quiet > stalled_after_s:
+            reasons.append(f"{name}: fed {fed:.1f} messages/s but published "
+                           f"{'nothing' if not r.last_output_ns else 'nothing more'} for {quiet:.0f} s"
+                           + (f" ({bad} bad inputs dropped so far: roadside status)" if bad else ""))
+    return reasons

@@ -7,10 +7,13 @@ from __future__ import annotations
 
 import json
 import math
+import threading
 import time
+from pathlib import Path
 
 import msgpack
 import pytest
+import yaml
 from pipeline_fixtures import free_port_base, wait_until
 
 from shared.bus import BadInput
@@ -119,4 +122,109 @@ def test_roadside_status_asks_the_services_on_the_bus(capsys):
         assert "localize/main: up" in out and "not answering: detect" in out
     finally:
         rep.close()
+        session.close()
+
+
+# --- health: alive and working ------------------------------------------------------------------------------------
+
+NOW = 10**18  # ns
+
+
+def at(seconds_ago: float) -> int:
+    return int(NOW - seconds_ago * 1e9)
+
+
+def test_a_fed_service_that_publishes_nothing_is_stalled_an_idle_one_is_not():
+    from shared.status import stall_reasons
+
+    ingest = status(service="ingest", instance="cam", counts={"frames_out.NE": 900}, rates={"frames_out.NE": 10.0},
+                    t_capture_ns=at(1), last_output_ns=at(1))
+    detect = status(service="detect", instance="gpu", counts={"frames_in": 50, "detections_out": 50},
+                    rates={"frames_in": 0.0, "detections_out": 0.0}, t_capture_ns=at(1), started_ns=at(60),
+                    last_output_ns=at(20), bad={"frame NE: corrupt JPEG": 3})
+    # its upstream publishes, its loop takes nothing in (wedged): stalled, with what it dropped
+    assert stall_reasons("detect", [ingest, detect], NOW, 15.0) == [
+        "detect/gpu: fed 10.0 messages/s but published nothing more for 20 s "
+        "(3 bad inputs dropped so far: roadside status)"]
+    assert stall_reasons("detect", [ingest, detect], NOW, 25.0) == []  # not yet that long
+    # nothing fed (the playback ended): idle, not stalled
+    idle = ingest.model_copy(update={"rates": {"frames_out.NE": 0.0}})
+    assert stall_reasons("detect", [idle, detect], NOW, 15.0) == []
+    # a stopping upstream feeds nothing more
+    assert stall_reasons("detect", [ingest.model_copy(update={"final": True}), detect], NOW, 15.0) == []
+    # its own inputs count without its upstream's report; never published: since its start
+    fuse = status(service="fuse_track", counts={"objects_in": 400}, rates={"objects_in": 38.0}, t_capture_ns=at(0.5),
+                  started_ns=at(30), last_output_ns=0)
+    assert stall_reasons("fuse_track", [fuse], NOW, 15.0) == [
+        "fuse_track/main: fed 38.0 messages/s but published nothing for 30 s"]
+    # another service's reports say nothing of this one
+    assert stall_reasons("localize", [ingest, detect], NOW, 15.0) == []
+
+
+def test_stale_and_final_reports_and_ingest_by_staleness_alone():
+    from shared.status import stall_reasons
+
+    stale = status(service="localize", t_capture_ns=at(40), last_output_ns=at(40))
+    assert stall_reasons("localize", [stale], NOW, 15.0) == [
+        "localize/main: its newest status report is 40 s old (reporting stopped)"]
+    assert stall_reasons("localize", [stale.model_copy(update={"final": True})], NOW, 15.0) == [
+        "localize/main: stopping"]
+    ingest = status(service="ingest", counts={"frames_out.NE": 9}, rates={"frames_out.NE": 0.0},
+                    t_capture_ns=at(1), last_output_ns=at(500))  # its source ended long ago
+    assert stall_reasons("ingest", [ingest], NOW, 15.0) == []
+    with pytest.raises(ValueError, match="stalled_after_s"):
+        stall_reasons("ingest", [ingest], NOW, 0.0)
+
+
+def test_roadside_health_says_alive_but_not_working_then_working(tmp_path, monkeypatch, capsys):
+    """Over a real bus: detect's token is up and ingest feeds it, but it publishes nothing -> exit 1 naming why;
+    once it publishes -> exit 0. Without the status check the token alone decides."""
+    import zenoh
+
+    from roadside.cli import main
+    from shared.bus import declare_alive, zenoh_config
+    from shared.settings import BusSettings
+
+    port_base = free_port_base()
+    monkeypatch.setenv("ROADSIDE_BUS__PORT_BASE", str(port_base))
+    monkeypatch.setenv("ROADSIDE_BUS__STATUS_PERIOD_S", "0.2")
+    site = str(Path(__file__).resolve().parent.parent / "deploy" / "sites" / "example" / "site.yaml")
+    name = yaml.safe_load(open(site))["site"]
+    args = ["health", "--site", site, "--service", "detect", "--timeout", "2"]
+    assert main(args) == 1 and "detect: not seen (0 tokens)" in capsys.readouterr().out
+
+    session = zenoh.open(zenoh_config(BusSettings(port_base=port_base), "detect"))  # where detect listens
+    tokens = declare_alive(session, name, "detect", ["NE"])
+    feeder = StatusReporter(session, name, "ingest", BadInput("ingest"), 0.2, instance="cam")
+    detect = StatusReporter(session, name, "detect", BadInput("detect"), 0.2, instance="gpu")
+    feeding = threading.Event()
+
+    def feed() -> None:  # ingest publishes all along, as at 20 frames/s
+        while not feeding.wait(0.05):
+            feeder.count("frames_out.NE", output=True)
+
+    thread = threading.Thread(target=feed, daemon=True)
+    thread.start()
+    try:
+        def stalled() -> bool:
+            rc = main([*args, "--stalled-after", "0.3"])
+            out = capsys.readouterr().out
+            return rc == 1 and "messages/s but published nothing for" in out and "detect: not working" in out
+
+        assert wait_until(stalled, 20.0, 0.3)
+        assert main([*args, "--stalled-after", "0"]) == 0 and "detect: alive (1 tokens)" in capsys.readouterr().out
+
+        def working() -> bool:
+            detect.count("detections_out", output=True)
+            rc = main([*args, "--stalled-after", "5"])
+            return rc == 0 and "detect: working (1 tokens)" in capsys.readouterr().out
+
+        assert wait_until(working, 20.0, 0.3)
+    finally:
+        feeding.set()
+        thread.join()
+        detect.close()
+        feeder.close()
+        for t in tokens:
+            t.undeclare()
         session.close()
