@@ -34,6 +34,24 @@ def positive_float(text: str) -> float:
     return v
 
 
+def type_weights(text: str) -> dict[str, float]:
+    """'bus=4,truck=3' -> {'bus': 4.0, 'truck': 3.0} (argparse type; the sim checks the types and values)."""
+    out = {}
+    for part in text.split(","):
+        typ, sep, value = part.partition("=")
+        typ = typ.strip()
+        try:
+            weight = float(value)
+        except ValueError:
+            sep = ""
+        if not sep or not typ:
+            raise argparse.ArgumentTypeError(f"expected TYPE=WEIGHT[,TYPE=WEIGHT...], got {part!r}")
+        if typ in out:
+            raise argparse.ArgumentTypeError(f"{typ} is given twice in {text!r}")
+        out[typ] = weight
+    return out
+
+
 def site_path(site: Path) -> Path:
     """A site argument: a file, a folder, or the name of a folder under deploy/sites/."""
     if site.exists():

@@ -8,10 +8,11 @@ import math
 import sys
 from pathlib import Path
 
-from roadside.argtypes import finite_float, positive_float, site_path
+from roadside.argtypes import finite_float, positive_float, site_path, type_weights
 from roadside.cli_bus import add_bus_jobs
+from roadside.cli_model import add_model_jobs
+from roadside.cli_site import add_site_jobs
 from shared.jsonio import dumps
-from shared.messages import check_name
 
 
 def _add_sim(sub) -> None:
@@ -26,34 +27,11 @@ def _add_sim(sub) -> None:
     p.add_argument("--workers", type=int, default=2, help="render processes")
     p.add_argument("--max-vehicles", type=int, default=100, help="most moving vehicles at once")
     p.add_argument("--demand-scale", type=finite_float, default=1.0, help="scale the site's traffic demand")
-    p.add_argument("--type-weights", type=_type_weights, default=None, metavar="TYPE=W,...",
+    p.add_argument("--type-weights", type=type_weights, default=None, metavar="TYPE=W,...",
                    help="multiply vehicle types' shares of the mix, e.g. bus=4,truck=3 (types: car, suv_van, truck, "
                         "bus, motorcycle)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.add_argument("--contact-sheet", type=Path, default=None, help="also draw a contact sheet PNG here")
-
-
-def _type_weights(text: str) -> dict[str, float]:
-    """'bus=4,truck=3' -> {'bus': 4.0, 'truck': 3.0} (argparse type; the sim checks the types and values)."""
-    out = {}
-    for part in text.split(","):
-        typ, sep, value = part.partition("=")
-        typ = typ.strip()
-        try:
-            weight = float(value)
-        except ValueError:
-            sep = ""
-        if not sep or not typ:
-            raise argparse.ArgumentTypeError(f"expected TYPE=WEIGHT[,TYPE=WEIGHT...], got {part!r}")
-        if typ in out:
-            raise argparse.ArgumentTypeError(f"{typ} is given twice in {text!r}")
-        out[typ] = weight
-    return out
-
-
-def _loss_type_weights_arg(text: str) -> dict[str, float]:
-    """--loss-type-weights: `_type_weights`, or 'none' (an empty dict: no type weights, also not a checkpoint's)."""
-    return {} if text.strip().lower() == "none" else _type_weights(text)
 
 
 def _run_sim(args) -> int:
@@ -188,218 +166,6 @@ def _run_calibrate(args) -> int:
 
 BENCHMARKS = {"sim": "bench.sim_render", "calibration": "bench.calibration", "detector": "bench.detector",
               "fuse_track": "bench.fuse_track"}
-
-
-def _add_train(sub) -> None:
-    p = sub.add_parser("train", help="train the detector on recordings and/or COCO-style annotations (needs torch)")
-    p.add_argument("--recording", action="append", default=[],
-                   help="simulator recording folder (repeatable); PATH@fisheye, @thermal, @pinhole, @visible or "
-                        "@NE,NW: only those cameras")
-    p.add_argument("--coco", action="append", default=[], help="COCO-style annotation JSON (repeatable)")
-    p.add_argument("--out", required=True, help="output folder (model.pt, train_log.jsonl, train.json)")
-    p.add_argument("--steps", type=int, help="number of steps (default 4000, or as many as --minutes allows)")
-    p.add_argument("--minutes", type=positive_float,
-                   help="time budget: the learning-rate schedule follows the clock to its end (with --steps too, "
-                        "whichever comes first ends the run)")
-    p.add_argument("--batch-size", type=int, default=16)
-    p.add_argument("--crop", type=int, default=256)
-    p.add_argument("--lr", type=positive_float, default=2e-3)
-    p.add_argument("--every", type=int, default=1, help="use every n-th frame")
-    p.add_argument("--center", choices=["bottom", "box"], default="bottom", help="box: the 2D-box-centre ablation")
-    p.add_argument("--no-topk", action="store_true", help="ablation: plain mean squared heat-map loss")
-    p.add_argument("--heat-loss", choices=["mse", "focal"],
-                   help="heat-map loss: mse (the paper's squared error with TopK, the default) or focal (CenterNet's "
-                        "penalty-reduced focal loss; training/loss.py); with --init, the checkpoint's")
-    p.add_argument("--stride", type=int, default=4, choices=[1, 2, 4])
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--init", help="model.pt to start from (fine-tuning); its network settings are kept")
-    p.add_argument("--resume", action="store_true",
-                   help="continue the interrupted run in --out from its resume.pt (saved every 500 steps): the same "
-                        "command again with --resume; the schedule and a --minutes budget go on from where it was")
-    p.add_argument("--axis-head", action="store_true",
-                   help="predict the heading's axis too (training/model.py); with --init, adds it to that model")
-    p.add_argument("--vote-head", action="store_true",
-                   help="train the centre votes (--beta-vote) in a head of their own rather than the offset head "
-                        "(training/model.py; detect.votes lets decoding use them); with --init, adds it to that model")
-    p.add_argument("--beta-heading", type=positive_float,
-                   help="weight of the heading term (default 0.01, the paper's; with --init, the checkpoint's)")
-    p.add_argument("--beta-size", type=positive_float,
-                   help="weight of the size term (default 0.01, the paper's; with --init, the checkpoint's)")
-    p.add_argument("--beta-vtype", type=positive_float,
-                   help="weight of the type term (default 0.01, the paper's; with --init, the checkpoint's)")
-    p.add_argument("--beta-offset", type=positive_float,
-                   help="weight of the sub-cell offset term (default 0.1; with --init, the checkpoint's)")
-    p.add_argument("--beta-box", type=finite_float,
-                   help="extra weight of the 2D box (width, height, centre offset); default 0, the paper's loss "
-                        "(with --init, the checkpoint's)")
-    p.add_argument("--beta-vote", type=finite_float,
-                   help="weight of the centre votes: every cell of a vehicle's 2D box trained to point at its centre "
-                        "(training/targets.py); default 0 (with --init, the checkpoint's)")
-    p.add_argument("--loss-type-weights", type=_loss_type_weights_arg, metavar="TYPE=W,...",
-                   help="with --heat-loss focal: the cells of these vehicle types' vehicles weigh W times in the loss "
-                        "(e.g. bus=4,truck=2; the others 1; with --init, the checkpoint's; 'none': all 1)")
-    p.add_argument("--fisheye-rotation", choices=["any", "quarter", "off"], default="any",
-                   help="augmentation: turn fisheye crops about the principal point by any angle (2D boxes "
-                        "approximated), by multiples of 90 degrees (boxes exact) or not at all")
-    p.add_argument("--input-long-side", type=int,
-                   help="network input: images shrunk so their longer side is at most this (default 640, or the "
-                        "--init model's); with --init, the starting weights are kept")
-    p.add_argument("--focus-by-size", action="store_true",
-                   help="augmentation: centre the crops on large vehicles more often (chance proportional to "
-                        "their 2D box size)")
-    p.add_argument("--device", default="cpu",
-                   help="cpu (default), cuda or cuda:N (needs a PyTorch with CUDA; the train extra's is CPU-only)")
-    p.add_argument("--workers", type=int, default=0,
-                   help="processes preparing batches in the background (a GPU needs several; 0: in this process, "
-                        "reproducible from --seed)")
-    p.add_argument("--train-only", default="",
-                   help="with --init: train only these heads (comma-separated: heat, size, heading, vtype, offset, "
-                        "axis), the rest frozen; e.g. offset sharpens localization and leaves detection as it is")
-
-
-UNLIMITED_STEPS = 10**9  # with --minutes alone the clock ends the run
-
-
-LOSS_FLAGS = ("heat_loss", "beta_size", "beta_heading", "beta_vtype", "beta_offset", "beta_box", "beta_vote")
-
-
-def _loss_type_weights(given: dict[str, float]) -> tuple[float, ...] | None:
-    """{'bus': 4} -> one weight per VEHICLE_TYPES entry (1 for those not named); {} ('none') -> None; ValueError
-    naming an unknown type or a weight that is not a finite number > 0."""
-    from shared.messages import VEHICLE_TYPES
-
-    if not given:
-        return None
-    unknown = sorted(set(given) - set(VEHICLE_TYPES))
-    if unknown:
-        raise ValueError(f"--loss-type-weights: unknown vehicle type(s) {', '.join(unknown)}; the types are "
-                         f"{', '.join(VEHICLE_TYPES)}")
-    bad = [f"{t}={w}" for t, w in given.items() if not (math.isfinite(w) and w > 0)]
-    if bad:
-        raise ValueError(f"--loss-type-weights: weights must be finite numbers > 0, got {', '.join(bad)}")
-    return tuple(float(given.get(t, 1.0)) for t in VEHICLE_TYPES)
-
-
-def _train_loss(args, loss_config):
-    """The run's LossConfig: the paper's defaults, or with --init the settings that checkpoint was trained with
-    (fine-tuning keeps its loss), then whatever the command line gives."""
-    from training.model import checkpoint_loss
-
-    base = {}
-    if args.init is not None and Path(args.init).is_file():
-        base = checkpoint_loss(args.init) or {}
-        if base:
-            print(f"[train] loss settings of {args.init}: {base} (flags given here replace them)")
-    given = {("heat" if name == "heat_loss" else name): getattr(args, name) for name in LOSS_FLAGS
-             if getattr(args, name) is not None}
-    if args.no_topk:
-        given["topk_fraction"] = None
-    if args.loss_type_weights is not None:
-        given["type_weights"] = _loss_type_weights(args.loss_type_weights)
-    try:
-        return loss_config(**{**base, **given})
-    except TypeError as exc:  # a checkpoint written by a later version with settings this one lacks
-        raise ValueError(f"{args.init}: loss settings {base} are not this version's ({exc})") from None
-
-
-def _run_train(args) -> int:
-    try:
-        from training.train import TrainConfig, train
-    except ImportError as exc:
-        raise RuntimeError(f"training needs the train extra (pip install -e '.[train]'): {exc}") from exc
-    from training.augment import AugmentConfig
-    from training.loss import LossConfig
-    from training.model import DetectorConfig
-
-    cfg = TrainConfig(recordings=tuple(args.recording), coco=tuple(args.coco), out=args.out,
-                      steps=args.steps or (UNLIMITED_STEPS if args.minutes else 4000),
-                      minutes=args.minutes, batch_size=args.batch_size, crop=args.crop, lr=args.lr, every=args.every,
-                      center=args.center, seed=args.seed, init=args.init, resume=args.resume,
-                      add_axis_head=args.axis_head, add_vote_head=args.vote_head,
-                      input_long_side=args.input_long_side, device=args.device, workers=args.workers,
-                      train_only=tuple(h.strip() for h in args.train_only.split(",") if h.strip()),
-                      augment=AugmentConfig(fisheye_rotation=args.fisheye_rotation, focus_by_size=args.focus_by_size),
-                      model=DetectorConfig(stride=args.stride, axis_head=args.axis_head, vote_head=args.vote_head),
-                      loss=_train_loss(args, LossConfig))
-    print(dumps(train(cfg), indent=1))
-    return 0
-
-
-def _add_export(sub) -> None:
-    p = sub.add_parser("export", help="export a trained detector to fp32 and fp16 ONNX (needs torch)")
-    p.add_argument("model", type=Path, help="model.pt written by roadside train")
-    p.add_argument("--out", type=Path, required=True, help="fp32 ONNX file; the fp16 copy gets a _fp16 suffix")
-    p.add_argument("--calibration-recording", type=Path, action="append", default=[],
-                   help="a training recording (repeat for more) on which to fit the box and size calibrations written "
-                        "into both files' metadata (training/heads_calibration.py); never a held-out one")
-    p.add_argument("--calibration-every", type=int, default=4,
-                   help="every N-th frame of those recordings (default 4)")
-
-
-def _add_mix(sub) -> None:
-    p = sub.add_parser("mix", help="interpolate a fine-tuned detector's weights with those of the model it started "
-                                   "from (needs torch)")
-    p.add_argument("base", type=Path, help="the starting model (model.pt), e.g. models/detector.pt")
-    p.add_argument("tuned", type=Path, help="its fine-tune (roadside train --init BASE)")
-    p.add_argument("--weight", type=float, required=True,
-                   help="the fine-tune's share in [0, 1]: (1 - w) * base + w * tuned (training/mix.py)")
-    p.add_argument("--out", type=Path, required=True, help="model.pt to write (the base's architecture)")
-
-
-def _run_mix(args) -> int:
-    from training.mix import mix_detectors
-    from training.model import checkpoint_loss, load_detector, save_detector
-
-    mixed = mix_detectors(load_detector(args.base), load_detector(args.tuned), args.weight)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    save_detector(mixed, args.out, loss=checkpoint_loss(args.base))
-    print(f"{args.out}: {1 - args.weight:g} x {args.base} + {args.weight:g} x {args.tuned}")
-    return 0
-
-
-def _run_export(args) -> int:
-    from training.export import export_onnx
-    from training.model import load_detector
-
-    if not args.model.is_file():
-        raise ValueError(f"model not found: {args.model}")
-    fp16 = args.out.with_name(args.out.stem + "_fp16" + args.out.suffix)
-    export_onnx(load_detector(args.model), args.out, fp16)
-    print(f"fp32: {args.out}\nfp16: {fp16}")
-    if args.calibration_recording:
-        _heads_calibration([args.out, fp16], args.calibration_recording, args.calibration_every)
-    return 0
-
-
-def _add_calibrate_heads(sub) -> None:
-    p = sub.add_parser("calibrate-heads",
-                       help="fit an exported detector's box and size calibrations on training recordings and write "
-                            "them into its ONNX files (training/heads_calibration.py; roadside export "
-                            "--calibration-recording does it on export; needs onnx, the train extra)")
-    p.add_argument("model", type=Path, nargs="+",
-                   help="the fp32 ONNX file (fitted on), then any copies to write the same calibration into (its fp16)")
-    p.add_argument("--recording", type=Path, action="append", required=True,
-                   help="a training recording (repeat for more); never a held-out one")
-    p.add_argument("--every", type=int, default=4, help="every N-th frame of those recordings (default 4)")
-
-
-def _run_calibrate_heads(args) -> int:
-    missing = [str(p) for p in args.model if not p.is_file()]
-    if missing:
-        raise ValueError(f"model not found: {', '.join(missing)}")
-    _heads_calibration(args.model, args.recording, args.every)
-    return 0
-
-
-def _heads_calibration(paths: list[Path], recordings: list[Path], every: int) -> None:
-    from training.heads_calibration import BOX_IOU, calibrate_files
-
-    r = calibrate_files(paths, recordings, every, log=print)
-    print(f"box and size calibrations written into {', '.join(map(str, paths))}:\n"
-          f"  boxes: {r['boxes'].pairs} detections at IoU {BOX_IOU:g} or more with a vehicle, at IoU 0.5 or more "
-          f"{r['box_pairs_at_iou50_before']:.3f} -> {r['box_pairs_at_iou50_after']:.3f} of them\n"
-          f"  sizes: matched detections per type {list(r['sizes'].pairs)}, their mean size error "
-          f"{r['size_error_before']:.3f} -> {r['size_error_after']:.3f} m")
 
 
 def _add_eval(sub) -> None:
@@ -538,175 +304,6 @@ def _print_eval(args, result: dict, per_key: str, line: str) -> int:
         for name, r in {"overall": result["overall"], **result[per_key]}.items():
             print(line.format(name=name, **r), file=sys.stderr)
     print(dumps(result, indent=1))
-    return 0
-
-
-def _add_autolabel(sub) -> None:
-    p = sub.add_parser("autolabel", help="training labels for a real camera from moving vehicles (no manual labels)")
-    p.add_argument("--frames", type=Path, required=True, help="one camera's frames (capture time in the names)")
-    p.add_argument("--masks", type=Path, required=True, help="the camera's lookup masks (roadside calibrate)")
-    p.add_argument("--camera", required=True, help="camera name written into the labels")
-    p.add_argument("--out", type=Path, required=True, help="folder for labels.json, images/ and report.json")
-    p.add_argument("--until", help="leave out frames at or after this time of day HH:MM:SS (a held-out slice)")
-    p.add_argument("--roi-m", type=positive_float, default=30.0, help="label within this distance of the camera")
-    p.add_argument("--truth", type=Path, help="simulator recording of these frames: score the labels against it")
-    p.add_argument("--teacher", type=Path, help="detector ONNX model whose detections away from the labels become "
-                   "ignore regions: parked and waiting vehicles, which the background model cannot see")
-    p.add_argument("--teacher-thr", type=finite_float, default=0.1, help="teacher detections at least this confident")
-    p.add_argument("--ignore-small", action="store_true",
-                   help="foreground regions too small for a vehicle become ignore regions instead of being dropped")
-    p.add_argument("--tracks", type=Path, help="the pipeline's tracks of the same footage (roadside up --record): "
-                   "vehicles they followed while moving become labels where the background model found none "
-                   "(training/track_labels.py)")
-
-
-def _add_static(sub) -> None:
-    p = sub.add_parser("static", help="detections that stay at one pixel in a camera's frames: candidates for "
-                                      "its exclusion zones (cameras[].exclude_px)")
-    p.add_argument("--model", type=Path, required=True, help="the detector ONNX model the site runs")
-    p.add_argument("--frames", type=Path, required=True, help="one camera's frames (capture time in the names)")
-    p.add_argument("--until", help="only frames before this time of day HH:MM:SS (leave a held-out slice alone)")
-    p.add_argument("--every", type=int, default=4, help="use every n-th frame (default 4)")
-    p.add_argument("--score-thr", type=finite_float, default=0.3, help="detections at least this confident (detect's)")
-    p.add_argument("--min-fraction", type=finite_float, default=0.5,
-                   help="report places detected in this share of frames")
-    p.add_argument("--crops", type=Path, help="folder: write the image around each place (spot_<k>.png) to look at")
-
-
-def _add_area(sub) -> None:
-    p = sub.add_parser("area", help="the rectangle of a camera's frames that shows anything (a fisheye's image "
-                                    "circle): its cameras[].detect_area_px")
-    p.add_argument("--frames", type=Path, required=True, help="one camera's frames (a folder of images)")
-    p.add_argument("--every", type=int, default=60, help="use every n-th frame (default 60)")
-    p.add_argument("--level", type=finite_float, default=40.0, help="grey level above which a pixel shows something")
-    p.add_argument("--share", type=finite_float, default=0.02,
-                   help="a column (row) belongs to the area when more than this share of its pixels do")
-
-
-def _run_area(args) -> int:
-    from calibration.area import image_area, read_frames
-    from services.ingest.sources import IMAGE_SUFFIXES
-
-    if args.every < 1:
-        raise ValueError(f"--every must be >= 1, got {args.every}")
-    if not args.frames.is_dir():
-        raise ValueError(f"frames folder not found: {args.frames}")
-    paths = sorted(p for p in args.frames.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)[:: args.every]
-    if not paths:
-        raise ValueError(f"{args.frames}: no images")
-    area, (w, h), n = image_area(read_frames(paths), args.level, args.share)
-    print(dumps({"frames_folder": str(args.frames), "frames": n, "width": w, "height": h,
-                      "detect_area_px": list(area), "share_of_image": round((area[2] - area[0]) * (area[3] - area[1])
-                                                                            / (w * h), 3)}, indent=1))
-    return 0
-
-
-def _run_static(args) -> int:
-    import cv2
-
-    from calibration.area import read_frames
-    from eval.static import crop, static_detections
-    from shared.inference import OnnxDetector
-    from training.autolabel import list_frames
-
-    if args.every < 1:
-        raise ValueError(f"--every must be >= 1, got {args.every}")
-    paths = [p for _, p in list_frames(args.frames, _time_of_day(args.until))][:: args.every]
-    det = OnnxDetector(args.model, score_thr=args.score_thr, spin=False)
-    images = (grey for _, grey in read_frames(paths))
-    result = static_detections(images, det.detect, min_fraction=args.min_fraction)
-    if args.crops is not None:
-        args.crops.mkdir(parents=True, exist_ok=True)
-        last = cv2.imread(str(paths[-1]), cv2.IMREAD_GRAYSCALE)
-        for k, spot in enumerate(result["spots"]):
-            cv2.imwrite(str(args.crops / f"spot_{k}.png"), crop(last, spot["uv"]))
-    print(dumps({"frames_folder": str(args.frames), "until": args.until, **result}, indent=1))
-    return 0
-
-
-def _time_of_day(text: str | None):
-    from datetime import time
-
-    if not text:
-        return None
-    try:
-        return time.fromisoformat(text)
-    except ValueError:
-        raise ValueError(f"--until must be a time of day HH:MM:SS, got {text!r}") from None
-
-
-def _teacher(model: Path | None, score_thr: float):
-    """The detect function of a teacher model (autolabel, composite), None without one."""
-    if model is None:
-        return None
-    from shared.inference import OnnxDetector
-
-    return OnnxDetector(model, score_thr=score_thr, spin=False).detect
-
-
-def _run_autolabel(args) -> int:
-    from training.autolabel import AutolabelConfig, autolabel_camera, score_labels
-
-    until = _time_of_day(args.until)
-    check_name("camera", args.camera)  # it names files: no '/'
-    cfg = AutolabelConfig(roi_m=args.roi_m, teacher_thr=args.teacher_thr, ignore_small=args.ignore_small)
-    if args.truth:  # checked before any output is written
-        from sim.recording import Recording
-
-        if args.camera not in Recording(args.truth).cameras:
-            raise ValueError(f"--truth {args.truth} has no camera {args.camera!r}")
-    teacher = _teacher(args.teacher, cfg.teacher_thr)
-    tracks = None
-    if args.tracks:
-        from training.track_labels import TrackTeacher
-
-        tracks = TrackTeacher(args.tracks)
-    report = autolabel_camera(args.frames, args.masks, args.out, args.camera, until, cfg,
-                              log=lambda m: print(m, file=sys.stderr), teacher=teacher, tracks=tracks)
-    if args.truth:
-        report["score"] = score_labels(args.out / "labels.json", args.truth)
-        (args.out / "report.json").write_text(dumps(report, indent=1))
-    print(dumps(report, indent=1))
-    return 0
-
-
-def _add_composite(sub) -> None:
-    p = sub.add_parser("composite", help="training images for a real camera: simulated vehicles drawn over its "
-                       "real background, with exact labels")
-    p.add_argument("--frames", type=Path, required=True, help="one camera's frames (capture time in the names)")
-    p.add_argument("--masks", type=Path, required=True,
-                   help="the camera's lookup masks (roadside calibrate; they carry the camera model)")
-    p.add_argument("--camera", required=True, help="camera name written into the labels")
-    p.add_argument("--out", type=Path, required=True, help="folder for labels.json, images/ and report.json")
-    p.add_argument("--until", help="background from frames before this time of day HH:MM:SS only (training slice)")
-    p.add_argument("--placements", type=Path, help="where vehicles go: a roadside autolabel labels.json of this "
-                   "camera (positions and headings of the moving vehicles it found); without it, simulator traffic "
-                   "of --sim-site")
-    p.add_argument("--sim-site", default="state_ellsworth",
-                   help="simulator site in the masks' site frame (name or YAML path): its traffic where no "
-                   "--placements are given, and its vehicle models")
-    p.add_argument("--seconds", type=positive_float, default=60.0, help="simulated traffic")
-    p.add_argument("--hz", type=positive_float, default=1.0, help="images per simulated second")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--demand-scale", type=positive_float, default=1.0, help="more (> 1) or less traffic")
-    p.add_argument("--roi-m", type=positive_float, default=30.0, help="shown and labelled within this distance "
-                   "of the camera")
-    p.add_argument("--teacher", type=Path, help="detector ONNX model whose detections on the background become "
-                   "ignore regions: vehicles standing through the whole slice are in the background")
-    p.add_argument("--teacher-thr", type=finite_float, default=0.5, help="teacher detections at least this confident")
-
-
-def _run_composite(args) -> int:
-    from training.composite import CompositeConfig, composite_camera
-
-    until = _time_of_day(args.until)
-    check_name("camera", args.camera)  # it names files: no '/'
-    cfg = CompositeConfig(sim_site=args.sim_site, seconds=args.seconds, hz=args.hz, seed=args.seed,
-                          roi_m=args.roi_m, demand_scale=args.demand_scale, teacher_thr=args.teacher_thr)
-    teacher = _teacher(args.teacher, cfg.teacher_thr)
-    report = composite_camera(args.frames, args.masks, args.out, args.camera, until, cfg,
-                              log=lambda m: print(m, file=sys.stderr), teacher=teacher, placements=args.placements)
-    print(dumps(report, indent=1))
     return 0
 
 
@@ -913,24 +510,15 @@ def main(argv: list[str] | None = None) -> int:
     _add_demo(sub)
     _add_calibrate(sub)
     _add_bench(sub)
-    _add_train(sub)
-    _add_autolabel(sub)
-    _add_static(sub)
-    _add_area(sub)
-    _add_composite(sub)
-    _add_export(sub)
-    _add_calibrate_heads(sub)
-    _add_mix(sub)
+    model_runners = add_model_jobs(sub)  # train, export, calibrate-heads, mix: the detector
+    site_runners = add_site_jobs(sub)  # autolabel, static, area, composite: a real site's labels
     _add_eval(sub)
     _add_up(sub)
     bus_runners = add_bus_jobs(sub)  # tracks, status, health: what a running pipeline says
     _add_viz(sub)
     args = parser.parse_args(argv)
     runners = {"sim": _run_sim, "demo": _run_demo, "calibrate": _run_calibrate, "bench": _run_bench,
-               "train": _run_train, "autolabel": _run_autolabel, "static": _run_static, "area": _run_area,
-               "composite": _run_composite, "export": _run_export, "calibrate-heads": _run_calibrate_heads,
-               "mix": _run_mix, "eval": _run_eval, "up": _run_up,
-               "viz": _run_viz, **bus_runners}
+               "eval": _run_eval, "up": _run_up, "viz": _run_viz, **model_runners, **site_runners, **bus_runners}
     try:
         return runners[args.job](args)
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
