@@ -33,6 +33,9 @@ def _add_tracks(sub) -> None:
     p.add_argument("--count", type=int, help="stop after this many messages")
     p.add_argument("--timeout", type=finite_float, help="stop after this many seconds without tracks")
     p.add_argument("--json", action="store_true", help="one JSON line per message")
+    p.add_argument("--wait", type=non_negative_float, default=10.0, metavar="SECONDS",
+                   help="how long to wait for the first connection (0: until the cabinet answers); a link that "
+                   "drops later is reconnected by itself")
 
 
 def _run_tracks(args) -> int:
@@ -40,7 +43,8 @@ def _run_tracks(args) -> int:
     from shared.settings import BusSettings
 
     n = 0
-    with TrackClient(args.site, args.connect or None, BusSettings(port_base=args.port_base)) as client:
+    with TrackClient(args.site, args.connect or None, BusSettings(port_base=args.port_base),
+                     wait_s=args.wait or None) as client:
         for tracks in client.stream(timeout_s=args.timeout):
             rows = tracks.rows()
             if args.json:

@@ -11,11 +11,17 @@ A client that joins late gets the current tracks at once: `stream()` first asks 
 queryable (`roadside/<site>/tracks/latest`) for the newest message, then follows the live ones.
 `connect` is the cabinet's Zenoh router (or, on the embedded default, any service's loopback port).
 Bad messages are counted in `client.bad` and skipped.
+
+A vehicle is not always in reach of the cabinet: the client waits up to `wait_s` (None: as long as it takes) for
+the first connection, raising ConnectionError naming the endpoints when none answers, and after a dropped link
+reconnects by itself (tried every 0.25 s at first, then every 2 s at most); `stream()` goes on with the tracks of
+after the gap (a `timeout_s` given to it ends it when the gap is longer).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import threading
 import time
 from collections.abc import Iterator
@@ -28,18 +34,29 @@ from shared.keys import latest_tracks_key, tracks_key
 from shared.messages import Tracks
 from shared.settings import BusSettings
 
+RECONNECT = {"period_init_ms": 250, "period_max_ms": 2000, "period_increase_factor": 2}  # Zenoh's connect/retry
+
 
 class TrackClient:
-    def __init__(self, site: str, connect: list[str] | None = None, bus: BusSettings | None = None) -> None:
+    def __init__(self, site: str, connect: list[str] | None = None, bus: BusSettings | None = None,
+                 wait_s: float | None = 10.0) -> None:
+        if wait_s is not None and not (wait_s > 0 and math.isfinite(wait_s)):
+            raise ValueError(f"wait_s must be a finite number of seconds > 0 or None (no limit), got {wait_s!r}")
         bus = bus or BusSettings()
         endpoints = list(connect) if connect else [bus.service_endpoint("fuse_track")]
         conf = zenoh.Config()
         conf.insert_json5("mode", '"client"')
         conf.insert_json5("connect/endpoints", json.dumps(endpoints))
+        conf.insert_json5("connect/timeout_ms", json.dumps(-1 if wait_s is None else max(1, round(wait_s * 1000))))
+        conf.insert_json5("connect/retry", json.dumps(RECONNECT))
         conf.insert_json5("scouting/multicast/enabled", "false")
         self.site = site
         self.bad = BadInput("tracks-client")
-        self.session = zenoh.open(conf)
+        try:
+            self.session = zenoh.open(conf)
+        except zenoh.ZError as exc:
+            raise ConnectionError(f"no answer from {', '.join(endpoints)} within {wait_s} s: is the cabinet's "
+                                  f"router (or the local fuse_track) up and in reach? ({exc})") from None
         self.receiver = Receiver(self.session, tracks_key(site), Tracks, self.bad)
 
     def latest(self, timeout_s: float = 2.0) -> Tracks | None:

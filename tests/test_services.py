@@ -628,6 +628,51 @@ def test_a_late_client_gets_the_current_tracks_at_once(site, site_name, port_bas
     assert_clean_exit(fuse, fuse.terminate())
 
 
+def test_a_vehicle_waits_for_the_cabinet_and_rides_through_its_restart(site, site_name, port_base, peer, launch):
+    """A vehicle's client started before fuse_track is up connects when it comes, and goes on receiving after
+    fuse_track is stopped and started again (the new tracker's messages); one that finds nothing within its wait
+    gets a ConnectionError naming the endpoint."""
+    import threading
+
+    from shared.client import TrackClient
+
+    endpoint = f"tcp/127.0.0.1:{port_base + 3}"
+    with pytest.raises(ConnectionError, match=f"no answer from {endpoint} within 0.5 s"):
+        TrackClient(site_name, connect=[endpoint], wait_s=0.5)
+
+    got: list[Tracks] = []
+    stop = threading.Event()
+    opened: list[TrackClient] = []
+
+    def vehicle() -> None:
+        with TrackClient(site_name, connect=[endpoint], wait_s=60.0) as client:
+            opened.append(client)
+            for msg in client.stream(stop=stop):
+                got.append(msg)
+
+    thread = threading.Thread(target=vehicle, daemon=True)
+    thread.start()
+    key = camera_key(site_name, CAMERA, "objects")
+    peer.subscribe("tracks", tracks_key(site_name), Tracks)
+    seen: set[str] = set()  # the trackers the vehicle has had tracks from
+    try:
+        for run in range(2):
+            fuse = launch("fuse_track", site, *bus_sets(port_base), "fuse_track.min_hits=1")
+            assert peer.wait_alive(f"roadside/{site_name}/alive/fuse_track/*", 1, WAIT_S), fuse.log()
+            start = 100 * run
+            before = set(seen)
+            warm_up(peer, key, encode(good_objects(site_name, start)),
+                    lambda b=before: any(m.tracker not in b and len(m) for m in got), "good objects to the vehicle")
+            feed(peer, key, site_name, range(start + 1, start + 10), pause_s=0.1)
+            seen |= {m.tracker for m in got if len(m)}
+            assert len(seen) == run + 1, (run, seen)
+            assert_clean_exit(fuse, fuse.terminate())
+        assert opened and opened[0].bad.total == 0
+    finally:
+        stop.set()
+        thread.join(10)
+
+
 def test_viz_live_records_the_live_tracks_until_count_or_sigterm(site, site_name, port_base, peer, launch, tmp_path):
     """`roadside viz --live` subscribes like a vehicle and writes what it receives to an .rrd: it stops after
     --count messages, or on SIGTERM with everything received before it in the file (exit 0); the summary names
