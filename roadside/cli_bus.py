@@ -141,7 +141,8 @@ def _run_health(args) -> int:
             if not any(r.service == args.service for r in reports):
                 reasons = [f"{args.service}: alive but its status does not answer within {STATUS_ANSWER_S} s"]
             else:
-                reasons = stall_reasons(args.service, reports, time.time_ns(), args.stalled_after)
+                reasons = stall_reasons(args.service, reports, time.time_ns(), args.stalled_after,
+                                         settings.bus.status_period_s)
     finally:
         session.close()
     if not n:

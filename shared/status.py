@@ -198,13 +198,15 @@ def _rate(report: Status, suffix: str) -> float:
     return sum(r for name, r in report.rates.items() if name.endswith(f"_{suffix}") or f"_{suffix}." in name)
 
 
-def stall_reasons(service: str, reports: list[Status], now_ns: int, stalled_after_s: float) -> list[str]:
+def stall_reasons(service: str, reports: list[Status], now_ns: int, stalled_after_s: float,
+                  period_s: float = 2.0) -> list[str]:
     """Why the instances of `service` among `reports` are not working though they answer, one line each (none: all
     work). An instance is stalled when it was fed in its last period (its own inputs, or its upstream service's
-    output, which counts even when a wedged loop takes nothing in) and has published nothing for `stalled_after_s`
-    (since its start, when it never has); its reports are stale when the newest is older than that (its reporting
-    thread stopped); a final report says it is stopping. Ingest, fed by its source, is only checked for staleness:
-    a playback that ended is not a stall."""
+    output, which counts even when a wedged loop takes nothing in) and, when it reported, had published nothing for
+    `stalled_after_s` (since its start, when it never had); its reports are stale when the newest is older than
+    that and than three of its periods `period_s` (`bus.status_period_s`: its reporting thread stopped); a final
+    report says it is stopping. Ingest, fed by its source, is only checked for staleness: a playback that ended is
+    not a stall."""
     if not stalled_after_s > 0:
         raise ValueError(f"stalled_after_s must be > 0, got {stalled_after_s!r}")
     fed_upstream = sum(_rate(r, "out") for r in reports if r.service == UPSTREAM.get(service) and not r.final)
@@ -214,12 +216,12 @@ def stall_reasons(service: str, reports: list[Status], now_ns: int, stalled_afte
             continue
         name = f"{r.service}/{r.instance}"
         age = (now_ns - r.t_capture_ns) / 1e9
-        quiet = (now_ns - (r.last_output_ns or r.started_ns)) / 1e9
+        quiet = (r.t_capture_ns - (r.last_output_ns or r.started_ns)) / 1e9  # as of the report: its age is not quiet
         fed = fed_upstream + _rate(r, "in")
         bad = sum(r.bad.values())
         if r.final:
             reasons.append(f"{name}: stopping")
-        elif age > stalled_after_s:
+        elif age > max(stalled_after_s, 3 * period_s):
             reasons.append(f"{name}: its newest status report is {age:.0f} s old (reporting stopped)")
         elif service in UPSTREAM and fed > 0 and quiet > stalled_after_s:
             reasons.append(f"{name}: fed {fed:.1f} messages/s but published "

@@ -144,7 +144,7 @@ def test_a_fed_service_that_publishes_nothing_is_stalled_an_idle_one_is_not():
                     last_output_ns=at(20), bad={"frame NE: corrupt JPEG": 3})
     # its upstream publishes, its loop takes nothing in (wedged): stalled, with what it dropped
     assert stall_reasons("detect", [ingest, detect], NOW, 15.0) == [
-        "detect/gpu: fed 10.0 messages/s but published nothing more for 20 s "
+        "detect/gpu: fed 10.0 messages/s but published nothing more for 19 s "
         "(3 bad inputs dropped so far: roadside status)"]
     assert stall_reasons("detect", [ingest, detect], NOW, 25.0) == []  # not yet that long
     # nothing fed (the playback ended): idle, not stalled
@@ -153,10 +153,14 @@ def test_a_fed_service_that_publishes_nothing_is_stalled_an_idle_one_is_not():
     # a stopping upstream feeds nothing more
     assert stall_reasons("detect", [ingest.model_copy(update={"final": True}), detect], NOW, 15.0) == []
     # its own inputs count without its upstream's report; never published: since its start
-    fuse = status(service="fuse_track", counts={"objects_in": 400}, rates={"objects_in": 38.0}, t_capture_ns=at(0.5),
+    fuse = status(service="fuse_track", counts={"objects_in": 400}, rates={"objects_in": 38.0}, t_capture_ns=at(1),
                   started_ns=at(30), last_output_ns=0)
     assert stall_reasons("fuse_track", [fuse], NOW, 15.0) == [
-        "fuse_track/main: fed 38.0 messages/s but published nothing for 30 s"]
+        "fuse_track/main: fed 38.0 messages/s but published nothing for 29 s"]
+    # quiet is counted as of the report: a report some seconds old (a long period) of a service that had just
+    # published is neither stalled nor stale
+    fresh = detect.model_copy(update={"t_capture_ns": at(10), "last_output_ns": at(10)})
+    assert stall_reasons("detect", [ingest, fresh], NOW, 5.0, period_s=4.0) == []
     # another service's reports say nothing of this one
     assert stall_reasons("localize", [ingest, detect], NOW, 15.0) == []
 
@@ -167,6 +171,7 @@ def test_stale_and_final_reports_and_ingest_by_staleness_alone():
     stale = status(service="localize", t_capture_ns=at(40), last_output_ns=at(40))
     assert stall_reasons("localize", [stale], NOW, 15.0) == [
         "localize/main: its newest status report is 40 s old (reporting stopped)"]
+    assert stall_reasons("localize", [stale], NOW, 15.0, period_s=20.0) == []  # reports every 20 s: not yet stale
     assert stall_reasons("localize", [stale.model_copy(update={"final": True})], NOW, 15.0) == [
         "localize/main: stopping"]
     ingest = status(service="ingest", counts={"frames_out.NE": 9}, rates={"frames_out.NE": 0.0},
