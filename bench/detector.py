@@ -110,8 +110,14 @@ def run(settings: BenchSettings, workdir: Path) -> dict:
     options = ort.SessionOptions()
     options.intra_op_num_threads = settings.threads
     options.inter_op_num_threads = 1
-    session = ort.InferenceSession(str(fp32), options, providers=["CPUExecutionProvider"])
-    config = DetectorConfig(**json.loads(session.get_modelmeta().custom_metadata_map[CONFIG_KEY]))
+    try:
+        session = ort.InferenceSession(str(fp32), options, providers=["CPUExecutionProvider"])
+    except Exception as e:  # onnxruntime raises its own exception types for a missing or bad file
+        raise ValueError(f"{fp32}: not a loadable ONNX model ({str(e).splitlines()[0][:300]})") from None
+    meta = session.get_modelmeta().custom_metadata_map
+    if CONFIG_KEY not in meta:
+        raise ValueError(f"{fp32}: model metadata has no {CONFIG_KEY!r} (export it with `roadside export`)")
+    config = DetectorConfig(**json.loads(meta[CONFIG_KEY]))
     out["config"] = asdict(config)
     out["macs"] = count_macs(Detector(config), h, w)
     image = np.random.default_rng(0).random((1, 1, h, w), dtype=np.float32)

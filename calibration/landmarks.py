@@ -60,8 +60,10 @@ def load_landmarks(path: str | Path) -> tuple[Landmarks, dict]:
     try:
         if path.suffix.lower() == ".csv":
             with path.open(newline="", encoding="utf-8-sig") as f:  # -sig: a spreadsheet's byte-order mark
-                rows = list(csv.DictReader(f))
-            missing = {"id", "u", "v", "lat", "lon"} - set(rows[0].keys() if rows else [])
+                reader = csv.DictReader(f)
+                rows = list(reader)
+                columns = set(reader.fieldnames or ())
+            missing = {"id", "u", "v", "lat", "lon"} - columns
             if missing:
                 raise ValueError(f"{path}: CSV header lacks column(s) {', '.join(sorted(missing))}")
         else:

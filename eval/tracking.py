@@ -89,8 +89,8 @@ def _parse_line(obj: Any, where: str) -> TrackLine:
     for key in ("t_ns", "tracker", "tracks"):
         if key not in obj:
             raise ValueError(f"{where}: missing key {key!r}")
-    if not _is_int(obj["t_ns"]) or obj["t_ns"] < 0:
-        raise ValueError(f"{where}: t_ns must be a non-negative integer (ns), got {obj['t_ns']!r}")
+    if not _is_int(obj["t_ns"]) or not 0 <= obj["t_ns"] < 2**63:
+        raise ValueError(f"{where}: t_ns must be an integer >= 0 and < 2**63 (ns), got {obj['t_ns']!r}")
     if not isinstance(obj["tracker"], str):
         raise ValueError(f"{where}: tracker must be a string, got {obj['tracker']!r}")
     if not isinstance(obj["tracks"], list):
@@ -124,7 +124,7 @@ def load_tracks(source: str | Path | Iterable[Mapping | Any]) -> list[TrackLine]
         path = Path(source)
         if not path.is_file():
             raise ValueError(f"tracks file missing: {path}")
-        with path.open() as f:
+        with path.open(encoding="utf-8", errors="replace") as f:  # bytes that are not text fail as bad JSON
             for n, text in enumerate(f, 1):
                 if not text.strip():
                     continue

@@ -52,10 +52,51 @@ def type_weights(text: str) -> dict[str, float]:
     return out
 
 
+def score(text: str) -> float:
+    """A detection score threshold: a number from 0 to 1."""
+    v = finite_float(text)
+    if not 0 <= v <= 1:
+        raise argparse.ArgumentTypeError(f"must be a score from 0 to 1, got {text}")
+    return v
+
+
+def positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {text}")
+    return v
+
+
+def endpoint(text: str) -> str:
+    """A Zenoh endpoint flag (tcp/HOST:PORT, ...), checked here rather than by Zenoh's config parser."""
+    from shared.settings import check_endpoint
+
+    try:
+        return check_endpoint(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def port_base(text: str) -> int:
+    """The embedded default's first service port (BusSettings.port_base: 1024-65000)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
+    if not 1024 <= v <= 65000:
+        raise argparse.ArgumentTypeError(f"must be a port from 1024 to 65000, got {text}")
+    return v
+
+
 def site_path(site: Path) -> Path:
     """A site argument: a file, a folder, or the name of a folder under deploy/sites/."""
     if site.exists():
         return site
+    if len(site.parts) != 1:  # a path, not a name
+        raise ValueError(f"site not found: {site}")
     named = Path(__file__).resolve().parent.parent / "deploy" / "sites" / str(site)
     if named.exists():
         return named

@@ -8,7 +8,16 @@ import math
 import sys
 from pathlib import Path
 
-from roadside.argtypes import finite_float, positive_float, site_path, type_weights
+from roadside.argtypes import (
+    endpoint,
+    finite_float,
+    port_base,
+    positive_float,
+    positive_int,
+    score,
+    site_path,
+    type_weights,
+)
 from roadside.cli_bus import add_bus_jobs
 from roadside.cli_model import add_model_jobs
 from roadside.cli_site import add_site_jobs
@@ -68,7 +77,7 @@ def _add_demo(sub) -> None:
     p.add_argument("--seed", type=int, default=2024)
     p.add_argument("--landmarks", type=int, default=20, help="landmarks per camera for calibration")
     p.add_argument("--model", type=Path, help="detector ONNX (default: the shipped models/detector_fp32.onnx)")
-    p.add_argument("--port-base", type=int, default=7451)
+    p.add_argument("--port-base", type=port_base, default=7451)
     p.add_argument("--pace", default="max",
                    help="playback: max (as fast as the pipeline takes frames, every frame processed: the default) or "
                         "1 (real time, as at a cabinet: a detector slower than the cameras drops frames)")
@@ -113,9 +122,11 @@ def _add_calibrate(sub) -> None:
     p.add_argument("--image-circle", type=_floats(3), help="fisheye image circle CX,CY,RADIUS in pixels")
     p.add_argument("--fov-deg", type=finite_float, default=188.0,
                    help="fisheye field of view at the image circle's edge")
-    p.add_argument("--origin", type=_floats(3), help="site frame origin LAT,LON,ALT (default: the landmarks' median)")
+    p.add_argument("--origin", type=_floats(3), help="site frame origin LAT,LON,ALT (default: the landmarks' median; "
+                   "a negative latitude needs the = form: --origin=-33.86,151.21,5)")
     p.add_argument(
-        "--roi-center", type=_floats(2), help="ROI centre LAT,LON (default: the camera, 25 m fisheye / 200 m)"
+        "--roi-center", type=_floats(2), help="ROI centre LAT,LON (default: the camera, 25 m fisheye / 200 m; a "
+        "negative latitude needs the = form: --roi-center=-33.86,151.21)"
     )
     p.add_argument("--roi-radius", type=finite_float, default=25.0, help="ROI radius in metres (with --roi-center)")
     p.add_argument("--plot", type=Path, help="draw residual arrows to this PNG")
@@ -179,20 +190,20 @@ def _add_eval(sub) -> None:
                    "of the footage played through the pipeline instead of a model's detections)")
     p.add_argument("--recording", type=Path, help="simulator recording (detector)")
     p.add_argument("--every", type=int, default=1, help="use every n-th frame (detector)")
-    p.add_argument("--score-thr", type=finite_float, help="lowest score kept (default: 0.05 for detector, as AP needs "
+    p.add_argument("--score-thr", type=score, help="lowest score kept (default: 0.05 for detector, as AP needs "
                    "the low ones; the detect service's 0.3 for real)")
     p.add_argument("--site", type=Path, default=Path("deploy/sites/state_ellsworth"),
                    help="site folder with labels/ and masks/ (real), or its site.yaml's cameras (handoff)")
     p.add_argument("--footage", type=Path, default=Path("../shared/data/state_ellsworth/sample_data"),
                    help="folder of the cameras' frame folders (real)")
-    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--threads", type=positive_int, default=2, help="ONNX Runtime threads per inference")
     p.add_argument("--fisheye-area-deg", type=positive_float,
                    help="detector: look at fisheye frames only inside the image circle up to this angle off axis "
                         "(e.g. 90), as a camera's detect_area_px does in the detect service")
     p.add_argument("--near-m", type=positive_float, default=25.0,
                    help="detector: the near-camera metrics count vehicles and detections within this many metres "
                         "of the camera on the ground (its region, as fusion uses it)")
-    p.add_argument("--near-score", type=finite_float, default=0.3,
+    p.add_argument("--near-score", type=score, default=0.3,
                    help="detector: the lowest score of a detection the near-camera metrics count (the detect "
                         "service's threshold)")
     p.add_argument("--mirror", action="store_true",
@@ -220,6 +231,8 @@ def _add_eval(sub) -> None:
 def _run_eval(args) -> int:
     from shared.inference import OnnxDetector
 
+    if args.site is not None:
+        args.site = site_path(args.site)  # a folder, its site.yaml, or a name under deploy/sites/
     if args.what == "budget":
         from eval.budget import SCENARIOS, budget, budget_many
 
@@ -361,7 +374,7 @@ def _add_viz(sub) -> None:
                    "also the site's name and bus)")
     p.add_argument("--live", action="store_true", help="subscribe to the site's live tracks instead of reading a "
                    "file, until Ctrl-C, --count or --timeout (needs --site)")
-    p.add_argument("--connect", action="append", default=[],
+    p.add_argument("--connect", action="append", default=[], type=endpoint,
                    help="with --live: Zenoh endpoint, the cabinet's router tcp/HOST:7447 (default: the site's local "
                    "fuse_track)")
     p.add_argument("--viewer", help="with --live: also stream to a running Rerun viewer at this URL (e.g. "
@@ -438,8 +451,12 @@ def _run_viz(args) -> int:
         basemap = site_basemap(args.recording)
         origin = origin or Recording(args.recording).meta["site"]["origin"]
     frames = _viz_frames(args) if args.frames else None
-    print(dumps(tracks_file_to_rrd(args.tracks, args.out, site_origin=origin, basemap=basemap, frames=frames),
-                     indent=1))
+    summary = tracks_file_to_rrd(args.tracks, args.out, site_origin=origin, basemap=basemap, frames=frames)
+    print(dumps(summary, indent=1))
+    if summary["messages"] == 0:  # the .rrd holds the map alone: say so, as --live does when nothing came
+        why = (f"; line {summary['first_bad_line']}: {summary['first_bad_reason']}" if summary["bad_lines"] else "")
+        print(f"roadside viz: no valid tracks line in {args.tracks} ({summary['lines']} lines{why})", file=sys.stderr)
+        return 1
     return 0
 
 

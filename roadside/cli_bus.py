@@ -7,7 +7,7 @@ import math
 import time
 from pathlib import Path
 
-from roadside.argtypes import finite_float, non_negative_float, positive_float, site_path
+from roadside.argtypes import endpoint, non_negative_float, port_base, positive_float, positive_int, site_path
 from shared.jsonio import dumps
 from shared.messages import SERVICES
 
@@ -22,16 +22,16 @@ def add_bus_jobs(sub) -> dict:
 
 def _add_endpoint_flags(p: argparse.ArgumentParser, default_to: str) -> None:
     p.add_argument("--site", default="state_ellsworth", help="site name")
-    p.add_argument("--connect", action="append", default=[],
+    p.add_argument("--connect", action="append", default=[], type=endpoint,
                    help=f"Zenoh endpoint: the cabinet's router tcp/HOST:7447 (default: {default_to})")
-    p.add_argument("--port-base", type=int, default=7451, help="embedded default's first service port")
+    p.add_argument("--port-base", type=port_base, default=7451, help="embedded default's first service port")
 
 
 def _add_tracks(sub) -> None:
     p = sub.add_parser("tracks", help="print live tracks (what a connected vehicle receives)")
     _add_endpoint_flags(p, "the local fuse_track")
-    p.add_argument("--count", type=int, help="stop after this many messages")
-    p.add_argument("--timeout", type=finite_float, help="stop after this many seconds without tracks")
+    p.add_argument("--count", type=positive_int, help="stop after this many messages")
+    p.add_argument("--timeout", type=positive_float, help="stop after this many seconds without tracks")
     p.add_argument("--json", action="store_true", help="one JSON line per message")
     p.add_argument("--wait", type=non_negative_float, default=10.0, metavar="SECONDS",
                    help="how long to wait for the first connection (0: until the cabinet answers); a link that "
@@ -112,7 +112,7 @@ def _add_health(sub) -> None:
                        "services report their status, its status says it works")
     p.add_argument("--site", required=True, type=Path)
     p.add_argument("--service", required=True, choices=SERVICES)
-    p.add_argument("--timeout", type=finite_float, default=3.0, help="seconds to wait for the liveliness token")
+    p.add_argument("--timeout", type=positive_float, default=3.0, help="seconds to wait for the liveliness token")
     p.add_argument("--stalled-after", type=non_negative_float, default=15.0, metavar="SECONDS",
                    help="unhealthy when fed but silent this long, or its newest status report is this old "
                    "(shared/status.py stall_reasons; 0: the liveliness token alone)")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from roadside.argtypes import finite_float, positive_float, type_weights
+from roadside.argtypes import finite_float, positive_float, positive_int, type_weights
 from shared.jsonio import dumps
 
 
@@ -29,7 +29,7 @@ def _add_train(sub) -> None:
                         "@NE,NW: only those cameras")
     p.add_argument("--coco", action="append", default=[], help="COCO-style annotation JSON (repeatable)")
     p.add_argument("--out", required=True, help="output folder (model.pt, train_log.jsonl, train.json)")
-    p.add_argument("--steps", type=int, help="number of steps (default 4000, or as many as --minutes allows)")
+    p.add_argument("--steps", type=positive_int, help="number of steps (default 4000, or as many as --minutes allows)")
     p.add_argument("--minutes", type=positive_float,
                    help="time budget: the learning-rate schedule follows the clock to its end (with --steps too, "
                         "whichever comes first ends the run)")

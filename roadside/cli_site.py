@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from roadside.argtypes import finite_float, positive_float
+from roadside.argtypes import finite_float, positive_float, score
 from shared.jsonio import dumps
 from shared.messages import check_name
 
@@ -29,7 +29,7 @@ def _add_autolabel(sub) -> None:
     p.add_argument("--truth", type=Path, help="simulator recording of these frames: score the labels against it")
     p.add_argument("--teacher", type=Path, help="detector ONNX model whose detections away from the labels become "
                    "ignore regions: parked and waiting vehicles, which the background model cannot see")
-    p.add_argument("--teacher-thr", type=finite_float, default=0.1, help="teacher detections at least this confident")
+    p.add_argument("--teacher-thr", type=score, default=0.1, help="teacher detections at least this confident")
     p.add_argument("--ignore-small", action="store_true",
                    help="foreground regions too small for a vehicle become ignore regions instead of being dropped")
     p.add_argument("--tracks", type=Path, help="the pipeline's tracks of the same footage (roadside up --record): "
@@ -44,7 +44,7 @@ def _add_static(sub) -> None:
     p.add_argument("--frames", type=Path, required=True, help="one camera's frames (capture time in the names)")
     p.add_argument("--until", help="only frames before this time of day HH:MM:SS (leave a held-out slice alone)")
     p.add_argument("--every", type=int, default=4, help="use every n-th frame (default 4)")
-    p.add_argument("--score-thr", type=finite_float, default=0.3, help="detections at least this confident (detect's)")
+    p.add_argument("--score-thr", type=score, default=0.3, help="detections at least this confident (detect's)")
     p.add_argument("--min-fraction", type=finite_float, default=0.5,
                    help="report places detected in this share of frames")
     p.add_argument("--crops", type=Path, help="folder: write the image around each place (spot_<k>.png) to look at")
@@ -170,7 +170,7 @@ def _add_composite(sub) -> None:
                    "of the camera")
     p.add_argument("--teacher", type=Path, help="detector ONNX model whose detections on the background become "
                    "ignore regions: vehicles standing through the whole slice are in the background")
-    p.add_argument("--teacher-thr", type=finite_float, default=0.5, help="teacher detections at least this confident")
+    p.add_argument("--teacher-thr", type=score, default=0.5, help="teacher detections at least this confident")
 
 
 def _run_composite(args) -> int:

@@ -60,6 +60,28 @@ class DemoConfig:
     # ROI alone a vehicle is hardly ever seen on both sides of one (1 crossing in the whole demo)
     handoff_radius_m: float = 40.0
 
+    def __post_init__(self) -> None:
+        """Everything checkable is checked here, before minutes of simulation and calibration."""
+        from pydantic import ValidationError
+
+        from shared.settings import BusSettings, IngestSettings
+
+        if not (1.0 <= self.hz <= 100.0):  # fuse_track ticks once per frame interval, at most every second
+            raise ValueError(f"hz must be from 1 to 100 (a tick per frame interval), got {self.hz}")
+        if not (self.seconds > 0 and self.seconds * self.hz >= 2):
+            raise ValueError(f"seconds {self.seconds:g} at hz {self.hz:g} is fewer than two frames per camera")
+        if not 5 <= self.landmarks <= 1000:
+            raise ValueError(f"landmarks must be from 5 to 1000 per camera (the simulator makes 5-30), got "
+                             f"{self.landmarks}")
+        for build, what in ((lambda: IngestSettings(pace=self.pace), "pace"),
+                            (lambda: BusSettings(port_base=self.port_base), "port_base")):
+            try:
+                build()
+            except ValidationError as exc:
+                raise ValueError(f"{what}: {exc.errors()[0]['msg']}") from None
+        if not Path(self.model).is_file():
+            raise ValueError(f"detector model not found: {self.model}")
+
 
 def make_recording(cfg: DemoConfig, log) -> Path:
     from sim.clip import ClipConfig, simulate_clip
@@ -363,8 +385,6 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
     from services.rerun_sink import tracks_file_to_rrd
     from shared.settings import load_settings
 
-    if not Path(cfg.model).is_file():
-        raise ValueError(f"detector model not found: {cfg.model}")
     cfg.out.mkdir(parents=True, exist_ok=True)
     rec_dir = make_recording(cfg, log)
     site_path, calib = make_site(cfg, rec_dir, log)

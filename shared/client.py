@@ -32,8 +32,9 @@ from shared.bus import BadInput, Receiver
 from shared.codec import DecodeError, decode
 from shared.keys import latest_tracks_key, tracks_key
 from shared.messages import Tracks
-from shared.settings import BusSettings
+from shared.settings import BusSettings, check_endpoint
 
+MAX_WAIT_S = 7 * 86400.0  # a longer wait is None: Zenoh's timeout is in milliseconds
 RECONNECT = {"period_init_ms": 250, "period_max_ms": 2000, "period_increase_factor": 2}  # Zenoh's connect/retry
 
 
@@ -42,8 +43,10 @@ class TrackClient:
                  wait_s: float | None = 10.0) -> None:
         if wait_s is not None and not (wait_s > 0 and math.isfinite(wait_s)):
             raise ValueError(f"wait_s must be a finite number of seconds > 0 or None (no limit), got {wait_s!r}")
+        if wait_s is not None and wait_s > MAX_WAIT_S:
+            raise ValueError(f"wait_s must be at most {MAX_WAIT_S:.0f} s (None: no limit), got {wait_s!r}")
         bus = bus or BusSettings()
-        endpoints = list(connect) if connect else [bus.service_endpoint("fuse_track")]
+        endpoints = [check_endpoint(e) for e in connect] if connect else [bus.service_endpoint("fuse_track")]
         conf = zenoh.Config()
         conf.insert_json5("mode", '"client"')
         conf.insert_json5("connect/endpoints", json.dumps(endpoints))

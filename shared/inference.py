@@ -56,6 +56,9 @@ def input_scale(width: int, height: int, long_side: int) -> float:
     return min(1.0, long_side / max(width, height))
 
 
+MAX_THREADS = 256  # ONNX Runtime threads per inference
+
+
 class OnnxDetector:
     """An exported detector. `detect(grey)` -> Detections in the image's own pixels."""
 
@@ -69,6 +72,8 @@ class OnnxDetector:
         path = Path(path)
         if not path.is_file():
             raise ValueError(f"detector model not found: {path}")
+        if not (isinstance(threads, int) and 1 <= threads <= MAX_THREADS):
+            raise ValueError(f"threads must be a whole number from 1 to {MAX_THREADS}, got {threads!r}")
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = threads
         opts.inter_op_num_threads = 1

@@ -15,6 +15,7 @@ listens on its own port (`port_base` + its index in SERVICES; clients such as `r
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 from typing import Literal
 
@@ -25,6 +26,26 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 from shared.keys import SERVICES
 from shared.messages import CAMERA_KINDS, check_name
 from shared.position_error import POSITION_SIGMA, check_position_sigma
+
+ENDPOINT_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe", "serial", "vsock")
+_HOST_PORT = re.compile(r"^(\[[0-9A-Fa-f:.]+\]|[^\s:/\[\]]+):(\d{1,5})$")
+
+
+def check_endpoint(text: str) -> str:
+    """A Zenoh endpoint `<protocol>/<address>[?metadata][#config]`, e.g. tcp/192.168.1.10:7447 (Zenoh's own error for
+    a malformed one is a JSON5 parse error of its config); ValueError names the endpoint and what is wrong."""
+    if not isinstance(text, str):
+        raise ValueError(f"a Zenoh endpoint is text such as tcp/HOST:7447, got {text!r}")
+    proto, sep, rest = text.partition("/")
+    address = re.split(r"[?#]", rest, maxsplit=1)[0]
+    if not sep or proto not in ENDPOINT_PROTOCOLS or not address:
+        raise ValueError(f"not a Zenoh endpoint: {text!r} (expected PROTOCOL/ADDRESS such as tcp/192.168.1.10:7447; "
+                         f"protocols: {', '.join(ENDPOINT_PROTOCOLS)})")
+    if proto in ("tcp", "udp", "tls", "quic", "ws"):
+        m = _HOST_PORT.match(address)
+        if not m or int(m.group(2)) > 65535:
+            raise ValueError(f"not a Zenoh endpoint: {text!r} ({proto} needs HOST:PORT, the port 0-65535)")
+    return text
 
 
 class Strict(BaseModel):
@@ -45,6 +66,11 @@ class BusSettings(Strict):
     shared_memory: bool = False
     # every service publishes a Status report this often (`roadside status`, shared/status.py); 0 = never
     status_period_s: float = Field(2.0, ge=0, le=3600, allow_inf_nan=False)
+
+    @field_validator("connect", "listen")
+    @classmethod
+    def _endpoints(cls, v: list[str]) -> list[str]:
+        return [check_endpoint(e) for e in v]
 
     def service_endpoint(self, service: str) -> str:
         return f"tcp/{self.host}:{self.port_base + SERVICES.index(service)}"
@@ -147,7 +173,7 @@ class DetectSettings(Strict):
     # frames/s at 640x480 on the 2-core development machine (CPU 39 against 57 ms per frame: the threads of one
     # inference wait on each other), at ~37 against ~29 ms per frame. With a GPU provider one worker may do.
     workers: int = Field(2, ge=1, le=16)  # frames inferred at once
-    threads: int = Field(1, ge=1)  # ONNX Runtime threads per inference
+    threads: int = Field(1, ge=1, le=256)  # ONNX Runtime threads per inference (shared/inference.py MAX_THREADS)
     score_thr: float = Field(0.3, gt=0, lt=1)
     # frames kept waiting per camera; older ones are dropped. 1: a frame waits for at most one of each other
     # camera's, which live (pace 1, a detector slower than the cameras) measured 171 against 268 ms end to end p50
@@ -302,8 +328,13 @@ def load_settings(path: str | Path, **overrides) -> Settings:
         data = yaml.safe_load(path.read_text()) or {}
     except yaml.YAMLError as exc:
         raise ValueError(f"{path}: not valid YAML ({exc})") from None
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not a text file ({exc})") from None
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a mapping at the top level")
+    odd = [k for k in data if not isinstance(k, str)]
+    if odd:
+        raise ValueError(f"{path}: top-level keys must be names, got {odd[0]!r}")
     data.setdefault("site_dir", str(path.parent.resolve()))
     for key, value in overrides.items():
         if value is None:

@@ -62,8 +62,8 @@ def parse_tracks_message(obj: Any, origin: GeoFrame | None = None) -> TracksMess
     if not isinstance(site, str):
         raise ValueError(f"'site' must be a string, got {site!r}")
     t_ns = _int(obj[t_key], t_key)
-    if t_ns < 0:
-        raise ValueError(f"{t_key!r} must be >= 0, got {t_ns}")
+    if not 0 <= t_ns < 2**63:
+        raise ValueError(f"{t_key!r} must be >= 0 and < 2**63 (ns since the epoch), got {t_ns}")
     seq = _int(obj.get("seq", 0), "seq")
     tracker = obj.get("tracker", "")
     if not isinstance(tracker, str):

@@ -232,6 +232,8 @@ def load_site(name_or_path: str | Path) -> SiteSpec:
         data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as exc:
         raise ValueError(f"site file {path} is not valid YAML: {exc}") from None
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"site file {path} is not a text file ({exc})") from None
     if not isinstance(data, dict):
         raise ValueError(f"site file {path} must hold a mapping, got {type(data).__name__}")
     try:

@@ -74,6 +74,8 @@ class CompositeConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {value}")
+        if self.seconds * self.hz < 1:
+            raise ValueError(f"seconds {self.seconds:g} at hz {self.hz:g} is not one image")
         if not 0 <= self.shadow < 1:
             raise ValueError(f"shadow must be in [0, 1), got {self.shadow}")
         if self.seed < 0 or self.max_vehicles < 1 or self.background_frames < 1:
@@ -96,7 +98,7 @@ def load_placements(labels_json: str | Path) -> np.ndarray:
         anns = json.loads(path.read_text())["annotations"]
         rows = [[*a["ground_xy_m"], a["ground_yaw_rad"]] for a in anns
                 if "ground_xy_m" in a and "ground_yaw_rad" in a]
-    except (json.JSONDecodeError, KeyError, TypeError) as exc:
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as exc:
         raise ValueError(f"{path}: not a roadside autolabel labels file ({exc})") from None
     out = np.asarray(rows, np.float64).reshape(-1, 3)
     if not len(out) or not np.isfinite(out).all():

@@ -68,7 +68,7 @@ class TrackTeacher:
         if not path.is_file():
             raise ValueError(f"tracks file missing: {path}")
         lines: list[tuple[int, str, tuple[TrackRow, ...]]] = []
-        with path.open() as f:
+        with path.open(encoding="utf-8", errors="replace") as f:  # bytes that are not text fail as bad JSON
             for n, text in enumerate(f, 1):
                 if not text.strip():
                     continue

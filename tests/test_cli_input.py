@@ -1,0 +1,156 @@
+"""Bad input at the command line and in the files it reads: one clear error naming the flag, field or file, exit 2
+(or 1 where the job ran and found nothing), never a traceback. Each case below was once a traceback or a silent
+misreading (a review of every `roadside` job with bad input, 2026-11-28)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+from pydantic import ValidationError
+
+from roadside.cli import main
+from shared.settings import BusSettings, check_endpoint, load_settings
+
+ROOT = Path(__file__).resolve().parent.parent
+EXAMPLE_SITE = ROOT / "deploy" / "sites" / "example" / "site.yaml"
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["tracks", "--connect", "garbage"], "argument --connect: not a Zenoh endpoint: 'garbage'"),
+    (["tracks", "--connect", "tcp/cabinet"], "tcp needs HOST:PORT"),
+    (["status", "--connect", "tcp/cabinet:99999"], "the port 0-65535"),
+    (["tracks", "--count", "-3"], "argument --count: must be a whole number >= 1, got -3"),
+    (["tracks", "--timeout", "0"], "argument --timeout: must be a finite number > 0"),
+    (["tracks", "--port-base", "80"], "argument --port-base: must be a port from 1024 to 65000, got 80"),
+    (["tracks", "--wait", "-1"], "argument --wait: must be a finite number >= 0"),
+    (["health", "--site", str(EXAMPLE_SITE), "--service", "detect", "--timeout", "-1"], "argument --timeout"),
+    (["viz", "--live", "--site", str(EXAMPLE_SITE), "--out", "x.rrd", "--connect", "garbage"], "not a Zenoh endpoint"),
+    (["train", "--steps", "0", "--out", "x"], "argument --steps: must be a whole number >= 1, got 0"),
+    (["eval", "real", "--score-thr", "5"], "argument --score-thr: must be a score from 0 to 1, got 5"),
+    (["eval", "detector", "--threads", "0"], "argument --threads: must be a whole number >= 1"),
+    (["static", "--score-thr", "-1"], "argument --score-thr: must be a score from 0 to 1"),
+])
+def test_flags_out_of_range_are_refused_by_name(argv, message, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("flag", "message"), [
+    (["--landmarks", "3"], "landmarks must be from 5 to 1000 per camera"),
+    (["--landmarks", "-1"], "landmarks must be from 5 to 1000 per camera"),
+    (["--hz", "0.5"], "hz must be from 1 to 100"),
+    (["--pace", "bogus"], "pace must be a speed factor"),
+    (["--model", "/nonexistent/detector.onnx"], "detector model not found"),
+])
+def test_the_demo_checks_its_flags_before_minutes_of_simulation(flag, message, tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), *flag]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists(), "nothing is simulated or written for a demo that cannot run"
+
+
+@pytest.mark.parametrize("good", ["tcp/zenoh:7447", "tcp/192.168.1.10:7447", "tcp/[::1]:7447",
+                                  "tcp/0.0.0.0:7447#iface=eth0", "udp/cabinet:7447", "unixsock-stream//tmp/z.sock"])
+def test_zenoh_endpoints_that_are_well_formed_pass(good):
+    assert check_endpoint(good) == good
+    assert BusSettings(mode="client", connect=[good]).connect == [good]
+
+
+@pytest.mark.parametrize("bad", ["garbage", "tcp/cabinet", "tcp/cabinet:70000", "http/cabinet:80", "tcp/", ""])
+def test_malformed_zenoh_endpoints_are_refused_naming_them(bad):
+    with pytest.raises(ValueError, match="not a Zenoh endpoint"):
+        check_endpoint(bad)
+    with pytest.raises(ValidationError, match="not a Zenoh endpoint"):
+        BusSettings(listen=[bad])
+        load_settings(EXAMPLE_SITE, bus={"mode": "client", "connect": [bad]})
+
+
+def test_a_site_file_with_a_number_for_a_key_or_of_binary_bytes_is_named(tmp_path):
+    numbered = tmp_path / "numbered.yaml"
+    numbered.write_text(EXAMPLE_SITE.read_text() + "\n42: foo\n")
+    with pytest.raises(ValueError, match=r"numbered.yaml: top-level keys must be names, got 42"):
+        load_settings(numbered)
+    binary = tmp_path / "binary.yaml"
+    binary.write_bytes(bytes(range(128, 256)))
+    with pytest.raises(ValueError, match=r"binary.yaml: not a text file"):
+        load_settings(binary)
+
+
+def _line(k: int, t_ns: int | None = None) -> str:
+    row = {"id": 3, "x": float(k), "y": 0.0, "yaw": 0.0, "length": 4.5, "width": 1.8, "type": "car"}
+    return json.dumps({"site": "s1", "seq": k, "t_ns": 1_700_000_000_000_000_000 + k * 100_000_000 if t_ns is None
+                       else t_ns, "tracker": "t0", "tracks": [row]})
+
+
+def test_viz_skips_a_line_from_beyond_2262_and_fails_on_a_file_with_no_valid_line(tmp_path, capsys):
+    mixed = tmp_path / "mixed.jsonl"
+    mixed.write_text("\n".join([_line(0), _line(1, t_ns=10**30), _line(2)]) + "\n")
+    assert main(["viz", str(mixed), "--out", str(tmp_path / "mixed.rrd")]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert (summary["messages"], summary["bad_lines"], summary["first_bad_line"]) == (2, 1, 2)
+    assert "< 2**63" in summary["first_bad_reason"]
+
+    bad = tmp_path / "bad.jsonl"
+    bad.write_text("garbage\n" + _line(0, t_ns=-5) + "\n")
+    assert main(["viz", str(bad), "--out", str(tmp_path / "bad.rrd")]) == 1
+    assert f"no valid tracks line in {bad} (2 lines; line 1: JSONDecodeError" in capsys.readouterr().err
+    empty = tmp_path / "empty.jsonl"
+    empty.write_text("")
+    assert main(["viz", str(empty), "--out", str(tmp_path / "empty.rrd")]) == 1
+    assert "(0 lines)" in capsys.readouterr().err
+
+
+def test_eval_handoff_names_the_line_of_a_binary_tracks_file(tmp_path, capsys):
+    binary = tmp_path / "tracks.jsonl"
+    binary.write_bytes(bytes(range(128, 256)) + b"\n")
+    assert main(["eval", "handoff", "--tracks", str(binary), "--site", "state_ellsworth"]) == 2
+    assert f"{binary}: line 1: not valid JSON" in capsys.readouterr().err
+
+
+def test_bench_detector_names_a_model_it_cannot_load(tmp_path, capsys):
+    garbage = tmp_path / "model.onnx"
+    garbage.write_bytes(b"not a model")
+    assert main(["bench", "detector", "--model", str(garbage), "--runs", "1", "--warmup", "0"]) == 2
+    assert f"{garbage}: not a loadable ONNX model" in capsys.readouterr().err
+    assert main(["bench", "detector", "--model", str(tmp_path / "missing.onnx")]) == 2
+    assert "missing.onnx: not a loadable ONNX model" in capsys.readouterr().err
+
+
+def test_the_track_client_and_the_detector_refuse_impossible_numbers():
+    from shared.client import TrackClient
+    from shared.inference import OnnxDetector
+
+    with pytest.raises(ValueError, match="wait_s must be at most"):
+        TrackClient("s1", connect=["tcp/127.0.0.1:7454"], wait_s=1e306)
+    with pytest.raises(ValueError, match="wait_s must be a finite number"):
+        TrackClient("s1", connect=["tcp/127.0.0.1:7454"], wait_s=math.nan)
+    with pytest.raises(ValueError, match="not a Zenoh endpoint"):
+        TrackClient("s1", connect=["garbage"])
+    model = ROOT / "models" / "detector_fp32.onnx"
+    for threads in (0, 10**11):
+        with pytest.raises(ValueError, match="threads must be a whole number from 1 to 256"):
+            OnnxDetector(model, threads=threads)
+
+
+def test_a_landmark_csv_with_a_header_and_no_rows_is_not_said_to_lack_columns(tmp_path):
+    from calibration.landmarks import load_landmarks
+
+    csv = tmp_path / "lm.csv"
+    csv.write_text("id,u,v,lat,lon\n")
+    landmarks, _ = load_landmarks(csv)  # none: calibrate then says there are fewer than 4
+    assert len(landmarks) == 0
+    csv.write_text("id,u,v,lat\n")
+    with pytest.raises(ValueError, match="CSV header lacks column"):
+        load_landmarks(csv)
+
+
+def test_a_composite_of_less_than_one_image_is_refused():
+    from training.composite import CompositeConfig
+
+    with pytest.raises(ValueError, match=r"seconds 0\.5 at hz 1 is not one image"):
+        CompositeConfig(seconds=0.5, hz=1.0)
