@@ -21,7 +21,7 @@ from typing import Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import BaseSettings, SettingsConfigDict, SettingsError
 
 from shared.keys import SERVICES
 from shared.messages import CAMERA_KINDS, check_name
@@ -350,8 +350,26 @@ def load_settings(path: str | Path, **overrides) -> Settings:
         return Settings(**data)
     except ValidationError as exc:
         e = exc.errors()[0]
-        where = ".".join(str(p) for p in e.get("loc", ()))
-        raise ValueError(f"{path}: {where}: {e.get('msg')}") from None
+        loc = [str(p) for p in e.get("loc", ())]
+        raise ValueError(f"{path}: {'.'.join(loc)}: {e.get('msg')}{_given_by(loc, overrides)}") from None
+    except SettingsError as exc:  # an environment variable that is not the JSON its field needs
+        names = sorted(k for k in os.environ if k.upper().startswith("ROADSIDE_"))
+        raise ValueError(f"{path}: the environment: {exc} (ROADSIDE_ variables set: {', '.join(names)})") from None
+
+
+def _given_by(loc: list[str], overrides: dict) -> str:
+    """Where a bad value came from when not from the site file: an environment variable (ROADSIDE_SECTION__FIELD,
+    which wins over the file) or an override (`--set section.field=...`, a command-line flag)."""
+    for n in range(len(loc), 0, -1):
+        name = "ROADSIDE_" + "__".join(loc[:n]).upper()
+        if any(k.upper() == name for k in os.environ):
+            return f" (given by the environment: {name})"
+    node: object = overrides
+    for part in loc:
+        if not isinstance(node, dict) or part not in node:
+            return ""
+        node = node[part]
+    return " (given on the command line: --set or a flag)"
 
 
 def env_overrides() -> dict[str, str]:

@@ -154,3 +154,16 @@ def test_a_composite_of_less_than_one_image_is_refused():
 
     with pytest.raises(ValueError, match=r"seconds 0\.5 at hz 1 is not one image"):
         CompositeConfig(seconds=0.5, hz=1.0)
+
+
+def test_a_bad_value_from_the_environment_or_a_flag_is_not_blamed_on_the_site_file(monkeypatch):
+    with pytest.raises(ValueError, match=r"less than 1 \(given on the command line: --set or a flag\)"):
+        load_settings(EXAMPLE_SITE, detect={"score_thr": 7})
+    assert load_settings(EXAMPLE_SITE).detect.score_thr <= 1  # the file's own values are fine
+    monkeypatch.setenv("ROADSIDE_DETECT__SCORE_THR", "nan")
+    with pytest.raises(ValueError, match=r"score_thr: .*\(given by the environment: ROADSIDE_DETECT__SCORE_THR\)"):
+        load_settings(EXAMPLE_SITE)
+    monkeypatch.delenv("ROADSIDE_DETECT__SCORE_THR")
+    monkeypatch.setenv("ROADSIDE_BUS", "{not json")
+    with pytest.raises(ValueError, match=r"the environment: .*\(ROADSIDE_ variables set: ROADSIDE_BUS\)"):
+        load_settings(EXAMPLE_SITE)
