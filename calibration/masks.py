@@ -103,7 +103,8 @@ def load_masks(path: str | Path, with_latlon: bool = True) -> LookupMasks:
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in keys}
     except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:  # a truncated file is not a zip
-        raise ValueError(f"{path}: not a lookup masks file ({type(exc).__name__}: {exc})") from None
+        why = "not an .npz archive" if "allow_pickle" in str(exc) else f"{type(exc).__name__}: {exc}"  # numpy's hint
+        raise ValueError(f"{path}: not a lookup masks file ({why}; make one with roadside calibrate)") from None
     try:
         meta = json.loads(str(arrays["meta"]))
     except json.JSONDecodeError as exc:

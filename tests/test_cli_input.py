@@ -167,3 +167,17 @@ def test_a_bad_value_from_the_environment_or_a_flag_is_not_blamed_on_the_site_fi
     monkeypatch.setenv("ROADSIDE_BUS", "{not json")
     with pytest.raises(ValueError, match=r"the environment: .*\(ROADSIDE_ variables set: ROADSIDE_BUS\)"):
         load_settings(EXAMPLE_SITE)
+
+
+def test_a_masks_file_that_is_no_archive_and_a_zero_stride_are_named(tmp_path, capsys):
+    from calibration.masks import load_masks
+
+    bad = tmp_path / "NE.npz"
+    bad.write_text("not an archive")
+    with pytest.raises(ValueError) as exc:
+        load_masks(bad)
+    assert f"{bad}: not a lookup masks file (not an .npz archive" in str(exc.value)
+    assert "allow_pickle" not in str(exc.value), "numpy's advice to load it unsafely is not ours to give"
+    with pytest.raises(SystemExit) as stop:
+        main(["bench", "calibration", "--stride", "0"])
+    assert stop.value.code == 2 and "--stride: must be a whole number >= 1" in capsys.readouterr().err
