@@ -105,11 +105,13 @@ def test_viz_skips_a_line_from_beyond_2262_and_fails_on_a_file_with_no_valid_lin
     assert "(0 lines)" in capsys.readouterr().err
 
 
-def test_eval_handoff_names_the_line_of_a_binary_tracks_file(tmp_path, capsys):
+def test_eval_names_the_line_of_a_binary_tracks_file(tmp_path):
+    from eval.tracking import load_tracks
+
     binary = tmp_path / "tracks.jsonl"
     binary.write_bytes(bytes(range(128, 256)) + b"\n")
-    assert main(["eval", "handoff", "--tracks", str(binary), "--site", "state_ellsworth"]) == 2
-    assert f"{binary}: line 1: not valid JSON" in capsys.readouterr().err
+    with pytest.raises(ValueError, match=f"{binary}: line 1: not valid JSON"):
+        load_tracks(binary)
 
 
 def test_bench_detector_names_a_model_it_cannot_load(tmp_path, capsys):
