@@ -29,6 +29,7 @@ from calibration.fit import CalibConfig, calibrate
 from calibration.landmarks import landmarks_from_rows
 from calibration.masks import build_masks, calibrated_area
 from calibration.site_ground import calibrate_site
+from roadside.argtypes import positive_int
 from shared.ground import ground_lookup
 from shared.jsonio import dumps
 from sim.landmarks import pick_landmarks
@@ -97,19 +98,9 @@ def _mean(rows: list[dict], key: str) -> float | None:
     return round(float(np.mean(vals)), 4) if vals else None
 
 
-def _stride(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {text}")
-    return v
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--stride", type=_stride, default=2, help="score every n-th ground pixel (n >= 1)")
+    p.add_argument("--stride", type=positive_int, default=2, help="score every n-th ground pixel (n >= 1)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--data", type=Path, default=default_data_root(), help="real data folder (../shared/data)")
     p.add_argument("--exact", action="store_true",
