@@ -60,11 +60,15 @@ def score(text: str) -> float:
     return v
 
 
-def positive_int(text: str) -> int:
+def _whole(text: str) -> int:
     try:
-        v = int(text)
+        return int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+
+
+def positive_int(text: str) -> int:
+    v = _whole(text)
     if v < 1:
         raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {text}")
     return v
@@ -81,13 +85,14 @@ def endpoint(text: str) -> str:
 
 
 def port_base(text: str) -> int:
-    """The embedded default's first service port (BusSettings.port_base: 1024-65000)."""
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
-    if not 1024 <= v <= 65000:
-        raise argparse.ArgumentTypeError(f"must be a port from 1024 to 65000, got {text}")
+    """The embedded default's first service port, in the range BusSettings.port_base allows."""
+    from shared.settings import BusSettings
+
+    meta = BusSettings.model_fields["port_base"].metadata
+    lo, hi = (next(getattr(m, k) for m in meta if hasattr(m, k)) for k in ("ge", "le"))
+    v = _whole(text)
+    if not lo <= v <= hi:
+        raise argparse.ArgumentTypeError(f"must be a port from {lo} to {hi}, got {text}")
     return v
 
 

@@ -19,6 +19,7 @@ import numpy as np
 
 from shared.decode import CONFIG_KEY, Detections, decode
 from shared.heads_calibration import BOX_CALIBRATION_KEY, SIZE_CALIBRATION_KEY, BoxCalibration, SizeCalibration
+from shared.settings import MAX_THREADS
 
 PAD_MULTIPLE = 32
 AREA_CONTEXT_PX = 32  # network pixels of the image kept around a camera's detect area (see `OnnxDetector.detect`)
@@ -55,8 +56,6 @@ def input_scale(width: int, height: int, long_side: int) -> float:
     enlarging adds compute, not detail). Training (`training.train`) and the detect service both use it."""
     return min(1.0, long_side / max(width, height))
 
-
-MAX_THREADS = 256  # ONNX Runtime threads per inference
 
 
 class OnnxDetector:

@@ -27,6 +27,7 @@ from shared.keys import SERVICES
 from shared.messages import CAMERA_KINDS, check_name
 from shared.position_error import POSITION_SIGMA, check_position_sigma
 
+MAX_THREADS = 256  # ONNX Runtime threads per inference (DetectSettings, shared/inference.py)
 ENDPOINT_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe", "serial", "vsock")
 _HOST_PORT = re.compile(r"^(\[[0-9A-Fa-f:.]+\]|[^\s:/\[\]]+):(\d{1,5})$")
 
@@ -173,7 +174,7 @@ class DetectSettings(Strict):
     # frames/s at 640x480 on the 2-core development machine (CPU 39 against 57 ms per frame: the threads of one
     # inference wait on each other), at ~37 against ~29 ms per frame. With a GPU provider one worker may do.
     workers: int = Field(2, ge=1, le=16)  # frames inferred at once
-    threads: int = Field(1, ge=1, le=256)  # ONNX Runtime threads per inference (shared/inference.py MAX_THREADS)
+    threads: int = Field(1, ge=1, le=MAX_THREADS)  # ONNX Runtime threads per inference
     score_thr: float = Field(0.3, gt=0, lt=1)
     # frames kept waiting per camera; older ones are dropped. 1: a frame waits for at most one of each other
     # camera's, which live (pace 1, a detector slower than the cameras) measured 171 against 268 ms end to end p50
