@@ -24,7 +24,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from pydantic_settings import BaseSettings, SettingsConfigDict, SettingsError
 
 from shared.keys import SERVICES
-from shared.messages import CAMERA_KINDS, check_name
+from shared.messages import check_name
 from shared.position_error import POSITION_SIGMA, check_position_sigma
 
 MAX_THREADS = 256  # ONNX Runtime threads per inference (DetectSettings, shared/inference.py)
@@ -290,18 +290,16 @@ class Settings(BaseSettings):
     def _site(cls, v: str) -> str:
         return check_name("site", v)
 
-    @model_validator(mode="after")
-    def _check(self) -> Settings:
-        names = [c.name for c in self.cameras]
+    @field_validator("cameras")
+    @classmethod
+    def _cameras(cls, v: list[CameraSettings]) -> list[CameraSettings]:
+        names = [c.name for c in v]
         if not names:
-            raise ValueError("cameras: at least one camera is needed")
+            raise ValueError("at least one camera is needed")
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
-            raise ValueError(f"cameras: duplicate camera names {dup}")
-        for c in self.cameras:
-            if c.kind not in CAMERA_KINDS:
-                raise ValueError(f"camera {c.name}: kind {c.kind!r}")
-        return self
+            raise ValueError(f"duplicate camera names {dup}")
+        return v
 
     def path(self, p: Path | str | None) -> Path | None:
         """A path from the file, resolved against the site folder."""
@@ -352,7 +350,8 @@ def load_settings(path: str | Path, **overrides) -> Settings:
     except ValidationError as exc:
         e = exc.errors()[0]
         loc = [str(p) for p in e.get("loc", ())]
-        raise ValueError(f"{path}: {'.'.join(loc)}: {e.get('msg')}{_given_by(loc, overrides)}") from None
+        where = f"{'.'.join(loc)}: " if loc else ""  # nothing for a rule over the whole file
+        raise ValueError(f"{path}: {where}{e.get('msg')}{_given_by(loc, overrides)}") from None
     except SettingsError as exc:  # an environment variable that is not the JSON its field needs
         names = sorted(k for k in os.environ if k.upper().startswith("ROADSIDE_"))
         raise ValueError(f"{path}: the environment: {exc} (ROADSIDE_ variables set: {', '.join(names)})") from None
@@ -361,6 +360,8 @@ def load_settings(path: str | Path, **overrides) -> Settings:
 def _given_by(loc: list[str], overrides: dict) -> str:
     """Where a bad value came from when not from the site file: an environment variable (ROADSIDE_SECTION__FIELD,
     which wins over the file) or an override (`--set section.field=...`, a command-line flag)."""
+    if not loc:  # a rule over the whole file
+        return ""
     for n in range(len(loc), 0, -1):
         name = "ROADSIDE_" + "__".join(loc[:n]).upper()
         if any(k.upper() == name for k in os.environ):

@@ -183,3 +183,17 @@ def test_a_masks_file_that_is_no_archive_and_a_zero_stride_are_named(tmp_path, c
     with pytest.raises(SystemExit) as stop:
         main(["bench", "calibration", "--stride", "0"])
     assert stop.value.code == 2 and "--stride: must be a whole number >= 1" in capsys.readouterr().err
+
+
+def test_a_site_file_naming_one_camera_twice_says_which_field(tmp_path):
+    site = tmp_path / "site.yaml"
+    site.write_text("site: t\ncameras:\n" + 2 * "  - {name: A, kind: fisheye, width: 64, height: 48, masks: a.npz}\n")
+    with pytest.raises(ValueError, match=r"site.yaml: cameras: .*duplicate camera names \['A'\]$"):
+        load_settings(site)  # and not blamed on the command line
+
+
+def test_mix_names_an_output_that_is_a_folder(tmp_path, capsys):
+    pytest.importorskip("torch")
+    model = ROOT / "models" / "detector.pt"
+    assert main(["mix", str(model), str(model), "--weight", "0.5", "--out", str(tmp_path)]) == 2
+    assert f"Is a directory: '{tmp_path}'" in capsys.readouterr().err

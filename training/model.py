@@ -242,7 +242,8 @@ def save_detector(model: Detector, path: str | Path, loss: dict | None = None) -
     """Write the config and weights to one file, with the loss settings it was trained with (`loss`, the fields
     of training.loss.LossConfig) when given: fine-tuning takes them from there (`checkpoint_loss`)."""
     state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}  # loadable without a GPU
-    torch.save({"config": asdict(model.config), "state_dict": state, **({"loss": loss} if loss else {})}, path)
+    with open(path, "wb") as f:  # Python's error names the path (torch's own writer does not)
+        torch.save({"config": asdict(model.config), "state_dict": state, **({"loss": loss} if loss else {})}, f)
 
 
 def checkpoint_loss(path: str | Path) -> dict | None:
