@@ -53,11 +53,18 @@ def _roi_local(roi: dict | None, geo: GeoFrame) -> dict | None:
 def _other_camera(path: Path, kind: str, circle, fov_deg: float) -> tuple:
     """(Landmarks, CalibConfig) of another camera of the site (`--shared-ground`), checked as this one's."""
     lm, header = load_landmarks(path)
+    _same_kind(path, header, kind, "--shared-ground ...:")
     if not header.get("width") or not header.get("height"):
         raise ValueError(f"{path}: image size unknown (the landmark file has no width and height)")
     cfg = CalibConfig(kind, int(header["width"]), int(header["height"]), image_circle=circle, fov_deg=fov_deg)
     validate_landmarks(lm, cfg.width, cfg.height, cfg.circle if cfg.kind == "fisheye" else None)
     return lm, cfg
+
+
+def _same_kind(path: Path, header: dict, kind: str, given_as: str) -> None:
+    """ValueError when the landmark file says it is for the other kind of camera than the command line."""
+    if header.get("kind") not in (None, kind):
+        raise ValueError(f"{path} is for a {header['kind']} camera, not {given_as}{kind}")
 
 
 def _near_landmarks(what: str, lat: float, lon: float, lm) -> None:
@@ -79,8 +86,7 @@ def _writable_file(what: str, path: Path | None) -> None:
 def run_calibration(job: CalibrateJob) -> dict:
     """Fit, then write the masks, the report and the plot; every input is checked before anything is written."""
     lm, header = load_landmarks(job.landmarks)
-    if header.get("kind") not in (None, job.kind):
-        raise ValueError(f"{job.landmarks} is for a {header['kind']} camera, not --kind {job.kind}")
+    _same_kind(job.landmarks, header, job.kind, "--kind ")
     width = job.width or header.get("width")
     height = job.height or header.get("height")
     if not width or not height:

@@ -32,6 +32,10 @@ EXAMPLE_SITE = ROOT / "deploy" / "sites" / "example" / "site.yaml"
     (["eval", "real", "--score-thr", "5"], "argument --score-thr: must be a score from 0 to 1, got 5"),
     (["eval", "detector", "--threads", "0"], "argument --threads: must be a whole number >= 1"),
     (["static", "--score-thr", "-1"], "argument --score-thr: must be a score from 0 to 1"),
+    (["calibrate", "--landmarks", "l.json", "--kind", "pinhole", "--out", "m.npz", "--width", "0"],
+     "argument --width: must be a whole number >= 1, got 0"),
+    (["calibrate", "--landmarks", "l.json", "--kind", "pinhole", "--out", "m.npz", "--segments", "-2"],
+     "argument --segments: must be a whole number >= 1"),
 ])
 def test_flags_out_of_range_are_refused_by_name(argv, message, capsys):
     with pytest.raises(SystemExit) as exc:

@@ -121,11 +121,14 @@ def test_cli_calibrate_with_shared_ground(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["calibrate", "--landmarks", str(files["P"]), "--kind", "pinhole", "--out", str(out),
               "--shared-ground", f"{files['Q']}:wide"])
-    with pytest.raises(ValueError, match="fisheye camera keeps its own planes"):
-        from calibration.run import CalibrateJob, run_calibration
+    from calibration.run import CalibrateJob, run_calibration
 
+    with pytest.raises(ValueError, match="fisheye camera keeps its own planes"):
         run_calibration(CalibrateJob(files["P"], "fisheye", out, image_circle=(320.0, 256.0, 420.0),
                                      shared_ground=((files["Q"], "pinhole", None),)))
+    files["Q"].write_text(json.dumps({"kind": "fisheye", **json.loads(files["Q"].read_text())}))
+    with pytest.raises(ValueError, match=r"Q.json is for a fisheye camera, not --shared-ground \.\.\.:pinhole"):
+        run_calibration(CalibrateJob(files["P"], "pinhole", out, shared_ground=((files["Q"], "pinhole", None),)))
 
 
 def test_a_site_too_large_for_the_bumps_gets_a_coarser_grid():
