@@ -118,7 +118,8 @@ def _add_calibrate(sub) -> None:
     p.add_argument("--width", type=positive_int, help="image width (default: from the landmark file)")
     p.add_argument("--height", type=positive_int, help="image height (default: from the landmark file)")
     p.add_argument("--report", type=Path, help="report JSON (default: next to --out)")
-    p.add_argument("--segments", type=positive_int, help="ground segments (default 2 pinhole range bands, 4 fisheye sectors)")
+    p.add_argument("--segments", type=positive_int,
+                   help="ground segments (default 2 pinhole range bands, 4 fisheye sectors)")
     p.add_argument("--image-circle", type=_floats(3), help="fisheye image circle CX,CY,RADIUS in pixels")
     p.add_argument("--fov-deg", type=finite_float, default=188.0,
                    help="fisheye field of view at the image circle's edge")
