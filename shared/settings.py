@@ -245,6 +245,10 @@ class FuseTrackSettings(Strict):
     relink_s: float = Field(3.0, ge=0, le=30)
     relink_gate_m: float = Field(3.0, gt=0)
     record: Path | None = None  # append every Tracks message to this JSON-lines file
+    # at this size the recording is renamed <stem>.<n>.jsonl and a new one started (services/fuse_track/recorder.py);
+    # 0: one file that grows for ever (about 4 MB a minute with the demo's four cameras)
+    record_rotate_mb: float = Field(0.0, ge=0)
+    record_keep: int = Field(0, ge=0)  # rotated files kept, the oldest deleted beyond it; 0: all
 
     @field_validator("position_sigma")
     @classmethod

@@ -261,6 +261,7 @@ def test_fuse_track_records_tracks_to_a_writable_volume():
     volume = data[0].split(":")[0]
     assert volume in doc.get("volumes", {}), f"named volume {volume!r} is not declared"
     assert _service_env(svc)["ROADSIDE_FUSE_TRACK__RECORD"] == "/data/tracks.jsonl"
+    assert float(_service_env(svc)["ROADSIDE_FUSE_TRACK__RECORD_ROTATE_MB"]) > 0, "a volume that fills for ever"
 
 
 def test_common_parts_come_from_an_extension_anchor():
@@ -289,6 +290,7 @@ def test_compose_environment_gives_valid_settings_for_the_example_site(name, mon
         assert s.detect.model.is_absolute() and s.detect.providers
     if name == "fuse_track":
         assert s.fuse_track.record == Path("/data/tracks.jsonl")
+        assert (s.fuse_track.record_rotate_mb, s.fuse_track.record_keep) == (256, 40)
 
 
 # --- deploy/Dockerfile ---------------------------------------------------------------------------

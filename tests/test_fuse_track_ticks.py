@@ -1,9 +1,7 @@
 """fuse_track's event-time ticks with plain arrays: when a tick closes, late and glitched cameras, clocks
-that step, caps, and the recorder."""
+that step, and caps."""
 
 from __future__ import annotations
-
-import json
 
 import numpy as np
 import pytest
@@ -157,43 +155,6 @@ def test_a_tick_keeps_its_highest_scoring_objects_up_to_the_cap():
     assert same is batches and dropped == 0
     (kept,), dropped = capped(batches, limit=2)
     assert dropped == 1 and kept.score.tolist() == [0.9, 0.5] and kept.xy[:, 0].tolist() == [5.0, 9.0]
-
-
-def test_the_recorder_survives_a_failed_write_and_a_half_written_line(tmp_path, caplog):
-    """A full disk costs the messages it could not record, not live tracking or the lines before; a file a killed
-    process left in half a line gets that half line cut off, so every line parses."""
-
-    from services.fuse_track.__main__ import Recorder
-
-    class Msg:
-        site, tracker = "s", "tracker-1"
-
-        def __init__(self, seq: int) -> None:
-            self.seq = self.t_capture_ns = seq
-
-        def rows(self) -> list:
-            return [{"id": self.seq}]
-
-    path = tmp_path / "tracks.jsonl"
-    path.write_bytes(b'{"seq": 0}\n{"seq": 1, "tra')
-    rec = Recorder(path)
-    assert path.read_bytes() == b'{"seq": 0}\n' and "ended in half a line" in caplog.text
-    rec.write(Msg(2))
-    real_write = rec.file.write
-
-    def half_then_fail(data: bytes) -> int:
-        real_write(data[: len(data) // 2])
-        raise OSError(28, "No space left on device")
-
-    rec.file.write = half_then_fail
-    rec.write(Msg(3))
-    assert rec.failed == 1 and "Tracks seq 3 not recorded (No space left on device" in caplog.text
-    rec.file.write = real_write
-    rec.write(Msg(4))
-    rec.close()
-    assert [json.loads(line)["seq"] for line in path.read_text().splitlines()] == [0, 2, 4]
-    Recorder(path).close()  # a complete file is left as it is
-    assert [json.loads(line)["seq"] for line in path.read_text().splitlines()] == [0, 2, 4]
 
 
 def test_long_gap_emits_at_most_max_empty_ticks():

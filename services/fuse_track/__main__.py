@@ -8,8 +8,8 @@ bounded watermark: services/fuse_track/ticks.py); fuses by camera region with a 
 `roadside/<site>/tracks`, answers `roadside/<site>/tracks/latest` with the newest Tracks (a vehicle that
 joins late gets the current tracks at once), and appends every Tracks message to the recording file
 (`fuse_track.record`, JSON lines, flushed per line so a kill loses nothing written before it; a write that fails
-is logged and counted, and tracking goes on). When every camera's clock steps back, the tracker starts again
-under a new id (ticks.py).
+is logged and counted, and tracking goes on; rotated by size: recorder.py). When every camera's clock steps back,
+the tracker starts again under a new id (ticks.py).
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from services.fuse_track.fusion import CameraRegion, Fusion, FusionConfig, ObjectBatch
+from services.fuse_track.recorder import Recorder
 from services.fuse_track.ticks import Tick, TickBuffer, TickConfig
 from services.fuse_track.tracker import Tracker, TrackerConfig, TrackState
 from shared.bus import BadInput, Receiver, Stopper, declare_alive, open_session
@@ -97,67 +98,6 @@ def tick_frames(tick: Tick) -> list[tuple[str, int, int, int]]:
     return [(cam, s, t_cap, t_arr) for cam, items in tick.batches.items() for t_cap, (s, t_arr, _) in items]
 
 
-class Recorder:
-    """Appends one JSON line per Tracks message; each line is flushed as it is written.
-
-    A write that fails (disk full, file too large) is logged and counted (`failed`), the half-written line cut off
-    and live tracking goes on; a file left ending in half a line (a process killed mid-write) has that half line
-    cut off when it is opened again, so every line in it parses."""
-
-    def __init__(self, path: Path | None) -> None:
-        self.file = None
-        self.path = path
-        self.failed = 0
-        if path is not None:
-            try:
-                path.parent.mkdir(parents=True, exist_ok=True)
-                self.file = path.open("ab")
-                self._cut_partial_line()
-            except OSError as exc:
-                raise ValueError(f"cannot write the tracks recording {path}: {exc.strerror or exc}") from None
-
-    def _cut_partial_line(self) -> None:
-        """Cut the file back to its last complete line (scanning back from the end a chunk at a time)."""
-        end = keep = self.file.seek(0, 2)
-        with self.path.open("rb") as f:
-            while keep > 0:
-                start = max(0, keep - 65536)
-                f.seek(start)
-                nl = f.read(keep - start).rfind(b"\n")
-                if nl >= 0:
-                    keep = start + nl + 1
-                    break
-                keep = start
-        if keep < end:
-            log.warning("%s ended in half a line (%d bytes, a write cut off): removed", self.path, end - keep)
-            self.file.truncate(keep)
-
-    def write(self, msg: Tracks) -> None:
-        if self.file is None:
-            return
-        line = (json.dumps({"site": msg.site, "seq": msg.seq, "t_ns": msg.t_capture_ns, "tracker": msg.tracker,
-                            "tracks": msg.rows()}) + "\n").encode()
-        start = self.file.tell()
-        try:
-            self.file.write(line)
-            self.file.flush()
-        except OSError as exc:
-            self.failed += 1
-            log.error("tracks recording %s: Tracks seq %d not recorded (%s; %d lost so far); tracking goes on",
-                      self.path, msg.seq, exc.strerror or exc, self.failed)
-            try:
-                self.file.truncate(start)
-            except OSError:
-                pass
-
-    def close(self) -> None:
-        if self.file is not None:
-            try:
-                self.file.close()
-            except OSError as exc:
-                log.error("tracks recording %s: closing failed (%s)", self.path, exc.strerror or exc)
-
-
 def build(settings: Settings) -> tuple[Fusion, Tracker, TickBuffer, dict[str, tuple[float, float]], GeoFrame]:
     """The fusion, tracker and tick buffer of a site's settings, as the service runs them (also used offline:
     eval/budget.py replays a run's objects through them), with the cameras' ground positions and the site frame."""
@@ -212,7 +152,7 @@ def fuse_and_track(fusion: Fusion, tracker: Tracker, batches: list[ObjectBatch],
 def main(settings: Settings, stopper: Stopper) -> int:
     cfg = settings.fuse_track
     fusion, tracker, ticks, positions, geo = build(settings)
-    recorder = Recorder(settings.path(cfg.record))
+    recorder = Recorder(settings.path(cfg.record), round(cfg.record_rotate_mb * 2**20), cfg.record_keep)
     bad = BadInput("fuse_track")
     session = open_session(settings, "fuse_track")
     latest: list[bytes] = []
@@ -263,6 +203,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
                 status.count("tracks_out", output=True)
                 status.gauge("tracks", len(msg))
                 status.gauge("not_recorded", recorder.failed)
+                status.gauge("rotations_failed", recorder.rotation_failed)
                 seq += 1
 
         while not stopper.is_set():

@@ -1,0 +1,124 @@
+"""The tracks recording: one JSON line per Tracks message, appended to `fuse_track.record`.
+
+Each line is flushed as it is written, so a kill loses nothing written before it. A write that fails (disk full,
+file too large) is logged and counted (`failed`), the half-written line cut off, and live tracking goes on; a file
+left ending in half a line (a process killed mid-write) has that half line cut off when it is opened again, so
+every line in it parses.
+
+A cabinet records for weeks (the demo's four cameras write about 4 MB a minute), so the file can be rotated
+(`fuse_track.record_rotate_mb`): once it reaches that size it is closed and renamed `<stem>.<n>.jsonl` beside
+it, numbered up from the highest number there (names sort oldest first), and a new file starts. Every line holds
+the whole current Tracks message, so each file reads on its own. With `fuse_track.record_keep` only that many
+rotated files are kept: the oldest beyond it are deleted. A rename or delete that fails is logged and counted, and
+recording goes on in the file it has (a failed rotation is tried again when the file has grown another tenth).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+from pathlib import Path
+
+from shared.messages import Tracks
+
+log = logging.getLogger("roadside.fuse_track")
+
+
+class Recorder:
+    """Appends Tracks messages to `path` (nothing when None), rotating it at `rotate_bytes` (0: never) and keeping
+    the newest `keep` rotated files (0: all)."""
+
+    def __init__(self, path: Path | None, rotate_bytes: int = 0, keep: int = 0) -> None:
+        self.file = None
+        self.path = path
+        self.rotate_bytes = rotate_bytes
+        self.keep = keep
+        self.next_rotation = rotate_bytes  # the size at which the file is rotated next
+        self.failed = 0  # Tracks messages not recorded
+        self.rotation_failed = 0  # renames and deletes that failed (the lines stay in the file they were in)
+        if path is not None:
+            try:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                self.file = path.open("ab")
+                self._cut_partial_line()
+            except OSError as exc:
+                raise ValueError(f"cannot write the tracks recording {path}: {exc.strerror or exc}") from None
+
+    def _cut_partial_line(self) -> None:
+        """Cut the file back to its last complete line (scanning back from the end a chunk at a time)."""
+        end = keep = self.file.seek(0, 2)
+        with self.path.open("rb") as f:
+            while keep > 0:
+                start = max(0, keep - 65536)
+                f.seek(start)
+                nl = f.read(keep - start).rfind(b"\n")
+                if nl >= 0:
+                    keep = start + nl + 1
+                    break
+                keep = start
+        if keep < end:
+            log.warning("%s ended in half a line (%d bytes, a write cut off): removed", self.path, end - keep)
+            self.file.truncate(keep)
+
+    def write(self, msg: Tracks) -> None:
+        if self.file is None:
+            return
+        line = (json.dumps({"site": msg.site, "seq": msg.seq, "t_ns": msg.t_capture_ns, "tracker": msg.tracker,
+                            "tracks": msg.rows()}) + "\n").encode()
+        start = self.file.tell()
+        try:
+            self.file.write(line)
+            self.file.flush()
+        except OSError as exc:
+            self.failed += 1
+            log.error("tracks recording %s: Tracks seq %d not recorded (%s; %d lost so far); tracking goes on",
+                      self.path, msg.seq, exc.strerror or exc, self.failed)
+            try:
+                self.file.truncate(start)
+            except OSError:
+                pass
+            return
+        if self.rotate_bytes and self.file.tell() >= self.next_rotation:
+            self._rotate()
+
+    def rotated(self) -> list[tuple[int, Path]]:
+        """The rotated files beside the recording with their numbers, oldest first."""
+        pattern = re.compile(re.escape(self.path.stem) + r"\.(\d+)" + re.escape(self.path.suffix) + "$")
+        return sorted((int(m.group(1)), p) for p in self.path.parent.iterdir() if (m := pattern.match(p.name)))
+
+    def _rotate(self) -> None:
+        old = self.rotated()
+        target = self.path.with_name(f"{self.path.stem}.{old[-1][0] + 1 if old else 1:06d}{self.path.suffix}")
+        try:
+            self.path.rename(target)  # the open file keeps its lines under the new name
+            try:
+                new = self.path.open("ab")
+            except OSError:
+                target.rename(self.path)  # back as it was: the lines go on into the file they were in
+                raise
+        except OSError as exc:
+            self.rotation_failed += 1
+            self.next_rotation = self.file.tell() + self.rotate_bytes // 10  # not again at every line
+            log.error("tracks recording %s: rotation to %s failed (%s); recording goes on in the same file",
+                      self.path, target.name, exc.strerror or exc)
+            return
+        self.file.close()
+        self.file = new
+        self.next_rotation = self.rotate_bytes
+        log.info("tracks recording %s: %s closed at %d bytes", self.path, target.name, target.stat().st_size)
+        if self.keep:
+            for _, path in [*old, (0, target)][:-self.keep]:
+                try:
+                    path.unlink()
+                except OSError as exc:
+                    self.rotation_failed += 1
+                    log.error("tracks recording %s: cannot delete the old %s (%s)", self.path, path.name,
+                              exc.strerror or exc)
+
+    def close(self) -> None:
+        if self.file is not None:
+            try:
+                self.file.close()
+            except OSError as exc:
+                log.error("tracks recording %s: closing failed (%s)", self.path, exc.strerror or exc)
