@@ -45,12 +45,17 @@ def test_the_recorder_survives_a_failed_write_and_a_half_written_line(tmp_path, 
     rec.file.write = half_then_fail
     rec.write(Msg(3))
     assert rec.failed == 1 and "Tracks seq 3 not recorded (No space left on device" in caplog.text
+    for seq in range(1000, 1250):  # a disk that stays full: the first, the 100th and the 200th are logged
+        rec.write(Msg(seq))
+    assert [r.message.count("not recorded") for r in caplog.records].count(1) == 3 and rec.failed == 251
+    assert "Tracks seq 1198 not recorded (No space left on device; 200 lost so far)" in caplog.text
     rec.file.write = real_write
     rec.write(Msg(4))
+    assert "recording again from Tracks seq 4 (251 lost so far)" in caplog.text
     rec.close()
-    assert [json.loads(line)["seq"] for line in path.read_text().splitlines()] == [0, 2, 4]
+    assert seqs(path) == [0, 2, 4]
     Recorder(path).close()  # a complete file is left as it is
-    assert [json.loads(line)["seq"] for line in path.read_text().splitlines()] == [0, 2, 4]
+    assert seqs(path) == [0, 2, 4]
 
 
 def test_a_rotated_recording_keeps_every_line_in_order_across_files_and_restarts(tmp_path):

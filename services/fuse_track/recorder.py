@@ -1,9 +1,9 @@
 """The tracks recording: one JSON line per Tracks message, appended to `fuse_track.record`.
 
 Each line is flushed as it is written, so a kill loses nothing written before it. A write that fails (disk full,
-file too large) is logged and counted (`failed`), the half-written line cut off, and live tracking goes on; a file
-left ending in half a line (a process killed mid-write) has that half line cut off when it is opened again, so
-every line in it parses.
+file too large) is counted (`failed`) and logged (the first, then every 100th, and when writing works again), the
+half-written line cut off, and live tracking goes on; a file left ending in half a line (a process killed
+mid-write) has that half line cut off when it is opened again, so every line in it parses.
 
 A cabinet records for weeks (the demo's four cameras write about 4 MB a minute), so the file can be rotated
 (`fuse_track.record_rotate_mb`): once it reaches that size it is closed and renamed `<stem>.<n>.jsonl` beside
@@ -31,22 +31,24 @@ class Recorder:
 
     def __init__(self, path: Path | None, rotate_bytes: int = 0, keep: int = 0) -> None:
         self.file = None
+        self.size = 0  # bytes in the file: where its next line starts
         self.path = path
         self.rotate_bytes = rotate_bytes
         self.keep = keep
         self.next_rotation = rotate_bytes  # the size at which the file is rotated next
         self.failed = 0  # Tracks messages not recorded
+        self.failing = False  # the last write failed
         self.rotation_failed = 0  # renames and deletes that failed (the lines stay in the file they were in)
         if path is not None:
             try:
                 path.parent.mkdir(parents=True, exist_ok=True)
-                self.file = path.open("ab")
-                self._cut_partial_line()
+                self.file = path.open("ab", buffering=0)  # no buffer that a failed write could leave bytes in
+                self.size = self._cut_partial_line()
             except OSError as exc:
                 raise ValueError(f"cannot write the tracks recording {path}: {exc.strerror or exc}") from None
 
-    def _cut_partial_line(self) -> None:
-        """Cut the file back to its last complete line (scanning back from the end a chunk at a time)."""
+    def _cut_partial_line(self) -> int:
+        """Cut the file back to its last complete line (scanning back from the end a chunk at a time); its size."""
         end = keep = self.file.seek(0, 2)
         with self.path.open("rb") as f:
             while keep > 0:
@@ -60,26 +62,34 @@ class Recorder:
         if keep < end:
             log.warning("%s ended in half a line (%d bytes, a write cut off): removed", self.path, end - keep)
             self.file.truncate(keep)
+        return keep
 
     def write(self, msg: Tracks) -> None:
         if self.file is None:
             return
         line = (json.dumps({"site": msg.site, "seq": msg.seq, "t_ns": msg.t_capture_ns, "tracker": msg.tracker,
                             "tracks": msg.rows()}) + "\n").encode()
-        start = self.file.tell()
         try:
-            self.file.write(line)
-            self.file.flush()
+            view = memoryview(line)
+            while view:  # a write may take part of the line (a disk filling up), the next one then fails
+                view = view[self.file.write(view):]
         except OSError as exc:
             self.failed += 1
-            log.error("tracks recording %s: Tracks seq %d not recorded (%s; %d lost so far); tracking goes on",
-                      self.path, msg.seq, exc.strerror or exc, self.failed)
+            self.failing = True
+            if self.failed == 1 or self.failed % 100 == 0:  # a full disk fails every line: not a log line each
+                log.error("tracks recording %s: Tracks seq %d not recorded (%s; %d lost so far); tracking goes on",
+                          self.path, msg.seq, exc.strerror or exc, self.failed)
             try:
-                self.file.truncate(start)
+                self.file.truncate(self.size)  # the part written, cut off: the next line starts a line
             except OSError:
                 pass
             return
-        if self.rotate_bytes and self.file.tell() >= self.next_rotation:
+        self.size += len(line)
+        if self.failing:
+            self.failing = False
+            log.warning("tracks recording %s: recording again from Tracks seq %d (%d lost so far)", self.path,
+                        msg.seq, self.failed)
+        if self.rotate_bytes and self.size >= self.next_rotation:
             self._rotate()
 
     def rotated(self) -> list[tuple[int, Path]]:
@@ -93,18 +103,18 @@ class Recorder:
         try:
             self.path.rename(target)  # the open file keeps its lines under the new name
             try:
-                new = self.path.open("ab")
+                new = self.path.open("ab", buffering=0)
             except OSError:
                 target.rename(self.path)  # back as it was: the lines go on into the file they were in
                 raise
         except OSError as exc:
             self.rotation_failed += 1
-            self.next_rotation = self.file.tell() + self.rotate_bytes // 10  # not again at every line
+            self.next_rotation = self.size + self.rotate_bytes // 10  # not again at every line
             log.error("tracks recording %s: rotation to %s failed (%s); recording goes on in the same file",
                       self.path, target.name, exc.strerror or exc)
             return
         self.file.close()
-        self.file = new
+        self.file, self.size = new, new.seek(0, 2)  # empty: the old one was renamed away
         self.next_rotation = self.rotate_bytes
         log.info("tracks recording %s: %s closed at %d bytes", self.path, target.name, target.stat().st_size)
         if self.keep:
