@@ -41,6 +41,7 @@ def zenoh_config(bus: BusSettings, service: str | None = None, client_index: int
     conf.insert_json5("mode", json.dumps(bus.mode))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(bus.multicast_scouting))
     set_shared_memory(conf, bus.shared_memory)
+    conf.insert_json5("transport/link/tx/queue/size/data", json.dumps(bus.tx_queue_batches))
     listen = list(bus.listen)
     if bus.mode == "peer":
         others = [bus.service_endpoint(s) for s in SERVICES if s != service]

@@ -67,6 +67,12 @@ class BusSettings(Strict):
     shared_memory: bool = False
     # every service publishes a Status report this often (`roadside status`, shared/status.py); 0 = never
     status_period_s: float = Field(2.0, ge=0, le=3600, allow_inf_nan=False)
+    # Zenoh's send queue per link for data messages, in batches of up to 64 kB (Zenoh's default 2, its maximum 16).
+    # A 640x480 frame goes out in about 5 fragments; with 2 batches a sender ahead of its link drops the fragments
+    # that find the queue full (congestion control "drop", after waiting 1-50 ms), so whole frames were lost in
+    # playback at full speed and the tracker waited for them (docs/pipeline.md). 16 batches: at most 1 MB per link;
+    # the services' peak memory did not change measurably. deploy/zenoh/router.json5 sets the router's the same.
+    tx_queue_batches: int = Field(16, ge=1, le=16)
 
     @field_validator("connect", "listen")
     @classmethod

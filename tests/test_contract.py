@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 import yaml
 import zenoh
+from pydantic import ValidationError
 
 from shared.bus import BadInput, set_shared_memory, zenoh_config
 from shared.codec import MAX_ARRAY_ITEMS, MAX_MESSAGE_BYTES, DecodeError, decode, encode
@@ -719,6 +720,16 @@ def test_zenoh_config_shared_memory_is_off_unless_asked() -> None:
         "transport/shared_memory/enabled")) is False
     on = zenoh_config(BusSettings(port_base=30000, shared_memory=True), "ingest")
     assert json.loads(on.get_json("transport/shared_memory/enabled")) is True
+
+
+def test_zenoh_config_data_send_queue_is_bus_tx_queue_batches() -> None:
+    # Zenoh's default 2 batches dropped fragments of camera frames in full-speed playback (docs/pipeline.md)
+    key = "transport/link/tx/queue/size/data"
+    assert json.loads(zenoh_config(BusSettings(port_base=30000), "ingest").get_json(key)) == 16
+    assert json.loads(zenoh_config(BusSettings(port_base=30000, tx_queue_batches=4), "ingest").get_json(key)) == 4
+    for bad in (0, 17):  # Zenoh refuses more than 16
+        with pytest.raises(ValidationError, match="tx_queue_batches"):
+            BusSettings(tx_queue_batches=bad)
 
 
 def test_shared_memory_setting_on_a_zenoh_without_it() -> None:

@@ -16,7 +16,7 @@ import pytest
 import yaml
 
 from shared.keys import SERVICES
-from shared.settings import load_settings
+from shared.settings import BusSettings, load_settings
 
 ROOT = Path(__file__).resolve().parents[1]
 COMPOSE = ROOT / "compose.yaml"
@@ -399,6 +399,12 @@ def test_router_config_is_accepted_by_zenoh():
 
     conf = zenoh.Config.from_file(str(ROUTER_CONFIG))  # unknown keys or bad values raise
     assert json.loads(conf.get_json("mode")) == "router"
+
+
+def test_router_queues_as_many_data_batches_as_the_services():
+    # the router forwards every frame: a shorter send queue there would drop what the services' queues keep
+    conf = _json5_loads(ROUTER_CONFIG.read_text())
+    assert conf["transport"]["link"]["tx"]["queue"]["size"]["data"] == BusSettings().tx_queue_batches
 
 
 # --- the example site ----------------------------------------------------------------------------
