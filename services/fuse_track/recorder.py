@@ -114,9 +114,9 @@ class Recorder:
                       self.path, target.name, exc.strerror or exc)
             return
         self.file.close()
+        log.info("tracks recording %s: %s closed at %d bytes", self.path, target.name, self.size)
         self.file, self.size = new, new.seek(0, 2)  # empty: the old one was renamed away
         self.next_rotation = self.rotate_bytes
-        log.info("tracks recording %s: %s closed at %d bytes", self.path, target.name, target.stat().st_size)
         if self.keep:
             for _, path in [*old, (0, target)][:-self.keep]:
                 try:
