@@ -223,11 +223,14 @@ def declare_alive(session: zenoh.Session, site: str, service: str, instances: It
 
 
 def wait_for_peers(session: zenoh.Session, key: str, want: int, timeout_s: float) -> int:
-    """Wait until `want` liveliness tokens match `key` (or the timeout); returns how many were seen."""
+    """Wait until `want` distinct liveliness tokens match `key` (or the timeout); returns how many were seen.
+
+    Distinct keys: a session in client mode gets its own tokens twice (its own and the router's answer), so a plain
+    count let ingest at the cabinet start before the last services were ready."""
     deadline = time.monotonic() + timeout_s
     seen = 0
     while time.monotonic() < deadline:
-        seen = sum(1 for r in session.liveliness().get(key, timeout=1.0) if r.ok is not None)
+        seen = len({str(r.ok.key_expr) for r in session.liveliness().get(key, timeout=1.0) if r.ok is not None})
         if seen >= want:
             break
         time.sleep(0.1)

@@ -139,14 +139,15 @@ def service_env() -> dict[str, str]:
 class ServiceProcess:
     """One service as an OS process (its own process group); stderr goes to `log_path`."""
 
-    def __init__(self, service: str, site: Path, sets: list[str], log_path: Path) -> None:
+    def __init__(self, service: str, site: Path, sets: list[str], log_path: Path, env: dict | None = None) -> None:
+        """`env`: ROADSIDE_* variables for the service (as compose.yaml gives them), over a clean environment."""
         cmd = [sys.executable, "-m", f"services.{service}", "--site", str(site)]
         for s in sets:
             cmd += ["--set", s]
         self.service = service
         self.log_path = log_path
         with open(log_path, "wb") as err:
-            self.proc = subprocess.Popen(cmd, cwd=REPO, env=service_env(), stdin=subprocess.DEVNULL,
+            self.proc = subprocess.Popen(cmd, cwd=REPO, env={**service_env(), **(env or {})}, stdin=subprocess.DEVNULL,
                                          stdout=subprocess.DEVNULL, stderr=err, start_new_session=True)
 
     def log(self) -> str:

@@ -26,6 +26,7 @@ import pytest
 import yaml
 from pipeline_fixtures import (
     CAMERA,
+    REPO,
     Peer,
     ServiceProcess,
     bus_sets,
@@ -80,9 +81,9 @@ def launch(tmp_path: Path):
     """start(service, site, *sets) -> ServiceProcess; every process still running at the end is killed."""
     started: list[ServiceProcess] = []
 
-    def start(service: str, site: Path, *sets: str) -> ServiceProcess:
+    def start(service: str, site: Path, *sets: str, env: dict | None = None) -> ServiceProcess:
         n = sum(p.service == service for p in started)
-        proc = ServiceProcess(service, site, list(sets), tmp_path / f"{service}-{n}.log")
+        proc = ServiceProcess(service, site, list(sets), tmp_path / f"{service}-{n}.log", env)
         started.append(proc)
         return proc
 
@@ -264,6 +265,79 @@ def test_chain_plays_two_frames_through_all_four_services(site, site_name, small
         assert all(math.isfinite(row["lat"]) and row["cameras"] in ([], [CAMERA]) for row in r["tracks"])
     assert "stopped: 2 frames detected, 0 bad" in detect.log()
     assert "stopped: 2 messages localized, 0 bad" in localize.log()
+
+
+def open_router(port: int):
+    """A Zenoh router on deploy/zenoh/router.json5, as compose.yaml's, listening on this test's port."""
+    import zenoh
+
+    conf = zenoh.Config.from_file(str(REPO / "deploy" / "zenoh" / "router.json5"))
+    conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    return zenoh.open(conf)
+
+
+def test_waiting_for_peers_through_a_router_counts_each_token_once():
+    # a client-mode session gets its own token twice (its own answer and the router's): ingest at the cabinet counted
+    # one token per camera too many and started before the last services were ready
+    import zenoh
+
+    from shared.bus import wait_for_peers
+
+    port = free_port_base(span=1)
+    router = open_router(port)
+    sessions = []
+    try:
+        for _ in range(2):
+            conf = zenoh.Config()
+            conf.insert_json5("mode", '"client"')
+            conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+            sessions.append(zenoh.open(conf))
+        names = ("ingest", "detect")
+        tokens = [s.liveliness().declare_token(f"roadside/t/alive/{n}/NE")
+                  for s, n in zip(sessions, names, strict=True)]
+        assert wait_for_peers(sessions[0], "roadside/t/alive/**", 2, WAIT_S) == 2
+        assert wait_for_peers(sessions[0], "roadside/t/alive/**", 3, 1.5) == 2
+        del tokens
+    finally:
+        for s in sessions:
+            s.close()
+        router.close()
+
+
+def test_the_cabinet_layout_services_in_client_mode_through_the_router(site, site_name, launch):
+    """As compose.yaml runs them: a Zenoh router on deploy/zenoh/router.json5 and the four services in client mode
+    with compose's bus environment (the router's address this test's), and a vehicle's client that reaches the
+    tracks only through the router."""
+    from shared.client import TrackClient
+
+    router_port = free_port_base(span=1)
+    endpoint = f"tcp/127.0.0.1:{router_port}"
+    router = open_router(router_port)
+    try:
+        compose_env = yaml.safe_load((REPO / "compose.yaml").read_text())["x-bus-environment"]
+        env = {k: v.replace("tcp/zenoh:7447", endpoint) for k, v in compose_env.items()}
+        assert env["ROADSIDE_BUS__MODE"] == "client" and json.loads(env["ROADSIDE_BUS__CONNECT"]) == [endpoint]
+        procs = [launch(name, site, "fuse_track.tick_ms=500", "fuse_track.min_hits=1", env=env)
+                 for name in ("fuse_track", "localize", "detect")]
+        with TrackClient(site_name, connect=[endpoint], wait_s=WAIT_S) as client:
+            ingest = launch("ingest", site, "ingest.pace=max", "ingest.max_frames=2", f"ingest.ack_timeout_s={WAIT_S}",
+                            env=env)
+            assert_clean_exit(ingest, ingest.wait(WAIT_S))
+            assert "done: 2 frames published, 0 bad, 0 ack timeouts" in ingest.log()
+            tokens = re.search(r"pace max; (\d+) liveliness tokens", ingest.log())
+            assert tokens and int(tokens.group(1)) >= 4, ingest.log()  # the other three's, through the router
+            seen: set[tuple[str, int]] = set()
+            for msg in client.stream(timeout_s=WAIT_S):
+                seen |= {(c, s) for c, s, _, _ in msg.frames}
+                if (CAMERA, 1) in seen:
+                    break
+            assert {(CAMERA, 0), (CAMERA, 1)} <= seen, seen
+            assert client.bad.total == 0
+        for proc in procs:
+            assert_clean_exit(proc, proc.terminate())
+        assert "stopped: 2 frames detected, 0 bad" in procs[2].log()
+    finally:
+        router.close()
 
 
 def test_ingest_decodes_each_camera_as_small_as_the_detector_allows():
