@@ -384,6 +384,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
     from services.fuse_track.__main__ import tracker_config
     from services.rerun_sink import tracks_file_to_rrd
     from shared.settings import load_settings
+    from sim.recording import Recording
 
     cfg.out.mkdir(parents=True, exist_ok=True)
     rec_dir = make_recording(cfg, log)
@@ -435,7 +436,9 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
     viz = tracks_file_to_rrd(tracks_path, cfg.out / "demo.rrd", site_origin=origin, basemap=site_basemap(rec_dir))
     summary = {
         "recording": str(rec_dir), "seconds": cfg.seconds, "hz": cfg.hz, "cameras": cams,
-        "frames": len(objects), "tracks_messages": len(collector.tracks),
+        # frames localized (the collector saw their Objects) of the recording's: fewer means frames lost on the way
+        "frames": len(objects), "frames_recorded": sum(len(Recording(rec_dir).frames(c)) for c in cams),
+        "tracks_messages": len(collector.tracks),
         "mota": fused["mota"], "idf1": fused["idf1"], "id_switches": fused["id_switches"],
         "precision": fused["precision"], "recall": fused["recall"],
         "traj_err_in_roi_m": fused["traj_err_in_roi_m"], "traj_err_in_roi_std_m": fused["traj_err_in_roi_std_m"],
@@ -489,6 +492,7 @@ def summary_table(s: dict) -> str:
         ("heading error in ROI: mean (median)", f"{s['yaw_err_in_roi_deg']:.1f} ({s['yaw_err_in_roi_median_deg']:.1f}) "
                                                 f"deg; moving {s['yaw_err_in_roi_moving_deg']:.1f}, standing "
                                                 f"{s['yaw_err_in_roi_standing_deg']:.1f} deg"),
+        ("frames through the pipeline", f"{s['frames']} of {s['frames_recorded']}"),
         ("region crossings kept", f"{s['handoff_crossing_kept_fraction']:.3f} of {s['handoff_crossings']} "
                                   f"(within {s['handoff_radius_m']:g} m of a camera)"),
         ("end to end p50 / p99", f"{lat['end_to_end_p50']} / {lat['end_to_end_p99']} ms"),

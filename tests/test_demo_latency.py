@@ -57,12 +57,13 @@ def test_summary_table_renders_a_summary():
          "yaw_err_in_roi_moving_deg": 6.0, "yaw_err_in_roi_standing_deg": 22.5,
          "single_camera": {"NE": {"traj_err_in_roi_m": 0.62, "fused_traj_err_in_roi_m": 0.71},
                            "SW": {"traj_err_in_roi_m": 0.35, "fused_traj_err_in_roi_m": 0.36}},
-         "handoff_crossings": 33, "handoff_crossing_kept_fraction": 32 / 33,
+         "handoff_crossings": 33, "handoff_crossing_kept_fraction": 32 / 33, "frames": 2393, "frames_recorded": 2400,
          "handoff_radius_m": 40.0, "latency_ms": lat, "throughput_ratio": 0.8, "pipeline_fps": 60.0,
          "detector_alone": {"passes": [{"fps": 80.0}, {"fps": 75.0}]}, "throughput_ratio_vs_decode_and_detect": 0.8,
          "cpu_ratio_vs_decode_and_detect": 0.8, "peak_rss_mb": {"detect": 220.0}, "cpu_ms_per_frame": {"detect": 22.0}}
     table = summary_table(s)
     assert "0.970 of 33 (within 40 m of a camera)" in table
+    assert "frames through the pipeline" in table and "2393 of 2400" in table
     assert "80.0 / 75.0 frames/s" in table
     assert "NE 0.71 / 0.62, SW 0.36 / 0.35 m" in table
     assert "14.3 (7.1) deg; moving 6.0, standing 22.5 deg" in table
