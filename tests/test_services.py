@@ -733,11 +733,20 @@ def test_a_vehicle_waits_for_the_cabinet_and_rides_through_its_restart(site, sit
         for run in range(2):
             fuse = launch("fuse_track", site, *bus_sets(port_base), "fuse_track.min_hits=1")
             assert peer.wait_alive(f"roadside/{site_name}/alive/fuse_track/*", 1, WAIT_S), fuse.log()
-            start = 100 * run
-            before = set(seen)
-            warm_up(peer, key, encode(good_objects(site_name, start)),
-                    lambda b=before: any(m.tracker not in b and len(m) for m in got), "good objects to the vehicle")
-            feed(peer, key, site_name, range(start + 1, start + 10), pause_s=0.1)
+            seq = 100 * run
+
+            def new_tracks(b=frozenset(seen)) -> bool:
+                return any(m.tracker not in b and len(m) for m in got)
+
+            # the vehicle's client reconnects on its own back-off (up to 2 s): each try is a new moment (a new tick
+            # and Tracks message), as at a cabinet; the same message again would only be dropped as late
+            deadline = time.monotonic() + WAIT_S
+            while not new_tracks():
+                assert time.monotonic() < deadline, f"run {run}: no tracks of the new tracker reached the vehicle"
+                peer.put(key, encode(good_objects(site_name, seq)))
+                seq += 1
+                peer.wait_for(new_tracks, 1.0)
+            feed(peer, key, site_name, range(seq, seq + 9), pause_s=0.1)
             seen |= {m.tracker for m in got if len(m)}
             assert len(seen) == run + 1, (run, seen)
             assert_clean_exit(fuse, fuse.terminate())
