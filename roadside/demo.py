@@ -434,10 +434,11 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
     log("writing the Rerun recording")
     origin = settings.origin
     viz = tracks_file_to_rrd(tracks_path, cfg.out / "demo.rrd", site_origin=origin, basemap=site_basemap(rec_dir))
+    recording = Recording(rec_dir)
     summary = {
         "recording": str(rec_dir), "seconds": cfg.seconds, "hz": cfg.hz, "cameras": cams,
         # frames localized (the collector saw their Objects) of the recording's: fewer means frames lost on the way
-        "frames": len(objects), "frames_recorded": sum(len(Recording(rec_dir).frames(c)) for c in cams),
+        "frames": len(objects), "frames_recorded": sum(len(recording.frames(c)) for c in cams),
         "tracks_messages": len(collector.tracks),
         "mota": fused["mota"], "idf1": fused["idf1"], "id_switches": fused["id_switches"],
         "precision": fused["precision"], "recall": fused["recall"],
