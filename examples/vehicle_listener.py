@@ -1,0 +1,159 @@
+"""A connected vehicle's listener that needs nothing of this project: only `eclipse-zenoh` and `msgpack`.
+
+    pip install eclipse-zenoh msgpack
+    python vehicle_listener.py --site state_ellsworth --connect tcp/192.168.1.10:7447
+
+It reads the cabinet's tracks as docs/wire-format.md specifies them, and is that document's worked example in
+code: a vehicle written in another language (C++, Rust, ...) does the same steps with its own Zenoh and msgpack
+libraries. It asks for the newest Tracks message first (a vehicle that joins late gets the current tracks at once),
+then prints one JSON line per message: `{"site", "seq", "t_capture_ns", "tracker", "tracks": [{"id", "x", "y",
+"lat", "lon", "vx", "vy", "yaw", "length", "width", "height", "type", "score", "age", "hits", "cameras"}, ...]}`.
+A message it cannot read is reported on stderr with the reason and skipped. (Inside the project,
+`shared.client.TrackClient` and `roadside tracks` do the same with the project's own codec.)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import struct
+import sys
+import time
+
+import msgpack
+
+SCHEMA_VERSION = 1
+VEHICLE_TYPES = ("car", "suv_van", "truck", "bus", "motorcycle")  # vtype indexes this list
+# dtype on the wire -> struct format character (all little-endian, "<" below)
+STRUCT_FORMATS = {"<f8": "d", "<f4": "f", "<i8": "q", "<i4": "i", "<u4": "I", "<i2": "h", "<u2": "H", "|i1": "b",
+                  "|u1": "B", "|b1": "?"}
+# the per-track columns of a Tracks message: field -> (dtype, values per track)
+TRACK_COLUMNS = {"id": ("<i8", 1), "xy": ("<f8", 2), "latlon": ("<f8", 2), "velocity": ("<f4", 2),
+                 "yaw": ("<f4", 1), "size_lwh": ("<f4", 3), "vtype": ("|i1", 1), "score": ("<f4", 1),
+                 "age": ("<i4", 1), "hits": ("<i4", 1)}
+
+
+class BadMessage(ValueError):
+    """A payload that is not a Tracks message of this schema version; the text says why."""
+
+
+def column(msg: dict, field: str) -> list[tuple]:
+    """One per-track column of a decoded Tracks map: a list of N tuples of its values per track."""
+    dtype, width = TRACK_COLUMNS[field]
+    arr = msg.get(field)
+    if not isinstance(arr, dict) or set(arr) != {"dtype", "shape", "data"}:
+        raise BadMessage(f"field {field!r}: expected an array map {{dtype, shape, data}}, got {arr!r:.80}")
+    if arr["dtype"] != dtype:
+        raise BadMessage(f"field {field!r}: dtype {arr['dtype']!r}, this listener reads {dtype!r}")
+    shape = arr["shape"]
+    expected = [width] if width > 1 else []
+    if not (isinstance(shape, list) and len(shape) == 1 + len(expected) and shape[1:] == expected
+            and type(shape[0]) is int and shape[0] >= 0):
+        raise BadMessage(f"field {field!r}: shape {shape}, expected [N{f', {width}' if width > 1 else ''}]")
+    data = arr["data"]
+    if not isinstance(data, bytes):
+        raise BadMessage(f"field {field!r}: data must be bytes (msgpack bin), got {type(data).__name__}")
+    fmt = "<" + STRUCT_FORMATS[dtype] * width
+    if len(data) != shape[0] * struct.calcsize(fmt):
+        raise BadMessage(f"field {field!r}: {len(data)} bytes for shape {shape} of {dtype}")
+    return list(struct.iter_unpack(fmt, data))
+
+
+def decode_tracks(payload: bytes) -> dict:
+    """A Tracks payload (msgpack bytes) -> a plain dict with one row per track (module docstring)."""
+    try:
+        msg = msgpack.unpackb(payload, raw=False)
+    except Exception as exc:  # msgpack raises several unrelated types for garbage
+        raise BadMessage(f"not msgpack ({type(exc).__name__}: {exc})") from None
+    if not isinstance(msg, dict) or msg.get("kind") != "tracks":
+        raise BadMessage(f"not a Tracks message (kind {msg.get('kind') if isinstance(msg, dict) else None!r})")
+    if msg.get("v") != SCHEMA_VERSION:
+        raise BadMessage(f"schema version {msg.get('v')!r}; this listener reads v{SCHEMA_VERSION}")
+    missing = [f for f in ("site", "seq", "t_capture_ns", "cameras") if f not in msg]
+    if missing:
+        raise BadMessage(f"fields missing: {', '.join(missing)}")
+    cols = {field: column(msg, field) for field in TRACK_COLUMNS}
+    n = len(cols["id"])
+    cameras = msg["cameras"]
+    if not (isinstance(cameras, list) and all(isinstance(c, list) and all(isinstance(s, str) for s in c)
+                                              for c in cameras)):
+        raise BadMessage("field 'cameras': expected a list of lists of camera names")
+    lengths = {**{f: len(c) for f, c in cols.items()}, "cameras": len(cameras)}
+    if any(k != n for k in lengths.values()):
+        raise BadMessage(f"fields of different lengths: {lengths}")
+    tracks = []
+    for i in range(n):
+        (x, y), (lat, lon), (vx, vy), (length, width, height) = (
+            cols["xy"][i], cols["latlon"][i], cols["velocity"][i], cols["size_lwh"][i])
+        vtype = cols["vtype"][i][0]
+        tracks.append({"id": cols["id"][i][0], "x": x, "y": y, "lat": lat, "lon": lon, "vx": vx, "vy": vy,
+                       "yaw": cols["yaw"][i][0], "length": length, "width": width, "height": height,
+                       "type": VEHICLE_TYPES[vtype] if 0 <= vtype < len(VEHICLE_TYPES) else "unknown",
+                       "score": cols["score"][i][0], "age": cols["age"][i][0], "hits": cols["hits"][i][0],
+                       "cameras": cameras[i]})
+    return {"site": msg["site"], "seq": msg["seq"], "t_capture_ns": msg["t_capture_ns"],
+            "tracker": msg.get("tracker", ""), "tracks": tracks}
+
+
+def listen(site: str, connect: str, count: int, timeout_s: float, wait_s: float) -> int:
+    """Print the newest tracks, then every new message, as JSON lines; returns how many were printed."""
+    import zenoh
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", json.dumps([connect]))
+    conf.insert_json5("connect/timeout_ms", json.dumps(max(1, round(wait_s * 1000))))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    printed, last = 0, None  # last: (tracker, seq) of the newest message printed
+
+    def show(payload: bytes) -> bool:
+        nonlocal printed, last
+        try:
+            msg = decode_tracks(payload)
+        except BadMessage as exc:
+            print(f"skipped a message: {exc}", file=sys.stderr, flush=True)
+            return False
+        if last is not None and msg["tracker"] == last[0] and msg["seq"] <= last[1]:
+            return False  # already printed (the answer to the query may also arrive on the subscription)
+        last = (msg["tracker"], msg["seq"])
+        print(json.dumps(msg), flush=True)
+        printed += 1
+        return True
+
+    with zenoh.open(conf) as session:
+        subscriber = session.declare_subscriber(f"roadside/{site}/tracks")  # before the query: nothing is missed
+        for reply in session.get(f"roadside/{site}/tracks/latest", timeout=2.0):
+            if reply.ok is not None:
+                show(reply.ok.payload.to_bytes())
+        quiet_since = time.monotonic()
+        while not (count and printed >= count):
+            sample = subscriber.try_recv()
+            if sample is None:
+                if time.monotonic() - quiet_since > timeout_s:
+                    break
+                time.sleep(0.02)
+                continue
+            if show(sample.payload.to_bytes()):
+                quiet_since = time.monotonic()
+    return printed
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--site", required=True, help="the site's name (site.yaml's `site`)")
+    p.add_argument("--connect", required=True, help="the cabinet's Zenoh router, e.g. tcp/192.168.1.10:7447")
+    p.add_argument("--count", type=int, default=0, help="stop after this many messages (default: never)")
+    p.add_argument("--timeout", type=float, default=math.inf, help="stop after this many seconds without tracks")
+    p.add_argument("--wait", type=float, default=10.0, help="seconds to wait for the first connection")
+    args = p.parse_args(argv)
+    try:
+        printed = listen(args.site, args.connect, args.count, args.timeout, args.wait)
+    except Exception as exc:  # no router in reach, a malformed endpoint: one line, not a traceback
+        print(f"vehicle_listener: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 2
+    return 0 if printed else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,218 @@
+"""docs/wire-format.md against the code: what a vehicle written without this project reads off the bus.
+
+The document's Tracks table and its worked example are checked against the Tracks message fuse_track builds
+(`tracks_message`, encoded by shared/codec.py), and examples/vehicle_listener.py, which uses only zenoh and
+msgpack, decodes real payloads, refuses bad ones with the reason, and listens to a live bus."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import re
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import pytest
+import zenoh
+
+from services.fuse_track.__main__ import tracks_message
+from services.fuse_track.tracker import TrackState
+from shared.codec import ALLOWED_DTYPES, encode
+from shared.geo import GeoFrame
+from shared.keys import latest_tracks_key, tracks_key
+from shared.messages import VEHICLE_TYPES, Tracks
+from tests.pipeline_fixtures import free_port_base
+
+ROOT = Path(__file__).resolve().parents[1]
+DOC = ROOT / "docs" / "wire-format.md"
+LISTENER = ROOT / "examples" / "vehicle_listener.py"
+SITE = "state_ellsworth"
+ORIGIN = GeoFrame(42.22939632, -83.73899854, 265.0)
+
+
+def load_listener():
+    spec = importlib.util.spec_from_file_location("vehicle_listener", LISTENER)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+listener = load_listener()
+
+
+def example_message(n: int = 2, seq: int = 42) -> Tracks:
+    """A Tracks message as fuse_track builds it: a bus seen by two cameras and a car coasting (no camera)."""
+    state = TrackState(
+        t_ns=1_764_403_200_000_000_000, tracker="tracker-3f9c2a",
+        id=np.array([7, 12])[:n], xy=np.array([[12.25, -3.5], [-20.0, 8.125]])[:n],
+        velocity=np.array([[4.5, 1.25], [0.0, -0.5]])[:n], yaw=np.array([0.2705, -1.5708])[:n],
+        size_lwh=np.array([[12.5, 2.5, 3.25], [4.5, 1.75, 1.5]])[:n], vtype=np.array([3, 0])[:n],
+        score=np.array([0.875, 0.5])[:n], age=np.array([31, 4])[:n], hits=np.array([30, 3])[:n],
+        cameras=[["NE", "SE"], []][:n])
+    msg = tracks_message(SITE, state, state.t_ns, seq, ORIGIN,
+                         [("tick_closed", 1_764_403_200_180_000_000), ("fuse_track", 1_764_403_200_183_000_000)],
+                         [("NE", 1207, 1_764_403_199_990_000_000, 1_764_403_200_150_000_000)][:n])
+    msg.latlon = np.round(msg.latlon, 9)  # the document's bytes must not hang on the geodesy's last bit
+    return msg
+
+
+def render(value) -> str:
+    """The msgpack map as the document prints it: JSON, with bytes as h'<hex>'."""
+    if isinstance(value, bytes):
+        return f"h'{value.hex()}'"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{json.dumps(k)}: {render(v)}" for k, v in value.items()) + "}"
+    if isinstance(value, list):
+        return "[" + ", ".join(render(v) for v in value) + "]"
+    return json.dumps(value)
+
+
+def example_blocks() -> tuple[str, str]:
+    """The worked example of the document: the decoded map (one field per line) and the payload in hex."""
+    payload = encode(example_message(n=1))
+    fields = msgpack.unpackb(payload, raw=False)
+    structure = "{\n" + ",\n".join(f"  {json.dumps(k)}: {render(v)}" for k, v in fields.items()) + "\n}"
+    hexed = payload.hex()
+    return structure, "\n".join(hexed[i:i + 96] for i in range(0, len(hexed), 96))
+
+
+def doc_tracks_table() -> dict[str, tuple[str, str]]:
+    """The document's table of Tracks fields: field -> (msgpack type or dtype, shape)."""
+    text = DOC.read_text()
+    section = text.split("<!-- tracks-fields -->")[1].split("<!-- /tracks-fields -->")[0]
+    rows = {}
+    for line in section.splitlines():
+        cells = [c.strip().replace("\\|", "|") for c in re.split(r"(?<!\\)\|", line.strip())[1:-1]]
+        if len(cells) >= 3 and cells[0].startswith("`"):
+            rows[cells[0].strip("`")] = (cells[1].strip("`"), cells[2].strip("`"))
+    return rows
+
+
+def test_the_documents_tracks_table_is_what_fuse_track_sends() -> None:
+    table = doc_tracks_table()
+    msg = example_message()
+    assert set(table) == {"kind", *Tracks.model_fields}, "every field of the message is documented, none more"
+    fields = msgpack.unpackb(encode(msg), raw=False)
+    for name, (typ, shape) in table.items():
+        value = fields[name]
+        if isinstance(value, dict):  # an array: its dtype and shape as the table says
+            assert typ == value["dtype"], name
+            expected_shape = ["N"] + ([] if len(value["shape"]) == 1 else value["shape"][1:])
+            assert shape == "[" + ", ".join(map(str, expected_shape)) + "]", name
+            assert listener.TRACK_COLUMNS[name] == (typ, int(np.prod(value["shape"][1:]))), name
+        else:
+            assert isinstance(value, {"str": str, "int": int, "array": list}[typ.split()[0]]), name
+    assert set(listener.TRACK_COLUMNS) == {k for k, (t, _) in table.items() if t.startswith(("<", "|"))}
+
+
+def test_the_documents_worked_example_is_the_codecs_output() -> None:
+    text = DOC.read_text()
+    structure, hexed = example_blocks()
+    assert structure in text, "docs/wire-format.md's decoded example differs from the codec's; paste:\n" + structure
+    assert hexed in text, "docs/wire-format.md's hex example differs from the codec's; paste:\n" + hexed
+
+
+def test_the_documents_dtype_list_is_the_codecs_allow_list() -> None:
+    listed = DOC.read_text().split("from this list only:")[1].split("(")[0]
+    assert set(re.findall(r"`([<|][a-z]\d)`", listed)) == ALLOWED_DTYPES
+    assert {dtype for dtype, _ in listener.TRACK_COLUMNS.values()} <= set(listener.STRUCT_FORMATS) == ALLOWED_DTYPES
+
+
+def test_the_vehicle_types_of_the_document_and_the_listener_are_the_contracts() -> None:
+    assert listener.VEHICLE_TYPES == VEHICLE_TYPES
+    listed = re.search(r"<!-- vehicle-types -->(.*?)<!-- /vehicle-types -->", DOC.read_text(), re.S).group(1)
+    assert re.findall(r"`(\d)`: `(\w+)`", listed) == [(str(i), t) for i, t in enumerate(VEHICLE_TYPES)]
+
+
+def test_the_listener_reads_a_real_payload_as_the_projects_codec_does() -> None:
+    msg = example_message()
+    got = listener.decode_tracks(encode(msg))
+    assert (got["site"], got["seq"], got["t_capture_ns"], got["tracker"]) == (SITE, 42, msg.t_capture_ns,
+                                                                               "tracker-3f9c2a")
+    assert len(got["tracks"]) == 2
+    for row, want in zip(got["tracks"], msg.rows(), strict=True):
+        assert row["id"] == want["id"] and row["type"] == want["type"] and row["cameras"] == want["cameras"]
+        assert (row["age"], row["hits"]) == (want["age"], want["hits"])
+        assert (row["lat"], row["lon"]) == (want["lat"], want["lon"])  # float64 on the wire: exact
+        for key in ("x", "y", "vx", "vy", "yaw", "length", "width", "height", "score"):
+            assert row[key] == pytest.approx(want[key], abs=1e-3), key
+    assert got["tracks"][0]["type"] == "bus" and got["tracks"][1]["cameras"] == []
+
+
+def test_the_listener_reads_an_empty_tick() -> None:
+    got = listener.decode_tracks(encode(example_message(n=0)))
+    assert got["tracks"] == [] and got["seq"] == 42
+
+
+def tampered(field: str, value) -> bytes:
+    fields = msgpack.unpackb(encode(example_message()), raw=False)
+    fields[field] = value
+    return msgpack.packb(fields, use_bin_type=True)
+
+
+@pytest.mark.parametrize(("payload", "reason"), [
+    (b"\xc1 not msgpack", "not msgpack"),
+    (msgpack.packb({"kind": "objects", "v": 1}), "not a Tracks message"),
+    (tampered("v", 2), "schema version 2"),
+    (tampered("xy", {"dtype": "<f4", "shape": [2, 2], "data": bytes(16)}), "field 'xy': dtype '<f4'"),
+    (tampered("yaw", {"dtype": "<f4", "shape": [2], "data": bytes(7)}), "field 'yaw': 7 bytes"),
+    (tampered("size_lwh", {"dtype": "<f4", "shape": [2, 2], "data": bytes(16)}), "field 'size_lwh': shape"),
+    (tampered("id", [7, 12]), "field 'id': expected an array map"),
+    (tampered("cameras", [["NE"]]), "fields of different lengths"),
+    (tampered("cameras", "NE"), "field 'cameras'"),
+])
+def test_the_listener_refuses_a_bad_payload_with_the_reason(payload: bytes, reason: str) -> None:
+    with pytest.raises(listener.BadMessage, match=re.escape(reason)):
+        listener.decode_tracks(payload)
+
+
+@pytest.mark.slow
+def test_the_listener_gets_the_current_tracks_then_the_live_ones_and_skips_a_bad_one() -> None:
+    port = free_port_base(span=1)
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    stop = threading.Event()
+    with zenoh.open(conf) as session:
+        latest = encode(example_message(seq=5))  # what fuse_track holds when the vehicle connects
+        queryable = session.declare_queryable(latest_tracks_key(SITE), lambda q: q.reply(latest_tracks_key(SITE),
+                                                                                       latest))
+        pub = session.declare_publisher(tracks_key(SITE))
+
+        def publish() -> None:  # the ticks after seq 5, each after a garbage payload, until the listener is done
+            seq = 6
+            while not stop.wait(0.1):
+                pub.put(b"garbage")
+                pub.put(encode(example_message(seq=seq)))
+                seq += 1
+
+        thread = threading.Thread(target=publish, daemon=True)
+        thread.start()
+        try:
+            done = subprocess.run([sys.executable, str(LISTENER), "--site", SITE, "--connect",
+                                   f"tcp/127.0.0.1:{port}", "--count", "3", "--timeout", "10"],
+                                  capture_output=True, text=True, timeout=60, cwd="/")
+        finally:
+            stop.set()
+            thread.join()
+            queryable.undeclare()
+    assert done.returncode == 0, done.stderr
+    lines = [json.loads(line) for line in done.stdout.splitlines()]
+    seqs = [m["seq"] for m in lines]
+    assert len(seqs) == 3 and seqs[0] == 5, "the current tracks first"
+    assert seqs[0] < seqs[1] < seqs[2]
+    assert all(m["tracks"][0]["type"] == "bus" for m in lines)
+    assert "skipped a message: not msgpack" in done.stderr
+
+
+def test_the_listener_says_in_one_line_when_no_cabinet_answers() -> None:
+    port = free_port_base(span=1)
+    done = subprocess.run([sys.executable, str(LISTENER), "--site", SITE, "--connect", f"tcp/127.0.0.1:{port}",
+                           "--wait", "0.5"], capture_output=True, text=True, timeout=60, cwd="/")
+    assert done.returncode == 2
+    assert done.stderr.startswith("vehicle_listener: ") and len(done.stderr.strip().splitlines()) == 1
