@@ -177,7 +177,7 @@ def _run_calibrate(args) -> int:
 
 
 BENCHMARKS = {"sim": "bench.sim_render", "calibration": "bench.calibration", "detector": "bench.detector",
-              "fuse_track": "bench.fuse_track"}
+              "fuse_track": "bench.fuse_track", "soak": "bench.soak"}
 
 
 def _add_eval(sub) -> None:

@@ -925,6 +925,25 @@ def test_roadside_up_stops_cleanly_on_sigterm(site, small_recording, port_base, 
             proc.kill()
 
 
+@pytest.mark.slow
+def test_the_soak_bench_samples_every_service_of_a_looping_pipeline(site, small_recording, port_base, tmp_path):
+    """`roadside bench soak` (bench/soak.py): a looped source keeps the tracks coming past its end (event time
+    goes on), each service's memory is sampled from its process and its counts from its Status reports, and the
+    pipeline is stopped cleanly at the end."""
+    from bench.soak import run
+
+    doc = run(site, str(small_recording), minutes=0.5, pace="max", sample_s=5.0, warmup_s=0.0, out=tmp_path / "soak",
+              sets=[f"bus.port_base={port_base}"], log=lambda m: None)
+    assert doc["launcher_exit_code"] == 0 and doc["samples"] >= 4
+    for service, summary in doc["services"].items():
+        assert (summary["processes"], summary["restarts"]) == (1, 0), service
+        assert 20 < summary["rss_mb_end"] <= summary["rss_mb_max"], service
+        assert summary["growth_mb_per_hour"] is not None and summary["counts"], service
+    assert doc["frames_published"] > 2 * len(list((small_recording / "frames" / CAMERA).glob("*.jpg")))  # looped
+    assert doc["tracks_messages"] >= 10 and doc["services"]["fuse_track"]["counts"]["tracks_out"] >= 10
+    assert (tmp_path / "soak" / "tracks.jsonl").stat().st_size > 0
+
+
 def test_a_service_that_keeps_dying_is_restarted_ever_more_slowly(tmp_path):
     """Restarted after restart_delay_s, the delay doubling (to max_restart_delay_s) while it dies soon after its
     start, back to restart_delay_s once it has run stable_s; a stop during the wait starts nothing."""
