@@ -149,6 +149,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     try:
         printed = listen(args.site, args.connect, args.count, args.timeout, args.wait)
+    except KeyboardInterrupt:  # Ctrl-C: the way to stop a listener without --count or --timeout
+        return 0
     except Exception as exc:  # no router in reach, a malformed endpoint: one line, not a traceback
         print(f"vehicle_listener: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 2

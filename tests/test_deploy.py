@@ -26,6 +26,7 @@ EXAMPLE_SITE = ROOT / "deploy" / "sites" / "example" / "site.yaml"
 COMPOSE_SCHEMA = ROOT.parent / "shared" / "schemas" / "compose-spec.json"
 ROUTER = "zenoh"
 ROUTER_PORT = 7447
+SERVICE_ENDPOINT = "unixsock-stream//run/zenoh/cabinet.sock"  # the services' way in: a socket on a shared volume
 SITE_FILE = "/site/site.yaml"
 
 
@@ -239,7 +240,40 @@ def test_services_reach_the_router_in_client_mode():
     for name, svc in _app_services(doc).items():
         env = _service_env(svc)
         assert env["ROADSIDE_BUS__MODE"] == "client", name
-        assert json.loads(env["ROADSIDE_BUS__CONNECT"]) == [f"tcp/{ROUTER}:{ROUTER_PORT}"], name
+        assert json.loads(env["ROADSIDE_BUS__CONNECT"]) == [SERVICE_ENDPOINT], name
+
+
+def test_the_services_socket_is_on_a_volume_of_the_router_and_every_service_and_the_router_listens_on_it():
+    doc = _compose()
+    folder = SERVICE_ENDPOINT.removeprefix("unixsock-stream/").rsplit("/", 1)[0]
+    volumes = set()
+    for name, svc in doc["services"].items():
+        mounted = [v.split(":")[0] for v in svc["volumes"] if v.split(":")[1] == folder]
+        assert len(mounted) == 1, f"{name} does not mount {folder}"
+        volumes.add(mounted[0])
+    assert len(volumes) == 1 and volumes <= set(doc["volumes"]), volumes  # one named volume, shared
+    assert SERVICE_ENDPOINT in _json5_loads(ROUTER_CONFIG.read_text())["listen"]["endpoints"]
+
+
+def test_the_router_lets_the_socket_do_everything_and_the_network_read_tracks_liveliness_and_status():
+    acl = _json5_loads(ROUTER_CONFIG.read_text())["access_control"]
+    assert acl["enabled"] is True and acl["default_permission"] == "deny"
+    protocols = {s["id"]: s["link_protocols"] for s in acl["subjects"]}
+    rules = {r["id"]: r for r in acl["rules"]}
+    allowed = {}
+    for policy in acl["policies"]:
+        for subject in policy["subjects"]:
+            for rule in policy["rules"]:
+                assert rules[rule]["permission"] == "allow"
+                for proto in protocols[subject]:
+                    allowed.setdefault(proto, []).append(rules[rule])
+    assert set(allowed) == {"unixsock-stream", "tcp"}
+    assert all(k == "roadside/**" for r in allowed["unixsock-stream"] for k in r["key_exprs"])
+    network_keys = {k for r in allowed["tcp"] for k in r["key_exprs"]}
+    assert network_keys == {"roadside/*/tracks", "roadside/*/tracks/latest", "roadside/*/alive/**",
+                            "roadside/*/status/**"}
+    ingress = {m for r in allowed["tcp"] if "ingress" in r["flows"] for m in r["messages"]}
+    assert not ingress & {"put", "delete", "declare_queryable", "reply", "liveliness_token"}, ingress
 
 
 def test_site_folder_is_chosen_by_SITE_and_mounted_read_only():
@@ -284,7 +318,7 @@ def test_compose_environment_gives_valid_settings_for_the_example_site(name, mon
         monkeypatch.setenv(key, value)
     s = load_settings(EXAMPLE_SITE)
     assert s.bus.mode == "client"
-    assert s.bus.connect == [f"tcp/{ROUTER}:{ROUTER_PORT}"]
+    assert s.bus.connect == [SERVICE_ENDPOINT]
     zenoh_config(s.bus, name)
     if name == "detect":
         assert s.detect.model.is_absolute() and s.detect.providers

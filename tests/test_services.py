@@ -269,16 +269,19 @@ def test_chain_plays_two_frames_through_all_four_services(site, site_name, small
     assert "stopped: 2 messages localized, 0 bad" in localize.log()
 
 
-def open_router(port: int):
-    """A Zenoh router on deploy/zenoh/router.json5, as compose.yaml's, listening on this test's port."""
+def open_router(port: int, socket: Path):
+    """A Zenoh router on deploy/zenoh/router.json5, as compose.yaml's (its access control included), listening on
+    this test's port (the network's way in) and Unix socket (the cabinet services' way in)."""
     import zenoh
 
     conf = zenoh.Config.from_file(str(REPO / "deploy" / "zenoh" / "router.json5"))
-    conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    endpoints = json.loads(conf.get_json("listen/endpoints"))
+    assert [e.split("/")[0] for e in endpoints] == ["tcp", "unixsock-stream"], endpoints
+    conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}", f"unixsock-stream/{socket}"]))
     return zenoh.open(conf)
 
 
-def test_waiting_for_peers_through_a_router_counts_each_token_once():
+def test_waiting_for_peers_through_a_router_counts_each_token_once(tmp_path):
     # a client-mode session gets its own token twice (its own answer and the router's): ingest at the cabinet counted
     # one token per camera too many and started before the last services were ready
     import zenoh
@@ -286,12 +289,13 @@ def test_waiting_for_peers_through_a_router_counts_each_token_once():
     from shared.bus import wait_for_peers, zenoh_config
     from shared.settings import BusSettings
 
-    port = free_port_base(span=1)
-    router = open_router(port)
+    socket = tmp_path / "cabinet.sock"
+    router = open_router(free_port_base(span=1), socket)
     sessions = []
     try:
         for _ in range(2):  # as the services open theirs at the cabinet
-            sessions.append(zenoh.open(zenoh_config(BusSettings(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))))
+            sessions.append(zenoh.open(zenoh_config(BusSettings(mode="client",
+                                                                connect=[f"unixsock-stream/{socket}"]))))
         names = ("ingest", "detect")
         tokens = [s.liveliness().declare_token(f"roadside/t/alive/{n}/NE")
                   for s, n in zip(sessions, names, strict=True)]
@@ -304,19 +308,73 @@ def test_waiting_for_peers_through_a_router_counts_each_token_once():
         router.close()
 
 
-def test_the_cabinet_layout_services_in_client_mode_through_the_router(site, site_name, launch):
+def test_the_cabinet_router_lets_the_network_read_the_tracks_and_inject_nothing(tmp_path):
+    """deploy/zenoh/router.json5's access control: a session on the router's Unix socket (a cabinet service) may do
+    everything; one over TCP (a vehicle, anyone on the roadside network) gets the tracks, their latest, the liveliness
+    tokens and the status reports, but what it puts (fake tracks, a frame for detect) never reaches a service, and
+    the camera frames are not sent to it."""
+    import zenoh
+
+    from shared.bus import zenoh_config
+    from shared.keys import alive_key, camera_key, latest_tracks_key, status_key, tracks_key
+    from shared.settings import BusSettings
+
+    port, socket = free_port_base(span=1), tmp_path / "cabinet.sock"
+    router = open_router(port, socket)
+    sessions = []
+    try:
+        service, other_service, vehicle = (
+            zenoh.open(zenoh_config(BusSettings(mode="client", connect=[e]))) for e in
+            (f"unixsock-stream/{socket}", f"unixsock-stream/{socket}", f"tcp/127.0.0.1:{port}"))
+        sessions += [service, other_service, vehicle]
+        got: dict[str, list[bytes]] = {"service": [], "service_frames": [], "vehicle": [], "vehicle_frames": []}
+
+        def keep(name):
+            return lambda sample: got[name].append(sample.payload.to_bytes())
+
+        subs = [other_service.declare_subscriber(tracks_key("s"), keep("service")),
+                other_service.declare_subscriber(camera_key("s", "NE", "frame"), keep("service_frames")),
+                vehicle.declare_subscriber(tracks_key("s"), keep("vehicle")),
+                vehicle.declare_subscriber("roadside/s/cam/**", keep("vehicle_frames"))]
+        queryables = [service.declare_queryable(k, lambda q, k=k: q.reply(k, b"answer"))
+                      for k in (latest_tracks_key("s"), status_key("s", "fuse_track", "main"))]
+        token = service.liveliness().declare_token(alive_key("s", "fuse_track", "t1"))
+        assert wait_until(lambda: any(r.ok for r in vehicle.liveliness().get("roadside/s/alive/**", timeout=1)), 10)
+        for i in range(3):
+            service.put(tracks_key("s"), f"real {i}".encode())
+            service.put(camera_key("s", "NE", "frame"), f"frame {i}".encode())
+            vehicle.put(tracks_key("s"), b"FAKE tracks")
+            vehicle.put(camera_key("s", "NE", "frame"), b"FAKE frame")
+        assert wait_until(lambda: len(got["vehicle"]) >= 6 and len(got["service"]) >= 3, 10), got
+        time.sleep(0.5)  # anything else on its way
+        assert got["service"] == [b"real 0", b"real 1", b"real 2"], "a put from the network reached a service"
+        assert got["service_frames"] == [b"frame 0", b"frame 1", b"frame 2"]
+        assert sorted(got["vehicle"]) == sorted([b"real 0", b"real 1", b"real 2"] + [b"FAKE tracks"] * 3)  # + its own
+        assert got["vehicle_frames"] == [b"FAKE frame"] * 3, "camera frames went out to the network"
+        for key in (latest_tracks_key("s"), status_key("s", "fuse_track", "main")):
+            assert [r.ok.payload.to_bytes() for r in vehicle.get(key, timeout=5) if r.ok] == [b"answer"], key
+        del subs, queryables, token
+    finally:
+        for s in sessions:
+            s.close()
+        router.close()
+
+
+def test_the_cabinet_layout_services_in_client_mode_through_the_router(site, site_name, launch, tmp_path):
     """As compose.yaml runs them: a Zenoh router on deploy/zenoh/router.json5 and the four services in client mode
-    with compose's bus environment (the router's address this test's), and a vehicle's client that reaches the
-    tracks only through the router."""
+    with compose's bus environment (through the router's Unix socket, this test's), and a vehicle's client that
+    reaches the tracks only through the router's TCP port."""
     from shared.client import TrackClient
 
     router_port = free_port_base(span=1)
     endpoint = f"tcp/127.0.0.1:{router_port}"
-    router = open_router(router_port)
+    socket = tmp_path / "cabinet.sock"
+    router = open_router(router_port, socket)
     try:
         compose_env = yaml.safe_load((REPO / "compose.yaml").read_text())["x-bus-environment"]
-        env = {k: v.replace("tcp/zenoh:7447", endpoint) for k, v in compose_env.items()}
-        assert env["ROADSIDE_BUS__MODE"] == "client" and json.loads(env["ROADSIDE_BUS__CONNECT"]) == [endpoint]
+        env = {k: v.replace("/run/zenoh/cabinet.sock", str(socket)) for k, v in compose_env.items()}
+        assert env["ROADSIDE_BUS__MODE"] == "client"
+        assert json.loads(env["ROADSIDE_BUS__CONNECT"]) == [f"unixsock-stream/{socket}"]
         procs = [launch(name, site, "fuse_track.tick_ms=500", "fuse_track.min_hits=1", env=env)
                  for name in ("fuse_track", "localize", "detect")]
         with TrackClient(site_name, connect=[endpoint], wait_s=WAIT_S) as client:
