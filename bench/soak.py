@@ -69,7 +69,7 @@ def growth_mb_per_hour(series: list[tuple[float, float]]) -> float | None:
 def summarize(samples: list[dict], warmup_s: float) -> dict:
     """Per service, from samples `{"t_s", "rss_mb": {service: {pid: MB}}, "status": {service: report dict}}`:
     memory after the warm-up (the sum over the service's processes alive at each sample), growth, restarts,
-    the newest counts and bad input."""
+    and the counts and bad input of its newest report (a restarted service counts from its restart)."""
     out = {}
     for service in SERVICES:
         series = [(s["t_s"], sum(s["rss_mb"][service].values())) for s in samples if s["rss_mb"].get(service)]
