@@ -84,6 +84,14 @@ def endpoint(text: str) -> str:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+def port_number(text: str) -> int:
+    """A TCP port to serve on: 1-65535 (0, any free port, is for tests, not a flag)."""
+    v = _whole(text)
+    if not 1 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"must be a port from 1 to 65535, got {text}")
+    return v
+
+
 def port_base(text: str) -> int:
     """The embedded default's first service port, in the range BusSettings.port_base allows."""
     from shared.settings import BusSettings

@@ -1,4 +1,5 @@
-"""`roadside tracks | status | health`: what a running pipeline says on the bus (a vehicle's view, an operator's)."""
+"""`roadside tracks | status | health | metrics`: what a running pipeline says on the bus (a vehicle's, an operator's
+view)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,15 @@ import math
 import time
 from pathlib import Path
 
-from roadside.argtypes import endpoint, non_negative_float, port_base, positive_float, positive_int, site_path
+from roadside.argtypes import (
+    endpoint,
+    non_negative_float,
+    port_base,
+    port_number,
+    positive_float,
+    positive_int,
+    site_path,
+)
 from shared.jsonio import dumps
 from shared.messages import SERVICES
 
@@ -17,7 +26,8 @@ def add_bus_jobs(sub) -> dict:
     _add_tracks(sub)
     _add_status(sub)
     _add_health(sub)
-    return {"tracks": _run_tracks, "status": _run_status, "health": _run_health}
+    _add_metrics(sub)
+    return {"tracks": _run_tracks, "status": _run_status, "health": _run_health, "metrics": _run_metrics}
 
 
 def _add_endpoint_flags(p: argparse.ArgumentParser, default_to: str) -> None:
@@ -105,6 +115,40 @@ def _run_status(args) -> int:
         print(f"not answering: {', '.join(missing)}")
         return 1
     return 0 if reports else 1
+
+
+def _add_metrics(sub) -> None:
+    p = sub.add_parser("metrics", help="serve the services' status reports as Prometheus metrics on GET /metrics "
+                       "(shared/metrics.py), asking the bus at each scrape")
+    _add_endpoint_flags(p, "the four local services")
+    p.add_argument("--host", default="127.0.0.1", help="address to serve on (0.0.0.0: every interface)")
+    p.add_argument("--port", type=port_number, default=9464, help="port to serve on (default 9464)")
+    p.add_argument("--timeout", type=positive_float, default=1.5, help="seconds a scrape waits for the reports")
+
+
+def _run_metrics(args) -> int:
+    import zenoh
+
+    from shared.bus import zenoh_config
+    from shared.messages import check_name
+    from shared.metrics import serve
+    from shared.settings import BusSettings
+    from shared.status import collect_status
+
+    check_name("site", args.site)
+    bus = (BusSettings(mode="client", connect=args.connect) if args.connect
+           else BusSettings(port_base=args.port_base))
+    session = zenoh.open(zenoh_config(bus, None, 0))
+    try:
+        serve(args.host, args.port, lambda: collect_status(session, args.site, args.timeout)[0],
+              ready=lambda port: print(f"metrics of site {args.site} on http://{args.host}:{port}/metrics", flush=True))
+    except KeyboardInterrupt:
+        pass
+    except OSError as exc:  # the port is taken, or the address is not this machine's
+        raise ValueError(f"cannot serve on {args.host}:{args.port}: {exc.strerror or exc}") from None
+    finally:
+        session.close()
+    return 0
 
 
 def _add_health(sub) -> None:
