@@ -340,6 +340,16 @@ def test_the_cabinet_router_lets_the_network_read_the_tracks_and_inject_nothing(
                       for k in (latest_tracks_key("s"), status_key("s", "fuse_track", "main"))]
         token = service.liveliness().declare_token(alive_key("s", "fuse_track", "t1"))
         assert wait_until(lambda: any(r.ok for r in vehicle.liveliness().get("roadside/s/alive/**", timeout=1)), 10)
+
+        def routed() -> bool:  # every subscription known to the router: a probe of each kind has arrived
+            service.put(tracks_key("s"), b"probe")
+            service.put(camera_key("s", "NE", "frame"), b"probe")
+            return b"probe" in got["service"] and b"probe" in got["vehicle"] and b"probe" in got["service_frames"]
+
+        assert wait_until(routed, 10, 0.1)
+        time.sleep(0.3)  # the last probes still on their way
+        for values in got.values():
+            values.clear()
         for i in range(3):
             service.put(tracks_key("s"), f"real {i}".encode())
             service.put(camera_key("s", "NE", "frame"), f"frame {i}".encode())
