@@ -10,7 +10,8 @@
 A client that joins late gets the current tracks at once: `stream()` first asks fuse_track's
 queryable (`roadside/<site>/tracks/latest`) for the newest message, then follows the live ones.
 `connect` is the cabinet's Zenoh router (or, on the embedded default, any service's loopback port).
-Bad messages are counted in `client.bad` and skipped.
+Bad messages are counted in `client.bad` and skipped. A vehicle written in another language reads the same
+messages with its own Zenoh and msgpack libraries: docs/wire-format.md (and examples/vehicle_listener.py).
 
 A vehicle is not always in reach of the cabinet: the client waits up to `wait_s` (None: as long as it takes) for
 the first connection, raising ConnectionError naming the endpoints when none answers, and after a dropped link
