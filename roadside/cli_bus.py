@@ -83,18 +83,24 @@ def _add_status(sub) -> None:
     p.add_argument("--json", action="store_true", help="one JSON document per answer: the Status messages")
 
 
-def _run_status(args) -> int:
+def _watcher_session(args):
+    """A Zenoh session that asks the site's services (`--site`, `--connect` or `--port-base`), listening nowhere."""
     import zenoh
 
     from shared.bus import zenoh_config
     from shared.messages import check_name
     from shared.settings import BusSettings
-    from shared.status import collect_status, status_table
 
     check_name("site", args.site)
     bus = (BusSettings(mode="client", connect=args.connect) if args.connect
            else BusSettings(port_base=args.port_base))
-    session = zenoh.open(zenoh_config(bus, None, 0))
+    return zenoh.open(zenoh_config(bus, None, 0))
+
+
+def _run_status(args) -> int:
+    from shared.status import collect_status, status_table
+
+    session = _watcher_session(args)
     try:
         while True:
             reports, errors = collect_status(session, args.site, args.timeout)
@@ -127,18 +133,10 @@ def _add_metrics(sub) -> None:
 
 
 def _run_metrics(args) -> int:
-    import zenoh
-
-    from shared.bus import zenoh_config
-    from shared.messages import check_name
     from shared.metrics import serve
-    from shared.settings import BusSettings
     from shared.status import collect_status
 
-    check_name("site", args.site)
-    bus = (BusSettings(mode="client", connect=args.connect) if args.connect
-           else BusSettings(port_base=args.port_base))
-    session = zenoh.open(zenoh_config(bus, None, 0))
+    session = _watcher_session(args)
     try:
         serve(args.host, args.port, lambda: collect_status(session, args.site, args.timeout)[0],
               ready=lambda port: print(f"metrics of site {args.site} on http://{args.host}:{port}/metrics", flush=True))
