@@ -2,6 +2,7 @@
 
     pip install eclipse-zenoh msgpack
     python vehicle_listener.py --site state_ellsworth --connect tcp/192.168.1.10:7447
+    python vehicle_listener.py --site state_ellsworth --connect tls/cabinet.example:7448 --ca cabinet-ca.pem
 
 It reads the cabinet's tracks as docs/wire-format.md specifies them, and is that document's worked example in
 code: a vehicle written in another language (C++, Rust, ...) does the same steps with its own Zenoh and msgpack
@@ -96,7 +97,7 @@ def decode_tracks(payload: bytes) -> dict:
             "tracker": msg.get("tracker", ""), "tracks": tracks}
 
 
-def listen(site: str, connect: str, count: int, timeout_s: float, wait_s: float) -> int:
+def listen(site: str, connect: str, count: int, timeout_s: float, wait_s: float, ca: str | None = None) -> int:
     """Print the newest tracks, then every new message, as JSON lines; returns how many were printed."""
     import zenoh
 
@@ -105,6 +106,8 @@ def listen(site: str, connect: str, count: int, timeout_s: float, wait_s: float)
     conf.insert_json5("connect/endpoints", json.dumps([connect]))
     conf.insert_json5("connect/timeout_ms", json.dumps(max(1, round(wait_s * 1000))))
     conf.insert_json5("scouting/multicast/enabled", "false")
+    if ca:  # a tls/ endpoint: the cabinet's certificate must chain to this CA
+        conf.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(ca))
     printed, last = 0, None  # last: (tracker, seq) of the newest message printed
 
     def show(payload: bytes) -> bool:
@@ -146,9 +149,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--count", type=int, default=0, help="stop after this many messages (default: never)")
     p.add_argument("--timeout", type=float, default=math.inf, help="stop after this many seconds without tracks")
     p.add_argument("--wait", type=float, default=10.0, help="seconds to wait for the first connection")
+    p.add_argument("--ca", help="with --connect tls/HOST:7448: the cabinet's CA certificate (PEM)")
     args = p.parse_args(argv)
     try:
-        printed = listen(args.site, args.connect, args.count, args.timeout, args.wait)
+        printed = listen(args.site, args.connect, args.count, args.timeout, args.wait, args.ca)
     except KeyboardInterrupt:  # Ctrl-C: the way to stop a listener without --count or --timeout
         return 0
     except Exception as exc:  # no router in reach, a malformed endpoint: one line, not a traceback

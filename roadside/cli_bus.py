@@ -35,6 +35,18 @@ def _add_endpoint_flags(p: argparse.ArgumentParser, default_to: str) -> None:
     p.add_argument("--connect", action="append", default=[], type=endpoint,
                    help=f"Zenoh endpoint: the cabinet's router tcp/HOST:7447 (default: {default_to})")
     p.add_argument("--port-base", type=port_base, default=7451, help="embedded default's first service port")
+    p.add_argument("--ca", type=Path, metavar="PEM",
+                   help="with a tls/HOST:PORT endpoint: the cabinet's CA certificate, which its certificate must "
+                   "chain to (deploy/sites/README.md)")
+
+
+def _bus(args):
+    """The bus settings of the endpoint flags: client mode to --connect, else the embedded default's ports."""
+    from shared.settings import BusSettings
+
+    if args.connect:
+        return BusSettings(mode="client", connect=args.connect, tls_root_ca=args.ca)
+    return BusSettings(port_base=args.port_base, tls_root_ca=args.ca)
 
 
 def _add_tracks(sub) -> None:
@@ -50,11 +62,9 @@ def _add_tracks(sub) -> None:
 
 def _run_tracks(args) -> int:
     from shared.client import TrackClient
-    from shared.settings import BusSettings
 
     n = 0
-    with TrackClient(args.site, args.connect or None, BusSettings(port_base=args.port_base),
-                     wait_s=args.wait or None) as client:
+    with TrackClient(args.site, args.connect or None, _bus(args), wait_s=args.wait or None) as client:
         for tracks in client.stream(timeout_s=args.timeout):
             rows = tracks.rows()
             if args.json:
@@ -89,12 +99,9 @@ def _watcher_session(args):
 
     from shared.bus import zenoh_config
     from shared.messages import check_name
-    from shared.settings import BusSettings
 
     check_name("site", args.site)
-    bus = (BusSettings(mode="client", connect=args.connect) if args.connect
-           else BusSettings(port_base=args.port_base))
-    return zenoh.open(zenoh_config(bus, None, 0))
+    return zenoh.open(zenoh_config(_bus(args), None, 0))
 
 
 def _run_status(args) -> int:

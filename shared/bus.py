@@ -17,6 +17,7 @@ import threading
 import time
 from collections import Counter, deque
 from collections.abc import Iterable
+from pathlib import Path
 
 import zenoh
 
@@ -56,7 +57,18 @@ def zenoh_config(bus: BusSettings, service: str | None = None, client_index: int
         connect = list(bus.connect)
     conf.insert_json5("connect/endpoints", json.dumps(connect))
     conf.insert_json5("listen/endpoints", json.dumps(listen))
+    set_tls_root_ca(conf, bus.tls_root_ca)
     return conf
+
+
+def set_tls_root_ca(conf, path) -> None:
+    """Check the certificate of a tls/ endpoint against this CA (`bus.tls_root_ca`; None: Zenoh's default, the
+    system's roots); ValueError naming the file when it is missing."""
+    if path is None:
+        return
+    if not Path(path).is_file():
+        raise ValueError(f"bus.tls_root_ca: CA certificate not found: {path}")
+    conf.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(path)))
 
 
 def set_shared_memory(conf, enabled: bool) -> None:

@@ -73,6 +73,10 @@ class BusSettings(Strict):
     # playback at full speed and the tracker waited for them (docs/pipeline.md). 16 batches: at most 1 MB per link;
     # the services' peak memory did not change measurably. deploy/zenoh/router.json5 sets the router's the same.
     tx_queue_batches: int = Field(16, ge=1, le=16)
+    # the CA certificate (PEM) that the certificate of a tls/ endpoint this process connects to must chain to: a
+    # vehicle reaching the cabinet over TLS knows it is the cabinet (deploy/sites/README.md); used as given, not
+    # relative to the site folder
+    tls_root_ca: Path | None = None
 
     @field_validator("connect", "listen")
     @classmethod

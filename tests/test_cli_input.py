@@ -201,3 +201,11 @@ def test_mix_names_an_output_that_is_a_folder(tmp_path, capsys):
     model = ROOT / "models" / "detector.pt"
     assert main(["mix", str(model), str(model), "--weight", "0.5", "--out", str(tmp_path)]) == 2
     assert f"Is a directory: '{tmp_path}'" in capsys.readouterr().err
+
+
+def test_a_missing_tls_ca_is_named_before_any_connection(tmp_path, capsys):
+    from roadside.cli import main
+
+    missing = tmp_path / "cabinet-ca.pem"
+    assert main(["tracks", "--connect", "tls/localhost:7448", "--ca", str(missing), "--wait", "1"]) == 2
+    assert f"bus.tls_root_ca: CA certificate not found: {missing}" in capsys.readouterr().err

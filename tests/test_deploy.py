@@ -267,8 +267,9 @@ def test_the_router_lets_the_socket_do_everything_and_the_network_read_tracks_li
                 assert rules[rule]["permission"] == "allow"
                 for proto in protocols[subject]:
                     allowed.setdefault(proto, []).append(rules[rule])
-    assert set(allowed) == {"unixsock-stream", "tcp"}
+    assert set(allowed) == {"unixsock-stream", "tcp", "tls"}
     assert all(k == "roadside/**" for r in allowed["unixsock-stream"] for k in r["key_exprs"])
+    assert allowed["tls"] == allowed["tcp"]  # a vehicle over TLS may read what one over TCP may, no more
     network_keys = {k for r in allowed["tcp"] for k in r["key_exprs"]}
     assert network_keys == {"roadside/*/tracks", "roadside/*/tracks/latest", "roadside/*/alive/**",
                             "roadside/*/status/**"}

@@ -269,16 +269,87 @@ def test_chain_plays_two_frames_through_all_four_services(site, site_name, small
     assert "stopped: 2 messages localized, 0 bad" in localize.log()
 
 
-def open_router(port: int, socket: Path):
+def open_router(port: int, socket: Path, tls: tuple[int, Path, Path] | None = None):
     """A Zenoh router on deploy/zenoh/router.json5, as compose.yaml's (its access control included), listening on
-    this test's port (the network's way in) and Unix socket (the cabinet services' way in)."""
+    this test's port (the network's way in) and Unix socket (the cabinet services' way in); with `tls` (port,
+    certificate, key) also on tls/localhost:port, as deploy/sites/README.md tells a cabinet to add it."""
     import zenoh
 
     conf = zenoh.Config.from_file(str(REPO / "deploy" / "zenoh" / "router.json5"))
     endpoints = json.loads(conf.get_json("listen/endpoints"))
     assert [e.split("/")[0] for e in endpoints] == ["tcp", "unixsock-stream"], endpoints
-    conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}", f"unixsock-stream/{socket}"]))
+    endpoints = [f"tcp/127.0.0.1:{port}", f"unixsock-stream/{socket}"]
+    if tls is not None:
+        endpoints.append(f"tls/localhost:{tls[0]}")
+        conf.insert_json5("transport/link/tls/listen_certificate", json.dumps(str(tls[1])))
+        conf.insert_json5("transport/link/tls/listen_private_key", json.dumps(str(tls[2])))
+    conf.insert_json5("listen/endpoints", json.dumps(endpoints))
     return zenoh.open(conf)
+
+
+def cabinet_certificates(folder: Path) -> tuple[Path, Path, Path]:
+    """A CA and the cabinet's certificate for localhost signed by it, with its key (openssl, as deploy/sites/README.md
+    makes them): (ca.pem, cabinet.pem, cabinet.key)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    ca, ca_key, cert, key, csr = (folder / n for n in ("ca.pem", "ca.key", "cabinet.pem", "cabinet.key", "c.csr"))
+    (folder / "san.cnf").write_text("subjectAltName=DNS:localhost,IP:127.0.0.1\n")
+    for cmd in (["req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", ca_key, "-out", ca, "-days", "30",
+                 "-subj", "/CN=roadside test CA"],
+                ["req", "-newkey", "rsa:2048", "-nodes", "-keyout", key, "-out", csr, "-subj", "/CN=localhost"],
+                ["x509", "-req", "-in", csr, "-CA", ca, "-CAkey", ca_key, "-CAcreateserial", "-out", cert, "-days",
+                 "30", "-extfile", folder / "san.cnf"]):
+        subprocess.run(["openssl", *map(str, cmd)], check=True, capture_output=True)
+    return ca, cert, key
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="no openssl to make the test's certificates")
+def test_a_vehicle_over_tls_knows_the_cabinet_and_may_only_read(tmp_path):
+    """With a TLS listener on the router, a vehicle given the cabinet's CA (`bus.tls_root_ca`, `roadside tracks
+    --ca`) gets the tracks; given another CA it refuses the router; and over TLS, as over TCP, what it puts never
+    reaches a service."""
+    import zenoh
+
+    from shared.bus import zenoh_config
+    from shared.client import TrackClient
+    from shared.codec import encode
+    from shared.keys import latest_tracks_key, tracks_key
+    from shared.settings import BusSettings
+
+    ca, cert, key = cabinet_certificates(tmp_path / "cabinet")
+    impostor_ca, _, _ = cabinet_certificates(tmp_path / "impostor")
+    port, tls_port = free_port_base(span=2), free_port_base(span=1)
+    router = open_router(port, tmp_path / "cabinet.sock", (tls_port, cert, key))
+    endpoint = f"tls/localhost:{tls_port}"
+    service = zenoh.open(zenoh_config(BusSettings(mode="client", connect=[f"unixsock-stream/{tmp_path}/cabinet.sock"])))
+    try:
+        f4 = np.float32
+        empty = Tracks(site="s", seq=7, t_capture_ns=1, tracker="t", id=np.zeros(0, np.int64), xy=np.zeros((0, 2)),
+                       latlon=np.zeros((0, 2)), velocity=np.zeros((0, 2), f4), yaw=np.zeros(0, f4),
+                       size_lwh=np.zeros((0, 3), f4), vtype=np.zeros(0, np.int8), score=np.zeros(0, f4),
+                       age=np.zeros(0, np.int32), hits=np.zeros(0, np.int32), cameras=[])
+        queryable = service.declare_queryable(latest_tracks_key("s"),
+                                              lambda q: q.reply(latest_tracks_key("s"), encode(empty)))
+        heard: list[bytes] = []
+        sub = service.declare_subscriber(tracks_key("s"), lambda sample: heard.append(sample.payload.to_bytes()))
+        with TrackClient("s", connect=[endpoint], bus=BusSettings(tls_root_ca=ca), wait_s=WAIT_S) as client:
+            latest = client.latest(timeout_s=5)
+            assert latest is not None and latest.seq == 7
+            client.session.put(tracks_key("s"), b"FAKE over TLS")
+        with pytest.raises(ConnectionError, match=endpoint):
+            TrackClient("s", connect=[endpoint], bus=BusSettings(tls_root_ca=impostor_ca), wait_s=2.0)
+        with pytest.raises(ValueError, match="CA certificate not found"):
+            TrackClient("s", connect=[endpoint], bus=BusSettings(tls_root_ca=tmp_path / "missing.pem"), wait_s=2.0)
+        other = zenoh.open(zenoh_config(BusSettings(mode="client",
+                                                    connect=[f"unixsock-stream/{tmp_path}/cabinet.sock"])))
+        try:  # a service's put reaches the subscription through the router; the vehicle's did not
+            assert wait_until(lambda: other.put(tracks_key("s"), b"real") or b"real" in heard, 10, 0.2)
+        finally:
+            other.close()
+        assert set(heard) == {b"real"}, "a put over TLS reached a service"
+        del queryable, sub
+    finally:
+        service.close()
+        router.close()
 
 
 def test_waiting_for_peers_through_a_router_counts_each_token_once(tmp_path):
