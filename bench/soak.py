@@ -123,11 +123,10 @@ def run(site: Path, source: str, minutes: float, pace: str, sample_s: float, war
     import zenoh
 
     from shared.bus import zenoh_config
+    from shared.service import parse_sets
     from shared.settings import BusSettings, load_settings
 
-    settings = load_settings(site)
-    overrides = dict(s.split("=", 1) for s in sets if "=" in s)
-    port_base = int(overrides.get("bus.port_base", settings.bus.port_base))
+    settings = load_settings(site, **parse_sets(sets))  # as the services will read it: a bad --set fails here
     out.mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, "-m", "roadside", "up", "--site", str(site), "--source", source, "--pace", pace, "--loop",
            "--record", str(out / "tracks.jsonl"), "--log-dir", str(out / "logs"),
@@ -138,7 +137,7 @@ def run(site: Path, source: str, minutes: float, pace: str, sample_s: float, war
     samples: list[dict] = []
     with open(out / "up.log", "w") as up_log:
         proc = subprocess.Popen(cmd, stdout=up_log, stderr=up_log, start_new_session=True)
-    session = zenoh.open(zenoh_config(BusSettings(port_base=port_base), None, 0))
+    session = zenoh.open(zenoh_config(BusSettings(port_base=settings.bus.port_base), None, 0))
     t0 = time.monotonic()
     exit_code = None
     try:

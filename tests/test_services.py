@@ -308,6 +308,7 @@ def test_a_vehicle_over_tls_knows_the_cabinet_and_may_only_read(tmp_path):
     --ca`) gets the tracks; given another CA it refuses the router; and over TLS, as over TCP, what it puts never
     reaches a service."""
     import zenoh
+    from test_contract import make_tracks
 
     from shared.bus import zenoh_config
     from shared.client import TrackClient
@@ -317,18 +318,15 @@ def test_a_vehicle_over_tls_knows_the_cabinet_and_may_only_read(tmp_path):
 
     ca, cert, key = cabinet_certificates(tmp_path / "cabinet")
     impostor_ca, _, _ = cabinet_certificates(tmp_path / "impostor")
-    port, tls_port = free_port_base(span=2), free_port_base(span=1)
+    port = free_port_base(span=2)
+    tls_port = port + 1
     router = open_router(port, tmp_path / "cabinet.sock", (tls_port, cert, key))
     endpoint = f"tls/localhost:{tls_port}"
     service = zenoh.open(zenoh_config(BusSettings(mode="client", connect=[f"unixsock-stream/{tmp_path}/cabinet.sock"])))
     try:
-        f4 = np.float32
-        empty = Tracks(site="s", seq=7, t_capture_ns=1, tracker="t", id=np.zeros(0, np.int64), xy=np.zeros((0, 2)),
-                       latlon=np.zeros((0, 2)), velocity=np.zeros((0, 2), f4), yaw=np.zeros(0, f4),
-                       size_lwh=np.zeros((0, 3), f4), vtype=np.zeros(0, np.int8), score=np.zeros(0, f4),
-                       age=np.zeros(0, np.int32), hits=np.zeros(0, np.int32), cameras=[])
+        latest_payload = encode(make_tracks(2, site="s", seq=7))
         queryable = service.declare_queryable(latest_tracks_key("s"),
-                                              lambda q: q.reply(latest_tracks_key("s"), encode(empty)))
+                                              lambda q: q.reply(latest_tracks_key("s"), latest_payload))
         heard: list[bytes] = []
         sub = service.declare_subscriber(tracks_key("s"), lambda sample: heard.append(sample.payload.to_bytes()))
         with TrackClient("s", connect=[endpoint], bus=BusSettings(tls_root_ca=ca), wait_s=WAIT_S) as client:

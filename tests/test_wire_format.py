@@ -18,6 +18,7 @@ import msgpack
 import numpy as np
 import pytest
 import zenoh
+from pipeline_fixtures import free_port_base
 
 from services.fuse_track.__main__ import tracks_message
 from services.fuse_track.tracker import TrackState
@@ -25,7 +26,6 @@ from shared.codec import ALLOWED_DTYPES, encode
 from shared.geo import GeoFrame
 from shared.keys import latest_tracks_key, tracks_key
 from shared.messages import VEHICLE_TYPES, Tracks
-from tests.pipeline_fixtures import free_port_base
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "wire-format.md"
