@@ -320,9 +320,11 @@ def test_a_vehicle_over_tls_knows_the_cabinet_and_may_only_read(tmp_path):
     impostor_ca, _, _ = cabinet_certificates(tmp_path / "impostor")
     port = free_port_base(span=2)
     tls_port = port + 1
-    router = open_router(port, tmp_path / "cabinet.sock", (tls_port, cert, key))
+    socket = tmp_path / "cabinet.sock"
+    router = open_router(port, socket, (tls_port, cert, key))
     endpoint = f"tls/localhost:{tls_port}"
-    service = zenoh.open(zenoh_config(BusSettings(mode="client", connect=[f"unixsock-stream/{tmp_path}/cabinet.sock"])))
+    inside = BusSettings(mode="client", connect=[f"unixsock-stream/{socket}"])  # a cabinet service's bus
+    service = zenoh.open(zenoh_config(inside))
     try:
         latest_payload = encode(make_tracks(2, site="s", seq=7))
         queryable = service.declare_queryable(latest_tracks_key("s"),
@@ -337,8 +339,7 @@ def test_a_vehicle_over_tls_knows_the_cabinet_and_may_only_read(tmp_path):
             TrackClient("s", connect=[endpoint], bus=BusSettings(tls_root_ca=impostor_ca), wait_s=2.0)
         with pytest.raises(ValueError, match="CA certificate not found"):
             TrackClient("s", connect=[endpoint], bus=BusSettings(tls_root_ca=tmp_path / "missing.pem"), wait_s=2.0)
-        other = zenoh.open(zenoh_config(BusSettings(mode="client",
-                                                    connect=[f"unixsock-stream/{tmp_path}/cabinet.sock"])))
+        other = zenoh.open(zenoh_config(inside))
         try:  # a service's put reaches the subscription through the router; the vehicle's did not
             assert wait_until(lambda: other.put(tracks_key("s"), b"real") or b"real" in heard, 10, 0.2)
         finally:
