@@ -171,9 +171,11 @@ def score_camera(frames: dict[str, np.ndarray], footage: Path, masks: LookupMask
     return [_scores(a, len(frames)) for a in acc]
 
 
-def _count(acc: dict, d_xy: np.ndarray, l_xy: np.ndarray, foot: np.ndarray) -> None:
+def _count(acc: dict, d_xy: np.ndarray, l_xy: np.ndarray, foot: np.ndarray, d_cov: np.ndarray | None = None) -> None:
     """Add one frame's counts to `acc` (tp, n_det, n_lab, errors): detections d_xy and labels l_xy in site
-    metres, matched one to one within MATCH_M; only those within ROI_M of the camera's foot count."""
+    metres, matched one to one within MATCH_M; only those within ROI_M of the camera's foot count. With d_cov (the
+    detections' or tracks' position covariances, (N, 2, 2)), each true positive's squared Mahalanobis distance from
+    its label goes to acc["nees"]."""
     l_in = np.hypot(*(l_xy - foot).T) <= ROI_M
     d_in = np.hypot(*(d_xy - foot).T) <= ROI_M
     acc["n_det"] += int(d_in.sum())
@@ -187,6 +189,9 @@ def _count(acc: dict, d_xy: np.ndarray, l_xy: np.ndarray, foot: np.ndarray) -> N
             if l_in[c]:
                 acc["tp"] += 1
                 acc["errors"].append(cost[r, c])
+                if d_cov is not None and np.isfinite(d_cov[r]).all():
+                    e = d_xy[r] - l_xy[c]
+                    acc.setdefault("nees", []).append(float(e @ np.linalg.solve(d_cov[r], e)))
             elif d_in[r]:
                 acc["n_det"] -= 1  # a hit on a vehicle just outside the ROI is not a false alarm
 
@@ -241,23 +246,31 @@ def evaluate_real(labels_dir: str | Path, footage: str | Path, masks_dir: str | 
     return out
 
 
-def tracks_at(lines: list, t_ns: int, max_gap_ns: int) -> np.ndarray | None:
-    """Track positions (M, 2) at capture time t_ns from tracks lines sorted by time (eval.tracking.TrackLine):
-    interpolated between the two lines around t_ns, a track in only one of them taken from it when it is the
-    nearer one; None when no line lies within max_gap_ns of t_ns."""
+def tracks_at(lines: list, t_ns: int, max_gap_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """Track positions (M, 2) at capture time t_ns from tracks lines sorted by time (eval.tracking.TrackLine),
+    and their position covariances (M, 2, 2; NaN where the tracks carry none): interpolated between the two lines
+    around t_ns, a track in only one of them taken from it when it is the nearer one; None when no line lies within
+    max_gap_ns of t_ns."""
     times = [ln.t_ns for ln in lines]
     i = int(np.searchsorted(times, t_ns))
     near = [lines[j] for j in (i - 1, i) if 0 <= j < len(lines) and abs(times[j] - t_ns) <= max_gap_ns]
     if not near:
         return None
+
+    def rows(line) -> dict:  # track identity -> position and covariance (6 values)
+        cov = line.cov if line.cov is not None else np.full((len(line.ids), 2, 2), np.nan)
+        return dict(zip(line.keys(), np.hstack([line.xy.reshape(-1, 2), cov.reshape(-1, 4)]), strict=True))
+
     if len(near) == 1 or near[1].t_ns == near[0].t_ns:
-        return near[0].xy.reshape(-1, 2)
-    a, b = near
-    w = (t_ns - a.t_ns) / (b.t_ns - a.t_ns)
-    pa, pb = dict(zip(a.keys(), a.xy, strict=True)), dict(zip(b.keys(), b.xy, strict=True))
-    out = [(1 - w) * pa[k] + w * pb[k] if k in pb else pa[k] for k in pa if k in pb or w <= 0.5]
-    out += [pb[k] for k in pb if k not in pa and w > 0.5]
-    return np.array(out, np.float64).reshape(-1, 2)
+        out = list(rows(near[0]).values())
+    else:
+        a, b = near
+        w = (t_ns - a.t_ns) / (b.t_ns - a.t_ns)
+        pa, pb = rows(a), rows(b)
+        out = [(1 - w) * pa[k] + w * pb[k] if k in pb else pa[k] for k in pa if k in pb or w <= 0.5]
+        out += [pb[k] for k in pb if k not in pa and w > 0.5]
+    both = np.array(out, np.float64).reshape(-1, 6)
+    return both[:, :2], both[:, 2:].reshape(-1, 2, 2)
 
 
 def evaluate_tracks_real(labels_dir: str | Path, tracks: str | Path, masks_dir: str | Path,
@@ -268,7 +281,7 @@ def evaluate_tracks_real(labels_dir: str | Path, tracks: str | Path, masks_dir: 
     between the ticks around it, are matched to that camera's labels within MATCH_M, within ROI_M of its
     foot. Frames with no tracks line within `max_gap_ms` are counted apart (`frames_without_tracks`), not
     scored. `site_geo`: the tracks' site frame when it differs from the masks' own."""
-    from eval.tracking import load_tracks
+    from eval.tracking import covariance_measure, load_tracks
 
     labels_dir, masks_dir = Path(labels_dir), Path(masks_dir)
     files = sorted(labels_dir.glob("*.json"))
@@ -277,23 +290,27 @@ def evaluate_tracks_real(labels_dir: str | Path, tracks: str | Path, masks_dir: 
     lines = sorted(load_tracks(tracks), key=lambda ln: ln.t_ns)
     if not lines:
         raise ValueError(f"{tracks}: no tracks lines")
-    per, missing = {}, 0
+    per, missing, nees = {}, 0, []
     for f in files:
         masks = load_masks(masks_dir / f"{f.stem}.npz")
         to_site = site_geo is not None and site_geo != masks.geo
         foot = masks.geo.reframe(camera_foot(masks), site_geo)[0] if to_site else camera_foot(masks)
-        acc = {"tp": 0, "n_det": 0, "n_lab": 0, "errors": []}
+        acc = {"tp": 0, "n_det": 0, "n_lab": 0, "errors": [], "nees": []}
         frames = load_labels(f, masks.shape[1], masks.shape[0], held_out_from)
         scored = 0
         for name, labels in sorted(frames.items()):
-            xy = tracks_at(lines, capture_time_from_name(name), round(max_gap_ms * 1e6))
-            if xy is None:
+            at = tracks_at(lines, capture_time_from_name(name), round(max_gap_ms * 1e6))
+            if at is None:
                 missing += 1
                 continue
             l_xy = _label_ground(masks, labels, f"{f}: {name}")
             l_xy = masks.geo.reframe(l_xy, site_geo) if to_site else l_xy
-            _count(acc, xy, l_xy, foot)
+            _count(acc, at[0], l_xy, foot, at[1])
             scored += 1
         per[f.stem] = _scores(acc, scored)
+        nees.extend(acc["nees"])
     return {"roi_m": ROI_M, "match_m": MATCH_M, "tracks_file": str(tracks), "frames_without_tracks": missing,
-            "overall": _overall(per), "per_camera": per}
+            "overall": _overall(per), "per_camera": per,
+            # the tracks' own position uncertainty (xy_cov) against the hand labels (eval.tracking's pos_cov_*; the
+            # labels' own error, a click on the frame lifted to the ground, counts as the tracks')
+            **covariance_measure(np.array(nees))}

@@ -27,6 +27,11 @@ the path is not counted), averaged; `traj_err_out_roi_m` the same for matched po
 tracks carry a `yaw` (rad, ENU, counter-clockwise from east): the full-circle angle to the vehicle's true heading
 at its ground-truth sample nearest the tick (a reversed heading is 180 deg); `yaw_err_in_roi_moving_deg` and
 `_standing_deg` split it at `moving_mps` of true speed.
+`pos_cov_*`: how well the tracks' own position uncertainty (`xy_cov`, m^2, where the tracks carry one) describes
+their error, over the same matched positions in the ROI: with d the time-synchronised error and C the covariance,
+d' C^-1 d is chi-square with 2 degrees of freedom when C is right, so `pos_cov_nees_mean` should be 2,
+`pos_cov_within_1sigma` 0.393 (the 1-sigma ellipse), `pos_cov_within_95` 0.95 (the 95 % ellipse, d' C^-1 d <= 5.991);
+`pos_cov_err95_median_m` is the median of the 95 % ellipses' longest half-axes, what a vehicle is told.
 
 Handoff: each GT object's region at t is its nearest chosen camera on the ground. A crossing is a change of
 region between two consecutive GT-object samples of a vehicle at most `handoff_window_s` apart; it is tracked
@@ -48,6 +53,7 @@ import motmetrics as mm
 import numpy as np
 
 from eval.ground_truth import GroundTruth, TrackingEvalConfig, _ground_truth
+from shared.messages import CHI2_2DOF_95, err95_m
 from sim.recording import Recording
 
 _MATCH_TYPES = ("MATCH", "SWITCH")
@@ -70,6 +76,7 @@ class TrackLine:
     ids: list[int]
     xy: np.ndarray
     yaw: np.ndarray | None = None  # (N,) rad, NaN where a track has none
+    cov: np.ndarray | None = None  # (N, 2, 2) m^2, the position's error covariance; NaN where a track has none
 
     def keys(self) -> list[tuple[str, int]]:
         return [(self.tracker, i) for i in self.ids]
@@ -95,7 +102,7 @@ def _parse_line(obj: Any, where: str) -> TrackLine:
         raise ValueError(f"{where}: tracker must be a string, got {obj['tracker']!r}")
     if not isinstance(obj["tracks"], list):
         raise ValueError(f"{where}: tracks must be a list")
-    ids, xy, yaw = [], [], []
+    ids, xy, yaw, cov = [], [], [], []
     for k, tr in enumerate(obj["tracks"]):
         if not isinstance(tr, dict):
             raise ValueError(f"{where}: track {k} is not an object")
@@ -110,9 +117,24 @@ def _parse_line(obj: Any, where: str) -> TrackLine:
         ids.append(tr["id"])
         xy.append((float(tr["x"]), float(tr["y"])))
         yaw.append(float(tr["yaw"]) if _is_finite_number(tr.get("yaw")) else math.nan)
+        cov.append(_parse_cov(tr.get("xy_cov"), f"{where}: track {k} (id {tr['id']})"))
     if len(set(ids)) != len(ids):
         raise ValueError(f"{where}: duplicate track id in one line")
-    return TrackLine(0, obj["t_ns"], obj["tracker"], ids, np.array(xy, float).reshape(-1, 2), np.array(yaw, float))
+    return TrackLine(0, obj["t_ns"], obj["tracker"], ids, np.array(xy, float).reshape(-1, 2), np.array(yaw, float),
+                     np.array(cov, float).reshape(-1, 2, 2))
+
+
+def _parse_cov(value: Any, where: str) -> np.ndarray:
+    """A track's `xy_cov` ([[a, b], [b, c]], m^2) as a (2, 2) array; NaN when the track has none."""
+    if value is None:
+        return np.full((2, 2), math.nan)
+    if not (isinstance(value, list) and len(value) == 2 and all(isinstance(r, list) and len(r) == 2 for r in value)
+            and all(_is_finite_number(v) for r in value for v in r)):
+        raise ValueError(f"{where}: xy_cov must be [[a, b], [b, c]] of finite numbers (m^2), got {value!r:.80}")
+    c = np.array(value, float)
+    if not (c[0, 0] > 0 and c[0, 0] * c[1, 1] > c[0, 1] * c[1, 0] and c[0, 1] == c[1, 0]):
+        raise ValueError(f"{where}: xy_cov {value} is not a symmetric positive definite covariance")
+    return c
 
 
 def load_tracks(source: str | Path | Iterable[Mapping | Any]) -> list[TrackLine]:
@@ -158,6 +180,7 @@ class FrameMatch:
     track_xy: dict[tuple[str, int], np.ndarray]
     matched: dict[Any, tuple[str, int]]  # GT id -> track identity, for the matched GT objects
     track_yaw: dict[tuple[str, int], float] = field(default_factory=dict)  # the scored tracks' headings (rad)
+    track_cov: dict[tuple[str, int], np.ndarray] = field(default_factory=dict)  # their xy_cov (2, 2), m^2
 
 
 @dataclass
@@ -206,6 +229,7 @@ def match_tracks(ground_truth: GroundTruth, tracks: str | Path | Iterable, camer
         keys = line.keys() if line is not None else []
         h_xy = line.xy if line is not None else np.zeros((0, 2))
         h_yaw = line.yaw if line is not None and line.yaw is not None else np.full(len(keys), np.nan)
+        h_cov = line.cov if line is not None and line.cov is not None else np.full((len(keys), 2, 2), np.nan)
         res.track_identities.update(keys)
         if cfg.ignore_unscored_tracks and len(keys):
             d2_gt = np.sum((h_xy[:, None, :] - g_xy[None, :, :]) ** 2, axis=2)
@@ -217,7 +241,7 @@ def match_tracks(ground_truth: GroundTruth, tracks: str | Path | Iterable, camer
             keep = near_gt | ~(near_other | outside)
             res.ignored_track_positions += int(np.sum(~keep))
             keys = [k for k, ok in zip(keys, keep, strict=True) if ok]
-            h_xy, h_yaw = h_xy[keep], h_yaw[keep]
+            h_xy, h_yaw, h_cov = h_xy[keep], h_yaw[keep], h_cov[keep]
         oids = [gt_index.setdefault(v, len(gt_index)) for v in gids]
         hids = [hyp_index.setdefault(k, len(hyp_index)) for k in keys]
         if oids and hids:
@@ -227,7 +251,8 @@ def match_tracks(ground_truth: GroundTruth, tracks: str | Path | Iterable, camer
         res.accumulator.update(oids, hids, dist, frameid=frame_id)
         res.frames.append(FrameMatch(t, {v: g_xy[i] for i, v in enumerate(gids)},
                                      {k: h_xy[i] for i, k in enumerate(keys)}, {},
-                                     {k: float(h_yaw[i]) for i, k in enumerate(keys)}))
+                                     {k: float(h_yaw[i]) for i, k in enumerate(keys)},
+                                     {k: h_cov[i] for i, k in enumerate(keys)}))
     if res.frames:
         ev = res.accumulator.mot_events
         ev = ev[ev.Type.isin(_MATCH_TYPES)]
@@ -296,6 +321,17 @@ def handoff_measure(frames: Sequence[FrameMatch], camera_xy_m: Mapping[str, Sequ
     }
 
 
+def covariance_measure(nees: np.ndarray, err95_m: np.ndarray | None = None) -> dict:
+    """`pos_cov_*` (module docstring) of the squared Mahalanobis distances `nees` of matched positions under their
+    tracks' covariances, and with `err95_m` the median of the covariances' 95 % half-axes; NaN where there are none."""
+    out = {"pos_cov_n": len(nees), "pos_cov_nees_mean": float(nees.mean()) if len(nees) else math.nan,
+           "pos_cov_within_1sigma": float(np.mean(nees <= 1.0)) if len(nees) else math.nan,
+           "pos_cov_within_95": float(np.mean(nees <= CHI2_2DOF_95)) if len(nees) else math.nan}
+    if err95_m is not None:
+        out["pos_cov_err95_median_m"] = float(np.median(err95_m)) if len(err95_m) else math.nan
+    return out
+
+
 def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows_or_path: str | Path | Iterable,
                     cameras: str | Sequence[str] | None = None, config: TrackingEvalConfig | None = None) -> dict:
     """Tracking accuracy of a tracks file (or rows) on a recording, over the GT objects of `cameras` (all by
@@ -335,6 +371,7 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
     gap = gt.max_gap_ns(cfg)
     err_in, err_out, pos_err = [], [], []
     yaw_err, yaw_moving = [], []
+    nees, err95 = [], []
     for fm in res.frames:
         if not fm.matched:
             continue
@@ -345,6 +382,11 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
             d = gt.trajectories[v].distance_to_path(xy, fm.t_ns, window, gap)
             (err_in if roi else err_out).append(d)
             pos_err.append(float(np.linalg.norm(xy - fm.gt_xy[v])))
+            cov = fm.track_cov.get(fm.matched[v])
+            if roi and cov is not None and np.isfinite(cov).all():
+                e = xy - fm.gt_xy[v]
+                nees.append(float(e @ np.linalg.solve(cov, e)))
+                err95.append(float(err95_m(cov)))
             tracked = fm.track_yaw.get(fm.matched[v], math.nan)
             true, speed = gt.trajectories[v].heading_at(fm.t_ns)
             if roi and math.isfinite(tracked) and math.isfinite(true):
@@ -360,6 +402,7 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
     out["yaw_err_in_roi_n"] = len(yaw_err_a)
     for name, part in (("moving", moving), ("standing", ~moving)):
         out[f"yaw_err_in_roi_{name}_deg"] = float(yaw_err_a[part].mean()) if part.any() else math.nan
+    out.update(covariance_measure(np.array(nees), np.array(err95)))
     scored = {k for fm in res.frames for k in fm.track_xy}
     out.update({
         "tracks": len(scored), "tracks_total": len(res.track_identities),

@@ -8,7 +8,9 @@ It reads the cabinet's tracks as docs/wire-format.md specifies them, and is that
 code: a vehicle written in another language (C++, Rust, ...) does the same steps with its own Zenoh and msgpack
 libraries. It asks for the newest Tracks message first (a vehicle that joins late gets the current tracks at once),
 then prints one JSON line per message: `{"site", "seq", "t_capture_ns", "tracker", "tracks": [{"id", "x", "y",
-"lat", "lon", "vx", "vy", "yaw", "length", "width", "height", "type", "score", "age", "hits", "cameras"}, ...]}`.
+"lat", "lon", "vx", "vy", "yaw", "length", "width", "height", "type", "score", "age", "hits", "cameras", "xy_cov",
+"err95_m"}, ...]}` (`err95_m`: the longest half-axis of the ellipse that holds the vehicle's true position with 95 %
+probability, from `xy_cov`).
 A message it cannot read is reported on stderr with the reason and skipped. (Inside the project,
 `shared.client.TrackClient` and `roadside tracks` do the same with the project's own codec.)
 """
@@ -24,15 +26,16 @@ import time
 
 import msgpack
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 VEHICLE_TYPES = ("car", "suv_van", "truck", "bus", "motorcycle")  # vtype indexes this list
 # dtype on the wire -> struct format character (all little-endian, "<" below)
 STRUCT_FORMATS = {"<f8": "d", "<f4": "f", "<i8": "q", "<i4": "i", "<u4": "I", "<i2": "h", "<u2": "H", "|i1": "b",
                   "|u1": "B", "|b1": "?"}
-# the per-track columns of a Tracks message: field -> (dtype, values per track)
-TRACK_COLUMNS = {"id": ("<i8", 1), "xy": ("<f8", 2), "latlon": ("<f8", 2), "velocity": ("<f4", 2),
-                 "yaw": ("<f4", 1), "size_lwh": ("<f4", 3), "vtype": ("|i1", 1), "score": ("<f4", 1),
-                 "age": ("<i4", 1), "hits": ("<i4", 1)}
+# the per-track columns of a Tracks message: field -> (dtype, shape of one track's values)
+TRACK_COLUMNS = {"id": ("<i8", ()), "xy": ("<f8", (2,)), "latlon": ("<f8", (2,)), "velocity": ("<f4", (2,)),
+                 "yaw": ("<f4", ()), "size_lwh": ("<f4", (3,)), "vtype": ("|i1", ()), "score": ("<f4", ()),
+                 "age": ("<i4", ()), "hits": ("<i4", ()), "xy_cov": ("<f4", (2, 2))}
+CHI2_2DOF_95 = 5.991  # a 2D Gaussian's 95 % ellipse: squared Mahalanobis distance within this
 
 
 class BadMessage(ValueError):
@@ -41,17 +44,18 @@ class BadMessage(ValueError):
 
 def column(msg: dict, field: str) -> list[tuple]:
     """One per-track column of a decoded Tracks map: a list of N tuples of its values per track."""
-    dtype, width = TRACK_COLUMNS[field]
+    dtype, per_track = TRACK_COLUMNS[field]
+    width = math.prod(per_track)
     arr = msg.get(field)
     if not isinstance(arr, dict) or set(arr) != {"dtype", "shape", "data"}:
         raise BadMessage(f"field {field!r}: expected an array map {{dtype, shape, data}}, got {arr!r:.80}")
     if arr["dtype"] != dtype:
         raise BadMessage(f"field {field!r}: dtype {arr['dtype']!r}, this listener reads {dtype!r}")
     shape = arr["shape"]
-    expected = [width] if width > 1 else []
+    expected = list(per_track)
     if not (isinstance(shape, list) and len(shape) == 1 + len(expected) and shape[1:] == expected
             and type(shape[0]) is int and shape[0] >= 0):
-        raise BadMessage(f"field {field!r}: shape {shape}, expected [N{f', {width}' if width > 1 else ''}]")
+        raise BadMessage(f"field {field!r}: shape {shape}, expected [N{''.join(f', {k}' for k in expected)}]")
     data = arr["data"]
     if not isinstance(data, bytes):
         raise BadMessage(f"field {field!r}: data must be bytes (msgpack bin), got {type(data).__name__}")
@@ -88,11 +92,14 @@ def decode_tracks(payload: bytes) -> dict:
         (x, y), (lat, lon), (vx, vy), (length, width, height) = (
             cols["xy"][i], cols["latlon"][i], cols["velocity"][i], cols["size_lwh"][i])
         vtype = cols["vtype"][i][0]
+        see, sen, sne, snn = cols["xy_cov"][i]  # variance east, covariance east-north (twice), variance north, m^2
+        largest = (see + snn) / 2 + math.sqrt(((see - snn) / 2) ** 2 + sen * sne)  # the larger eigenvalue
         tracks.append({"id": cols["id"][i][0], "x": x, "y": y, "lat": lat, "lon": lon, "vx": vx, "vy": vy,
                        "yaw": cols["yaw"][i][0], "length": length, "width": width, "height": height,
                        "type": VEHICLE_TYPES[vtype] if 0 <= vtype < len(VEHICLE_TYPES) else "unknown",
                        "score": cols["score"][i][0], "age": cols["age"][i][0], "hits": cols["hits"][i][0],
-                       "cameras": cameras[i]})
+                       "cameras": cameras[i], "xy_cov": [[see, sen], [sne, snn]],
+                       "err95_m": math.sqrt(CHI2_2DOF_95 * largest)})
     return {"site": msg["site"], "seq": msg["seq"], "t_capture_ns": msg["t_capture_ns"],
             "tracker": msg.get("tracker", ""), "tracks": tracks}
 

@@ -62,6 +62,7 @@ def _add_tracks(sub) -> None:
 
 def _run_tracks(args) -> int:
     from shared.client import TrackClient
+    from shared.messages import err95_m
 
     n = 0
     with TrackClient(args.site, args.connect or None, _bus(args), wait_s=args.wait or None) as client:
@@ -71,9 +72,9 @@ def _run_tracks(args) -> int:
                 print(dumps({"t_ns": tracks.t_capture_ns, "seq": tracks.seq, "tracks": rows}), flush=True)
             else:
                 print(f"t={tracks.t_capture_ns / 1e9:.2f} s  {len(rows)} tracks", flush=True)
-                for r in rows:
+                for r, err in zip(rows, err95_m(tracks.xy_cov).tolist(), strict=True):
                     speed = math.hypot(r["vx"], r["vy"])
-                    print(f"  {r['id']:>5} {r['type']:<10} lat {r['lat']:.7f} lon {r['lon']:.7f} "
+                    print(f"  {r['id']:>5} {r['type']:<10} lat {r['lat']:.7f} lon {r['lon']:.7f} +-{err:4.1f} m "
                           f"yaw {r['yaw']:+.2f} speed {speed:5.1f} m/s  {','.join(r['cameras'])}")
             n += 1
             if args.count and n >= args.count:

@@ -31,7 +31,7 @@ from typing import Annotated, Any, ClassVar, Literal
 import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, field_validator, model_validator
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 VEHICLE_TYPES = ("car", "suv_van", "truck", "bus", "motorcycle")
 SERVICES = ("ingest", "detect", "localize", "fuse_track")
 CAMERA_KINDS = ("pinhole", "fisheye")
@@ -216,13 +216,25 @@ class Objects(CameraMessage):
         return len(self.score)
 
 
+CHI2_2DOF_95 = 5.991  # chi-square with 2 degrees of freedom, 95th percentile: a 2D Gaussian's 95 % ellipse
+
+
+def err95_m(xy_cov: np.ndarray) -> np.ndarray:
+    """(..., 2, 2) position covariances (m^2) -> (...) the longest half-axis (m) of each one's 95 % ellipse: the
+    true position lies within that ellipse with 95 % probability, and within this distance along its worst axis."""
+    c = np.asarray(xy_cov, np.float64)
+    mean, half = (c[..., 0, 0] + c[..., 1, 1]) / 2, (c[..., 0, 0] - c[..., 1, 1]) / 2
+    return np.sqrt(CHI2_2DOF_95 * (mean + np.sqrt(half * half + c[..., 0, 1] * c[..., 1, 0])))
+
+
 class Tracks(Message):
     """The tracked vehicles at event time `t_capture_ns` (the tick's capture time).
 
     id (N,) int64 unique per tracker instance; xy (N, 2) float64 m, site frame; latlon (N, 2) float64 deg;
     velocity (N, 2) float32 m/s (east, north); yaw (N,) float32 rad ENU; size_lwh (N, 3) float32 m;
     vtype (N,) int8; score (N,) float32; age (N,) int32 ticks since the track started; hits (N,) int32
-    ticks with a measurement; cameras: per track, the cameras whose objects updated it this tick.
+    ticks with a measurement; cameras: per track, the cameras whose objects updated it this tick; xy_cov (N, 2, 2)
+    float32 m^2: the covariance of the position's error (east, north), symmetric positive definite.
     An id that drops out and comes back within a few seconds where the lost track was heading is the same vehicle
     (fuse_track's `relink_s`). yaw: of a moving track, its direction of motion (from 4 m/s; drawn towards it from
     1.5 m/s); of a track that stopped, the heading it had; of a vehicle never seen moving, the detector's, whose
@@ -244,6 +256,7 @@ class Tracks(Message):
     age: Array
     hits: Array
     cameras: list[Annotated[list[str], Field(max_length=64)]]
+    xy_cov: Array
     frames: list[tuple[str, int, int, int]] = Field(default_factory=list, max_length=MAX_ROWS)
 
     @model_validator(mode="after")
@@ -252,9 +265,15 @@ class Tracks(Message):
             "id": (self.id, (), "iu"), "xy": (self.xy, (2,), "f"), "latlon": (self.latlon, (2,), "f"),
             "velocity": (self.velocity, (2,), "f"), "yaw": (self.yaw, (), "f"),
             "size_lwh": (self.size_lwh, (3,), "f"), "vtype": (self.vtype, (), "iu"),
-            "score": (self.score, (), "f"), "age": (self.age, (), "iu"), "hits": (self.hits, (), "iu")})
+            "score": (self.score, (), "f"), "age": (self.age, (), "iu"), "hits": (self.hits, (), "iu"),
+            "xy_cov": (self.xy_cov, (2, 2), "f")})
         if len(self.cameras) != n:
             raise ValueError(f"Tracks.cameras has {len(self.cameras)} entries, expected {n}")
+        c = self.xy_cov
+        bad = (c[:, 0, 0] <= 0) | (c[:, 0, 0] * c[:, 1, 1] <= c[:, 0, 1] * c[:, 1, 0]) | (c[:, 0, 1] != c[:, 1, 0])
+        if bad.any():
+            raise ValueError(f"Tracks.xy_cov[{int(np.flatnonzero(bad)[0])}] is not a symmetric positive definite "
+                             "covariance")
         return self
 
     def __len__(self) -> int:
@@ -270,12 +289,13 @@ class Tracks(Message):
         yaw, score = rounded(self.yaw, 4), rounded(self.score, 3)
         latlon = self.latlon.astype(np.float64).tolist()
         names = [VEHICLE_TYPES[t] if 0 <= t < len(VEHICLE_TYPES) else "unknown" for t in self.vtype.tolist()]
+        cov = rounded(self.xy_cov, 5)
         return [{"id": i, "x": p[0], "y": p[1], "lat": ll[0], "lon": ll[1], "vx": v[0], "vy": v[1], "yaw": a,
                  "length": s[0], "width": s[1], "height": s[2], "type": t, "score": sc, "age": age, "hits": hits,
-                 "cameras": list(cams)}
-                for i, p, ll, v, a, s, t, sc, age, hits, cams in zip(
+                 "cameras": list(cams), "xy_cov": c}
+                for i, p, ll, v, a, s, t, sc, age, hits, cams, c in zip(
                     self.id.tolist(), xy, latlon, vel, yaw, size, names, score, self.age.tolist(), self.hits.tolist(),
-                    self.cameras, strict=True)]
+                    self.cameras, cov, strict=True)]
 
 
 MAX_STATUS_ENTRIES = 300  # names in one of a Status message's maps (BadInput keeps at most 256 reasons, + 1)

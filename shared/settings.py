@@ -254,6 +254,12 @@ class FuseTrackSettings(Strict):
     # it within relink_gate_m (a vehicle lost for a moment keeps its identity; services/fuse_track/tracker.py). 0: off
     relink_s: float = Field(3.0, ge=0, le=30)
     relink_gate_m: float = Field(3.0, gt=0)
+    # what each track reports of its position's error (Tracks.xy_cov; services/fuse_track/tracker.py): the share of a
+    # measurement's error variance that persists from frame to frame (not averaged away by the filter), and the sigma
+    # along the vehicle, as a share of its length, of where on its body the detector puts it. Chosen for the shipped
+    # detector (docs/pipeline.md, "How sure a track is"); another detector may need its own
+    bias_share: float = Field(0.6, ge=0, le=1)
+    along_length_share: float = Field(0.07, ge=0, le=1)
     record: Path | None = None  # append every Tracks message to this JSON-lines file
     # at this size the recording is renamed <stem>.<n>.jsonl and a new one started (services/fuse_track/recorder.py);
     # 0: one file that grows for ever (about 4 MB a minute with the demo's four cameras)

@@ -43,6 +43,7 @@ from shared.messages import (
     Status,
     Tracks,
     check_name,
+    err95_m,
 )
 from shared.position_error import POSITION_SIGMA
 from shared.service import parse_sets, run
@@ -95,7 +96,9 @@ def make_tracks(n: int = 3, **kw) -> Tracks:
               "latlon": np.tile([42.2294, -83.739], (n, 1)), "velocity": np.ones((n, 2), f4),
               "yaw": np.zeros(n, f4), "size_lwh": np.ones((n, 3), f4), "vtype": np.zeros(n, np.int8),
               "score": np.full(n, 0.8, f4), "age": np.arange(n, dtype=np.int32), "hits": np.arange(n, dtype=np.int32),
-              "cameras": [["NE"] for _ in range(n)], "frames": [("NE", 7, T0, T0 + 15)]}
+              "cameras": [["NE"] for _ in range(n)],
+              "xy_cov": np.tile(np.array([[0.09, 0.02], [0.02, 0.16]], f4), (n, 1, 1)),
+              "frames": [("NE", 7, T0, T0 + 15)]}
     return Tracks(**{**fields, **kw})
 
 
@@ -164,6 +167,30 @@ def test_tracks_rows_are_json_friendly() -> None:
     rows = make_tracks(2).rows()
     assert json.loads(json.dumps(rows)) == rows
     assert rows[1]["id"] == 2 and rows[1]["type"] == "car" and rows[1]["cameras"] == ["NE"]
+
+
+@pytest.mark.parametrize(("cov", "reason"), [
+    ([[0.09, 0.02], [0.03, 0.16]], "not a symmetric"),  # not symmetric
+    ([[0.09, 0.2], [0.2, 0.16]], "not a symmetric"),  # |covariance| beyond what the variances allow
+    ([[0.0, 0.0], [0.0, 0.16]], "not a symmetric"),
+    ([[0.09, 0.0], [0.0, np.nan]], "NaN or infinite"),
+])
+def test_a_position_covariance_that_is_not_one_is_refused(cov, reason: str) -> None:
+    t = raw(make_tracks(2))
+    t["xy_cov"] = arr(np.array([[[0.09, 0.0], [0.0, 0.16]], cov], np.float32))
+    refused(pack(t), reason)
+
+
+def test_err95_is_the_95_percent_ellipses_longest_half_axis() -> None:
+    rng = np.random.default_rng(0)
+    a = rng.normal(0, 1, (50, 2, 2))
+    cov = a @ a.transpose(0, 2, 1) + 0.01 * np.eye(2)
+    np.testing.assert_allclose(err95_m(cov), np.sqrt(5.991 * np.linalg.eigvalsh(cov)[:, -1]))
+    # a circle of 1 m sigma: 2.448 m holds 95 % of a 2D Gaussian (1 - exp(-r^2 / 2) = 0.95)
+    assert float(err95_m(np.eye(2))) == pytest.approx(np.sqrt(-2 * np.log(0.05)), abs=1e-3)
+    samples = rng.multivariate_normal([0, 0], cov[0], 20000)
+    inside = np.einsum("ni,ij,nj->n", samples, np.linalg.inv(cov[0]), samples) <= 5.991
+    assert inside.mean() == pytest.approx(0.95, abs=0.01)
 
 
 def test_stamped_appends_and_stamp_looks_up() -> None:

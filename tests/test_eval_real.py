@@ -138,10 +138,11 @@ def test_perfect_detections_score_one(tmp_path):
     assert r["overall"]["precision"] == 1.0 and r["overall"]["recall"] == 1.0
 
 
-def _tracks_file(path: Path, lines: list[tuple[int, list[tuple[int, float, float]]]]) -> Path:
-    path.write_text("".join(json.dumps({"t_ns": t, "tracker": "t1", "tracks": [{"id": i, "x": x, "y": y}
-                                                                               for i, x, y in tracks]}) + "\n"
-                            for t, tracks in lines))
+def _tracks_file(path: Path, lines: list[tuple[int, list[tuple]]]) -> Path:
+    """Tracks lines of (t_ns, [(id, x, y) or (id, x, y, xy_cov), ...])."""
+    path.write_text("".join(json.dumps({"t_ns": t, "tracker": "t1", "tracks": [
+        {"id": tr[0], "x": tr[1], "y": tr[2], **({"xy_cov": tr[3]} if len(tr) > 3 else {})} for tr in tracks]}) + "\n"
+        for t, tracks in lines))
     return path
 
 
@@ -167,6 +168,16 @@ def test_tracks_are_interpolated_to_each_labelled_frame_and_scored_like_detectio
     assert (c["labels"], c["detections"], c["true_positives"]) == (1, 2, 1)
     assert c["loc_err_median_m"] == pytest.approx(0.0, abs=1e-3)
     assert r["overall"]["precision"] == 0.5 and r["overall"]["recall"] == 1.0
+    assert r["pos_cov_n"] == 0  # no xy_cov in these tracks
+    # track 1 half a metre east of its label with a sigma of 0.6 m each way, then 0.25 m: squared distances 0.69, 4,
+    # the covariance interpolated between the ticks like the position
+    for sigma, nees in ((0.6, 0.25 / 0.36), (0.25, 4.0)):
+        cov = [[sigma**2, 0.0], [0.0, sigma**2]]
+        with_cov = _tracks_file(tmp_path / "cov.jsonl", [(t1 - 50 * ms, [(1, 9.5, 0.0, cov)]),
+                                                         (t1 + 150 * ms, [(1, 13.5, 0.0, cov)])])
+        rc = evaluate_tracks_real(site / "labels", with_cov, site / "masks")
+        assert rc["pos_cov_n"] == 1 and rc["pos_cov_nees_mean"] == pytest.approx(nees, rel=1e-3)
+        assert rc["pos_cov_within_95"] == 1.0 and rc["pos_cov_within_1sigma"] == (1.0 if nees <= 1 else 0.0)
     # the same tracks in a site frame 100 m west of the masks' origin: every x is 100 m larger
     from shared.geo import GeoFrame
 

@@ -171,6 +171,35 @@ def test_tracked_heading_error_is_full_circle_and_split_by_speed(gt):
     assert r2["mota"] == r["mota"] == 1.0 and r2["traj_err_in_roi_m"] == r["traj_err_in_roi_m"]
 
 
+def test_a_tracks_position_covariance_is_scored_against_its_error(gt):
+    """Tracks off their vehicle by draws of a known covariance, stating it: about 95 % of the true positions inside
+    their 95 % ellipses and a mean squared Mahalanobis distance near 2; stating a covariance four times too small
+    (sigmas halved): far fewer, and 4 times the distance. Tracks without one are not scored; a malformed one is
+    named."""
+    rng = np.random.default_rng(1)
+    cov = np.array([[0.09, 0.05], [0.05, 0.25]])
+    draws = {(v, k): rng.multivariate_normal([0, 0], cov) for v in GT_IDS for k in range(N_FRAMES)}
+    rows = make_rows(offset=lambda v, k: draws[(v, k)])
+    for stated, within in ((cov, (0.9, 1.0)), (cov / 4, (0.3, 0.7))):
+        for row in rows:
+            for t in row["tracks"]:
+                t["xy_cov"] = stated.tolist()
+        r = evaluate_tracks(gt, rows)
+        assert r["pos_cov_n"] == r["traj_err_in_roi_n"] > 0.95 * 4 * N_FRAMES  # the matched positions in the ROI
+        assert within[0] < r["pos_cov_within_95"] < within[1]
+        scale = 1 if stated is cov else 4
+        assert r["pos_cov_nees_mean"] == pytest.approx(2 * scale, rel=0.2)
+        assert r["pos_cov_err95_median_m"] == pytest.approx(np.sqrt(5.991 * np.linalg.eigvalsh(stated).max()))
+    assert r["pos_cov_within_1sigma"] < r["pos_cov_within_95"]
+    for row in rows:
+        for t in row["tracks"]:
+            del t["xy_cov"]
+    assert evaluate_tracks(gt, rows)["pos_cov_n"] == 0 and math.isnan(evaluate_tracks(gt, rows)["pos_cov_within_95"])
+    rows[3]["tracks"][1]["xy_cov"] = [[0.1, 0.0], [0.0, -0.1]]
+    with pytest.raises(ValueError, match=r"tracks line 4: track 1 \(id 12\): xy_cov .* not a symmetric positive"):
+        evaluate_tracks(gt, rows)
+
+
 def test_recorder_file_and_rows_give_the_same_result(gt, tmp_path):
     rows = make_rows(offset=lambda v, k: 0.3 * NORMAL[v])
     a = evaluate_tracks(gt, rows)

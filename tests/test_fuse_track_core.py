@@ -31,6 +31,7 @@ from services.fuse_track.tracker import (
     transition,
     turn_noise,
 )
+from shared.position_error import POSITION_SIGMA, position_information
 
 
 # ---- tracking ------------------------------------------------------------------------------------
@@ -418,8 +419,8 @@ def test_batched_kalman_filter_equals_filterpy():
         r = np.diag(rng.uniform(0.05, 1.0, 4))
         z = rng.normal(0, 1, 4) + np.array([1.0, 0.5, 8.0, 2.5])
         kf.update(z, R=r, H=h)
-        x, p = kf_update(x, p, z[None], h[None], r[None])
-        assert np.allclose(x[0], kf.x) and np.allclose(p[0], kf.P)
+        x, p, k = kf_update(x, p, z[None], h[None], r[None])
+        assert np.allclose(x[0], kf.x) and np.allclose(p[0], kf.P) and np.allclose(k[0], kf.K)
 
 
 def test_turn_noise_lies_across_the_motion_of_moving_tracks_only():
@@ -502,6 +503,104 @@ def test_bench_fuse_track_smoke():
     assert bad.returncode == 2 and "vehicles must be at least 4" in bad.stderr
 
 
+# ---- position uncertainty --------------------------------------------------------------------------
+def test_a_fused_objects_covariance_is_its_members_error_combined():
+    """One camera's object carries the inverse of its information matrix; two cameras looking at it from the east
+    and from the north pin it down where each alone is weak (along its line of sight)."""
+    fusion = Fusion([CameraRegion("E", (40.0, 0.0)), CameraRegion("N", (0.0, 40.0))])
+    table = np.asarray(POSITION_SIGMA)
+    one = fusion.fuse(frame("E", 0, [[0.5, 0.0]]), 0)
+    own = np.linalg.inv(position_information(np.array([[0.5, 0.0]]), np.array([[40.0, 0.0]]), table))
+    np.testing.assert_allclose(one.xy_cov, own)
+    assert one.xy_cov[0, 0, 0] > 4 * one.xy_cov[0, 1, 1]  # 39.5 m east of E: weak east-west, along its line
+    both = fusion.fuse(ObjectBatch.concat([frame("E", 0, [[0.5, 0.0]]), frame("N", 0, [[0.0, 0.5]])]), 0)
+    assert len(both) == 1
+    assert both.xy_cov[0, 0, 0] < 0.5 * one.xy_cov[0, 0, 0]  # N sees east-west across its line: well
+    assert np.all(np.linalg.eigvalsh(both.xy_cov[0]) > 0)
+    assert Fusion([CameraRegion("E", (40.0, 0.0))], FusionConfig(position_sigma=None)).fuse(
+        frame("E", 0, [[0.5, 0.0]]), 0).xy_cov is None  # no error model, no covariance
+
+
+def _nees_of_a_convoy(config: TrackerConfig, rng, noise: str, with_cov: bool = True) -> np.ndarray:
+    """200 vehicles 25 m apart driving east at 8 m/s for 4 s at 10 Hz, measured with errors of covariance
+    C = diag(0.8^2, 0.2^2) m^2 (wider east-west than the filter's 0.3 m): fresh every frame ("white"), or one offset
+    per vehicle for the whole run ("bias"). Returns each vehicle's squared Mahalanobis distance at the end under its
+    reported covariance."""
+    n, cov = 200, np.diag([0.8**2, 0.2**2])
+    start = np.column_stack([np.zeros(n), 25.0 * np.arange(n)])
+    offset = rng.multivariate_normal([0, 0], cov, n)
+    tracker = Tracker(config)
+    for k in range(41):
+        t_ns = k * 100 * MS
+        truth = start + np.array([0.8 * k, 0.0])
+        err = rng.multivariate_normal([0, 0], cov, n) if noise == "white" else offset
+        batch = frame("A", t_ns, truth + err)
+        if with_cov:
+            batch = ObjectBatch(batch.camera, batch.t_ns, batch.xy, batch.yaw, batch.size_lwh, batch.vtype,
+                                batch.score, xy_cov=np.tile(cov, (n, 1, 1)))
+        state = tracker.update(batch, t_ns)
+    assert len(state) == n
+    order = np.argsort(state.xy[:, 1])
+    d = state.xy[order] - truth
+    return np.einsum("ni,nij,nj->n", d, np.linalg.inv(state.xy_cov[order]), d)
+
+
+def test_the_reported_covariance_is_the_error_of_the_estimate_the_filter_makes():
+    """The filter weighs measurements with its own 0.3 m; what it reports is the covariance of the estimate that
+    weighing gives under the measurements' real error: with fresh errors every frame (bias_share 0) the squared
+    Mahalanobis distance averages 2 (chi-square, 2 dof), where the filter's own covariance would claim far less.
+    (The vehicles do not accelerate: with the model's process noise near 0, its share of the covariance is too.)"""
+    rng = np.random.default_rng(3)
+    steady = TrackerConfig(bias_share=0.0, along_length_share=0.0, accel_std_mps2=0.05, turn_accel_std_mps2=0.05)
+    nees = _nees_of_a_convoy(steady, rng, "white")
+    assert 1.6 < nees.mean() < 2.4 and 0.9 < np.mean(nees <= 5.991) <= 1.0
+    own = _nees_of_a_convoy(steady, rng, "white", with_cov=False)  # the filter's R only
+    assert own.mean() > 3.5
+
+
+def test_an_error_that_persists_is_not_averaged_away():
+    """Each vehicle's measurements off by one fixed offset: a filter averages nothing away. With bias_share 1 the
+    reported covariance keeps the measurements' own (distance 2 on average); with 0 it shrinks as if averaging
+    helped."""
+    rng = np.random.default_rng(4)
+    steady = {"along_length_share": 0.0, "accel_std_mps2": 0.05, "turn_accel_std_mps2": 0.05}
+    kept = _nees_of_a_convoy(TrackerConfig(bias_share=1.0, **steady), rng, "bias")
+    assert 1.6 < kept.mean() < 2.4
+    averaged = _nees_of_a_convoy(TrackerConfig(bias_share=0.0, **steady), rng, "bias")
+    assert averaged.mean() > 2 * kept.mean()
+
+
+def test_a_long_vehicle_is_less_sure_along_its_body():
+    """along_length_share: where on its body the detector puts a vehicle is uncertain in proportion to its length,
+    along its heading: a 12 m bus heading north-east reports (0.07 x 12 m)^2 more variance along that line than
+    without, none across it."""
+    def last(share: float):
+        tracker = Tracker(TrackerConfig(along_length_share=share))
+        for k in range(5):
+            batch = frame("A", k * 100 * MS, [[0.5 * k, 0.5 * k]], yaw=math.pi / 4)
+            batch = ObjectBatch(batch.camera, batch.t_ns, batch.xy, batch.yaw, np.array([[12.0, 2.5, 3.2]]),
+                                batch.vtype, batch.score)
+            state = tracker.update(batch, k * 100 * MS)
+        return state
+
+    with_, without = last(0.07), last(0.0)
+    u, v = np.array([1.0, 1.0]) / math.sqrt(2), np.array([-1.0, 1.0]) / math.sqrt(2)
+    extra = with_.xy_cov[0] - without.xy_cov[0]
+    assert u @ extra @ u == pytest.approx((0.07 * with_.size_lwh[0, 0]) ** 2, rel=1e-6)
+    assert with_.size_lwh[0, 0] == pytest.approx(12.0, rel=0.01)
+    assert v @ extra @ v == pytest.approx(0.0, abs=1e-12)
+
+
+def test_a_coasting_track_reports_a_growing_covariance():
+    tracker = Tracker(TrackerConfig(max_age_ticks=3, report_coasting_ticks=1))
+    for k in range(5):
+        state = tracker.update(frame("A", k * 100 * MS, [[0.8 * k, 0.0]]), k * 100 * MS)
+    seen = state.xy_cov[0]
+    state = tracker.update(ObjectBatch.empty(), 500 * MS)
+    assert len(state) == 1 and np.all(np.linalg.eigvalsh(state.xy_cov[0] - seen) > 0)
+    assert np.array_equal(state.xy_cov[0], state.xy_cov[0].T)
+
+
 # ---- bad input -----------------------------------------------------------------------------------
 def test_bad_objects_raise_value_errors_naming_the_field():
     ok = {"camera": ["A"], "t_ns": [0], "xy": [[0.0, 0.0]], "yaw": [0.0], "size_lwh": [CAR], "vtype": [0],
@@ -522,6 +621,16 @@ def test_bad_objects_raise_value_errors_naming_the_field():
             ObjectBatch(**{**ok, field: value})
     with pytest.raises(ValueError, match=r"ObjectBatch\.sources"):
         ObjectBatch(**ok, sources=[])
+    for cov, match in [([[[1.0, 0.0], [0.0, -1.0]]], "positive definite"), ([[[1.0, 0.5], [0.0, 1.0]]], "symmetric"),
+                       ([[[np.nan, 0.0], [0.0, 1.0]]], "non-finite"), ([[1.0, 0.0]], r"shape \(1, 2, 2\)")]:
+        with pytest.raises(ValueError, match=r"ObjectBatch\.xy_cov.*" + match):
+            ObjectBatch(**ok, xy_cov=cov)
+    two = {"camera": ["A", "A"], "t_ns": [0, 0], "xy": [[0.0, 0.0], [9.0, 0.0]], "yaw": [0.0, 0.0],
+           "size_lwh": [CAR, CAR], "vtype": [0, 0], "score": [0.9, 0.8]}
+    batch = ObjectBatch(**two, xy_cov=[np.eye(2), 2 * np.eye(2)])
+    np.testing.assert_array_equal(batch.select(np.array([1])).xy_cov, [2 * np.eye(2)])
+    np.testing.assert_array_equal(ObjectBatch.concat([batch, batch]).xy_cov[2:], batch.xy_cov)
+    assert ObjectBatch.concat([batch, ObjectBatch(**ok)]).xy_cov is None  # one without: unknown for all
 
 
 def test_bad_configs_and_calls_raise_value_errors_naming_the_parameter():
@@ -530,6 +639,7 @@ def test_bad_configs_and_calls_raise_value_errors_naming_the_parameter():
         (lambda: TrackerConfig(max_age_ticks=1.5), "max_age_ticks"),
         (lambda: TrackerConfig(min_hits=0), "min_hits"),
         (lambda: TrackerConfig(high_score=1.5), "high_score"),
+        (lambda: TrackerConfig(bias_share=-0.1), "bias_share"),
         (lambda: TrackerConfig(standing_hits=-1), "standing_hits"),
         (lambda: TrackerConfig(accel_std_mps2=math.nan), "accel_std_mps2"),
         (lambda: TrackerConfig(turn_accel_std_mps2=0.0), "turn_accel_std_mps2"),

@@ -52,7 +52,8 @@ def example_message(n: int = 2, seq: int = 42) -> Tracks:
         velocity=np.array([[4.5, 1.25], [0.0, -0.5]])[:n], yaw=np.array([0.2705, -1.5708])[:n],
         size_lwh=np.array([[12.5, 2.5, 3.25], [4.5, 1.75, 1.5]])[:n], vtype=np.array([3, 0])[:n],
         score=np.array([0.875, 0.5])[:n], age=np.array([31, 4])[:n], hits=np.array([30, 3])[:n],
-        cameras=[["NE", "SE"], []][:n])
+        cameras=[["NE", "SE"], []][:n],
+        xy_cov=np.array([[[0.125, 0.03125], [0.03125, 0.0625]], [[0.5, -0.125], [-0.125, 0.375]]])[:n])
     msg = tracks_message(SITE, state, state.t_ns, seq, ORIGIN,
                          [("tick_closed", 1_764_403_200_180_000_000), ("fuse_track", 1_764_403_200_183_000_000)],
                          [("NE", 1207, 1_764_403_199_990_000_000, 1_764_403_200_150_000_000)][:n])
@@ -103,7 +104,7 @@ def test_the_documents_tracks_table_is_what_fuse_track_sends() -> None:
             assert typ == value["dtype"], name
             expected_shape = ["N"] + ([] if len(value["shape"]) == 1 else value["shape"][1:])
             assert shape == "[" + ", ".join(map(str, expected_shape)) + "]", name
-            assert listener.TRACK_COLUMNS[name] == (typ, int(np.prod(value["shape"][1:]))), name
+            assert listener.TRACK_COLUMNS[name] == (typ, tuple(value["shape"][1:])), name
         else:
             assert isinstance(value, {"str": str, "int": int, "array": list}[typ.split()[0]]), name
     assert set(listener.TRACK_COLUMNS) == {k for k, (t, _) in table.items() if t.startswith(("<", "|"))}
@@ -140,6 +141,9 @@ def test_the_listener_reads_a_real_payload_as_the_projects_codec_does() -> None:
         assert (row["lat"], row["lon"]) == (want["lat"], want["lon"])  # float64 on the wire: exact
         for key in ("x", "y", "vx", "vy", "yaw", "length", "width", "height", "score"):
             assert row[key] == pytest.approx(want[key], abs=1e-3), key
+        assert row["xy_cov"] == want["xy_cov"]  # exact in float32 here
+        # the 95 % ellipse's longest half-axis: sqrt(chi2(2 dof, 0.95) x the covariance's larger eigenvalue)
+        assert row["err95_m"] == pytest.approx(np.sqrt(5.991 * np.linalg.eigvalsh(want["xy_cov"]).max()))
     assert got["tracks"][0]["type"] == "bus" and got["tracks"][1]["cameras"] == []
 
 
@@ -157,10 +161,11 @@ def tampered(field: str, value) -> bytes:
 @pytest.mark.parametrize(("payload", "reason"), [
     (b"\xc1 not msgpack", "not msgpack"),
     (msgpack.packb({"kind": "objects", "v": 1}), "not a Tracks message"),
-    (tampered("v", 2), "schema version 2"),
+    (tampered("v", 1), "schema version 1"),
     (tampered("xy", {"dtype": "<f4", "shape": [2, 2], "data": bytes(16)}), "field 'xy': dtype '<f4'"),
     (tampered("yaw", {"dtype": "<f4", "shape": [2], "data": bytes(7)}), "field 'yaw': 7 bytes"),
     (tampered("size_lwh", {"dtype": "<f4", "shape": [2, 2], "data": bytes(16)}), "field 'size_lwh': shape"),
+    (tampered("xy_cov", {"dtype": "<f4", "shape": [2, 4], "data": bytes(32)}), "expected [N, 2, 2]"),
     (tampered("id", [7, 12]), "field 'id': expected an array map"),
     (tampered("cameras", [["NE"]]), "fields of different lengths"),
     (tampered("cameras", "NE"), "field 'cameras'"),

@@ -90,7 +90,8 @@ def tracks_message(site: str, state: TrackState, t_ns: int, seq: int, geo: GeoFr
         id=state.id.astype(np.int64), xy=state.xy.astype(np.float64), latlon=latlon.astype(np.float64),
         velocity=state.velocity.astype(f4), yaw=state.yaw.astype(f4), size_lwh=state.size_lwh.astype(f4),
         vtype=state.vtype.astype(np.int8), score=state.score.astype(f4), age=state.age.astype(np.int32),
-        hits=state.hits.astype(np.int32), cameras=[list(c) for c in state.cameras], frames=frames)
+        hits=state.hits.astype(np.int32), cameras=[list(c) for c in state.cameras], xy_cov=state.xy_cov.astype(f4),
+        frames=frames)
 
 
 def tick_frames(tick: Tick) -> list[tuple[str, int, int, int]]:
@@ -125,7 +126,8 @@ def tracker_config(cfg: FuseTrackSettings) -> TrackerConfig:
     """The tracker's configuration from a site's fuse_track settings."""
     return TrackerConfig(gate_m=cfg.gate_m, max_age_ticks=cfg.max_age_ticks, min_hits=cfg.min_hits,
                          high_score=cfg.high_score, standing_hits=cfg.standing_hits,
-                         relink_s=cfg.relink_s, relink_gate_m=cfg.relink_gate_m)
+                         relink_s=cfg.relink_s, relink_gate_m=cfg.relink_gate_m, bias_share=cfg.bias_share,
+                         along_length_share=cfg.along_length_share)
 
 
 def new_tracker(settings: Settings) -> Tracker:

@@ -28,7 +28,8 @@ default), optionally cut at `max_range_m`. Then, for the objects of one tick:
    detector places such a vehicle, in a queue or beside a neighbour, worse, above all across the line of sight);
    yaw the weighted circular mean after
    aligning 180-degree reversals to the heaviest member, size the weighted mean, type the weighted vote,
-   score the maximum; `sources` lists its cameras.
+   score the maximum; `sources` lists its cameras; with `position_sigma`, `xy_cov` is the covariance of its
+   position's error that its members' error model implies (the tracker turns it into each track's, to report).
 
 A fused object is stated at its members' weighted mean capture time `t_ns` (each member shifted
 there with its hint), not at the tick time: the tracker does the last shift with its own velocity,
@@ -94,6 +95,27 @@ def frame_labels(camera: np.ndarray, t_ns: np.ndarray) -> np.ndarray:
     return labels
 
 
+def check_covariance(name: str, value: object, n: int) -> np.ndarray:
+    """`value` as (n, 2, 2) float64 covariances; ValueError naming `name` unless each is finite, symmetric and
+    positive definite."""
+    a = as_column(name.rpartition(".")[0] or name, name.rpartition(".")[2], value, np.float64)
+    if a.shape != (n, 2, 2):
+        raise ValueError(f"{name} must have shape ({n}, 2, 2), got {a.shape}")
+    if not np.isfinite(a).all():
+        raise ValueError(f"{name} contains a non-finite value ({a[~np.isfinite(a)][0]})")
+    det = a[:, 0, 0] * a[:, 1, 1] - a[:, 0, 1] * a[:, 1, 0]
+    bad = (a[:, 0, 0] <= 0) | (det <= 0) | ~np.isclose(a[:, 0, 1], a[:, 1, 0], rtol=1e-6, atol=1e-12)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"{name}[{i}] must be a symmetric positive definite 2x2 matrix, got {a[i].tolist()}")
+    return a
+
+
+def symmetric(a: np.ndarray) -> np.ndarray:
+    """(..., n, n) matrices made exactly symmetric (what rounding in the products left over averaged away)."""
+    return 0.5 * (a + np.swapaxes(a, -1, -2))
+
+
 def inverse_2x2(a: np.ndarray) -> np.ndarray:
     """(G, 2, 2) -> (G, 2, 2) inverses in closed form (for 2 x 2 a batched LAPACK solve costs more than the
     arithmetic); inf or NaN where a matrix is singular."""
@@ -119,7 +141,9 @@ class ObjectBatch:
     sources: per object the cameras whose objects went into it; None (the default) means each
     object's own camera; read it with `sources_of(i)`. extend_only: (N,) bool, objects that may extend a
     confirmed track but never start one (the fusion's occlusion fallback, module docstring 3); None (the
-    default) means none; read it with `extend_mask()`.
+    default) means none; read it with `extend_mask()`. xy_cov: (N, 2, 2) float64 m^2, the covariance of each
+    row's position error (the fusion's, from its cameras' error model, module docstring 4); None (the default)
+    means unknown, and a batch joined from batches of which one has none has none.
     Validated on construction: ValueError naming the field.
     """
 
@@ -132,6 +156,7 @@ class ObjectBatch:
     score: np.ndarray
     sources: list[list[str]] | None = None
     extend_only: np.ndarray | None = None
+    xy_cov: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         cam = np.asarray(self.camera)
@@ -165,6 +190,8 @@ class ObjectBatch:
             if ext.dtype != bool or ext.shape != (n,):
                 raise ValueError(f"ObjectBatch.extend_only must be ({n},) bool, got {ext.shape} {ext.dtype}")
             object.__setattr__(self, "extend_only", ext)
+        if self.xy_cov is not None:
+            object.__setattr__(self, "xy_cov", check_covariance("ObjectBatch.xy_cov", self.xy_cov, n))
         for k, v in cols.items():
             object.__setattr__(self, k, v)
 
@@ -201,22 +228,24 @@ class ObjectBatch:
         ext = None
         if any(b.extend_only is not None for b in batches):
             ext = np.concatenate([b.extend_mask() for b in batches])
-        if all(b.sources is None for b in batches):
-            return cls._validated(**cat, extend_only=ext)
-        return cls._validated(**cat, sources=[b.sources_of(i) for b in batches for i in range(len(b))],
-                              extend_only=ext)
+        cov = np.concatenate([b.xy_cov for b in batches]) if all(b.xy_cov is not None for b in batches) else None
+        sources = None
+        if any(b.sources is not None for b in batches):
+            sources = [b.sources_of(i) for b in batches for i in range(len(b))]
+        return cls._validated(**cat, sources=sources, extend_only=ext, xy_cov=cov)
 
     def select(self, index: np.ndarray) -> ObjectBatch:
         """The rows at `index` (integer indices or a boolean mask)."""
         rows = np.arange(len(self))[index]
         sources = None if self.sources is None else [self.sources[i] for i in rows]
         ext = None if self.extend_only is None else self.extend_only[rows]
+        cov = None if self.xy_cov is None else self.xy_cov[rows]
         return ObjectBatch._validated(**{k: getattr(self, k)[rows] for k in COLUMNS}, sources=sources,
-                                      extend_only=ext)
+                                      extend_only=ext, xy_cov=cov)
 
     @classmethod
     def _validated(cls, sources: list[list[str]] | None = None, extend_only: np.ndarray | None = None,
-                   **columns: np.ndarray) -> ObjectBatch:
+                   xy_cov: np.ndarray | None = None, **columns: np.ndarray) -> ObjectBatch:
         """A batch of rows taken from batches that were validated on construction (`select`, `concat`): the
         columns already have their dtypes and shapes, so the checks are not run again on the per-tick path."""
         batch = object.__new__(cls)
@@ -224,6 +253,7 @@ class ObjectBatch:
             object.__setattr__(batch, k, columns[k])
         object.__setattr__(batch, "sources", sources)
         object.__setattr__(batch, "extend_only", extend_only)
+        object.__setattr__(batch, "xy_cov", xy_cov)
         return batch
 
 
@@ -527,6 +557,7 @@ class Fusion:
         t0 = np.zeros(g, np.int64)
         t0[lab] = t0_pool[kept_pool]  # each group's pool's earliest capture time
         t_rel_s = (objects.t_ns[kept] - t0[lab]) / NS_PER_S
+        cov = None
         if self._sigma is None:
             t_out_s = np.bincount(lab, w * t_rel_s, g) / wsum
             xy_at = objects.xy[kept] + vel[kept] * (t_out_s[lab] - t_rel_s)[:, None]
@@ -561,6 +592,10 @@ class Fusion:
             b = np.zeros((g, 2))
             np.add.at(b, lab, np.einsum("nij,nj->ni", info, xy_at))
             xy = np.einsum("gij,gj->gi", a_inv, b)
+            # its error: A^-1 (sum of W_i C_i W_i) A^-1 with W_i = w_i I_i, C_i = I_i^-1 the members' own
+            c = np.zeros((g, 2, 2))
+            np.add.at(c, lab, w[:, None, None] * info)
+            cov = symmetric(a_inv @ c @ a_inv)
         # The heaviest member of each group anchors its yaw, camera and preferred values.
         order = np.lexsort((-w, lab))
         first = order[np.r_[True, lab[order][1:] != lab[order][:-1]]]
@@ -591,4 +626,4 @@ class Fusion:
         return ObjectBatch._validated(
             camera=objects.camera[kept][first], t_ns=t0 + np.round(t_out_s * NS_PER_S).astype(np.int64), xy=xy,
             yaw=yaw, size_lwh=size, vtype=np.argmax(votes, axis=1), score=score, sources=[sorted(s) for s in sources],
-            extend_only=ext)
+            extend_only=ext, xy_cov=cov)

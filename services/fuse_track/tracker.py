@@ -42,6 +42,19 @@ The filters of all tracks are stacked and run as one batch of numpy arrays: `kf_
 `kf_update` are exactly filterpy's `KalmanFilter.predict` / `update` (Joseph form) for a batch
 (the tests check this), at a few microseconds per track instead of ~90.
 
+What a track reports of its error (`TrackState.xy_cov`, the Tracks message's): the filter weighs measurements
+with its own noise (`position_std_m`, the same for every object), which is not what its measurements' errors are,
+so its covariance P is not the error of its estimate. Alongside it each track carries E, the covariance of its
+estimate's actual error under the gains the filter used ((I - K H) E (I - K H)' + K R_e K' at each update, the
+Joseph form, which holds for any gain, and F E F' + Q at each prediction), where R_e is the error of the objects
+themselves (`ObjectBatch.xy_cov`: the fusion's, from its cameras' error model). The detector's error for one vehicle
+hardly changes from one frame to the next, and a filter cannot average away what persists: so only (1 - bias_share)
+of an object's covariance enters E, and the last object's bias_share of it is added to the report unreduced. The
+detector places a vehicle's bottom centre somewhere along its body, more so the longer it is (buses and trucks
+above all): the report also adds (along_length_share x length)^2 along the track's heading. Then the squared
+Mahalanobis distance of the true position is 2 on average when the report is right (chi-square, 2 dof);
+docs/pipeline.md, "How sure a track is", has the measurements.
+
 Yaw is not in the filter: it is smoothed circularly, and once the track moves faster than
 `yaw_from_motion_mps` the direction of motion resolves the detector's 180-degree ambiguity. A road vehicle heads
 where it goes: from `yaw_from_motion_mps` up to `yaw_motion_full_mps` the heading is drawn linearly towards the
@@ -60,7 +73,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from services.fuse_track.fusion import NS_PER_S, ObjectBatch, check_columns, wrap_angle
+from services.fuse_track.fusion import NS_PER_S, ObjectBatch, check_columns, symmetric, wrap_angle
 
 DIM_X, DIM_Z = 8, 4
 
@@ -121,6 +134,10 @@ class TrackerConfig:
     # 57 -> 49; docs/pipeline.md, "Lost and found")
     relink_s: float = 3.0
     relink_gate_m: float = 3.0
+    # the reported covariance (module doc): 0.6 and 0.07 gave the best log-likelihood of the true positions on the
+    # validation recording (seed 77; docs/pipeline.md, "How sure a track is")
+    bias_share: float = 0.6
+    along_length_share: float = 0.07
 
     def __post_init__(self) -> None:
         positive = ("gate_m", "max_coast_s", "position_std_m", "size_std_m", "accel_std_mps2", "area_accel_std_m2ps2",
@@ -143,8 +160,10 @@ class TrackerConfig:
                              f"({self.yaw_from_motion_mps})")
         if not 0 < self.yaw_gain <= 1:
             raise ValueError(f"yaw_gain must be within (0, 1], got {self.yaw_gain!r}")
-        if not (isinstance(self.high_score, int | float) and 0 <= self.high_score <= 1):
-            raise ValueError(f"high_score must be within [0, 1], got {self.high_score!r}")
+        for name in ("high_score", "bias_share", "along_length_share"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and 0 <= value <= 1):
+                raise ValueError(f"{name} must be within [0, 1], got {value!r}")
         for name in ("yaw_from_motion_mps", "turn_speed_mps", "relink_s", "yaw_motion_full_mps"):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
@@ -160,7 +179,8 @@ class TrackState:
     rad ENU; size_lwh (N, 3) float64 m; vtype (N,) int64 the majority type over the track's history
     (score-weighted); score (N,) float64; age (N,) int64 ticks since the track started (0 at birth);
     hits (N,) int64 ticks with a measurement; cameras: per track, the cameras whose objects updated
-    it this tick (empty while it coasts).
+    it this tick (empty while it coasts); xy_cov (N, 2, 2) float64 m^2 the covariance of the position's error
+    (module doc).
     """
 
     t_ns: int
@@ -175,12 +195,13 @@ class TrackState:
     age: np.ndarray
     hits: np.ndarray
     cameras: list[list[str]]
+    xy_cov: np.ndarray
 
     def __post_init__(self) -> None:
         n = check_columns("TrackState", {
             "id": (self.id, ()), "xy": (self.xy, (2,)), "velocity": (self.velocity, (2,)), "yaw": (self.yaw, ()),
             "size_lwh": (self.size_lwh, (3,)), "vtype": (self.vtype, ()), "score": (self.score, ()),
-            "age": (self.age, ()), "hits": (self.hits, ())})
+            "age": (self.age, ()), "hits": (self.hits, ()), "xy_cov": (self.xy_cov, (2, 2))})
         if len(self.cameras) != n:
             raise ValueError(f"TrackState.cameras has {len(self.cameras)} entries, expected {n}")
 
@@ -232,20 +253,28 @@ def kf_predict(x: np.ndarray, p: np.ndarray, f: np.ndarray, q: np.ndarray) -> tu
     return x @ f.T, f @ p @ f.T + q
 
 
+def kf_gain(p: np.ndarray, h: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Batched Kalman gain K = P H' (H P H' + R)^-1: p (M, 8, 8), h (M, 4, 8), r (M, 4, 4) -> (M, 8, 4)."""
+    pht = p @ h.transpose(0, 2, 1)
+    s = h @ pht + r
+    return np.linalg.solve(s, pht.transpose(0, 2, 1)).transpose(0, 2, 1)  # P H' S^-1 (S symmetric)
+
+
+def joseph(p: np.ndarray, k: np.ndarray, h: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """(I - K H) P (I - K H)' + K R K': the covariance after an update with gain k, whatever gain that is, of an
+    estimate whose error had covariance p, by measurements whose error has covariance r."""
+    ikh = np.eye(DIM_X) - k @ h
+    return ikh @ p @ ikh.transpose(0, 2, 1) + k @ r @ k.transpose(0, 2, 1)
+
+
 def kf_update(
     x: np.ndarray, p: np.ndarray, z: np.ndarray, h: np.ndarray, r: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Batched Kalman update, Joseph form as filterpy's update(z, R, H): x (M, 8), p (M, 8, 8),
-    z (M, 4), h (M, 4, 8), r (M, 4, 4) -> (x, p)."""
-    ht = h.transpose(0, 2, 1)
-    pht = p @ ht
-    s = h @ pht + r
-    k = np.linalg.solve(s, pht.transpose(0, 2, 1)).transpose(0, 2, 1)  # P H' S^-1 (S symmetric)
-    y = z - np.einsum("mij,mj->mi", h, x)
-    x = x + np.einsum("mij,mj->mi", k, y)
-    ikh = np.eye(DIM_X) - k @ h
-    p = ikh @ p @ ikh.transpose(0, 2, 1) + k @ r @ k.transpose(0, 2, 1)
-    return x, p
+    z (M, 4), h (M, 4, 8), r (M, 4, 4) -> (x, p, the gain K (M, 8, 4))."""
+    k = kf_gain(p, h, r)
+    x = x + np.einsum("mij,mj->mi", k, z - np.einsum("mij,mj->mi", h, x))
+    return x, joseph(p, k, h, r), k
 
 
 class Tracker:
@@ -267,6 +296,8 @@ class Tracker:
         # Tracks, struct of arrays (T rows).
         self._x = np.zeros((0, DIM_X))
         self._p = np.zeros((0, DIM_X, DIM_X))
+        self._e = np.zeros((0, DIM_X, DIM_X))  # the covariance of each state's error, to report (module doc)
+        self._b = np.zeros((0, 2, 2))  # and of the part of its position error that persists from frame to frame
         self._ids = np.zeros(0, np.int64)
         self._age = np.zeros(0, np.int64)
         self._hits = np.zeros(0, np.int64)
@@ -328,6 +359,7 @@ class Tracker:
                 q = q + turn_noise(dt_s, self._x[:, 4:6], c.turn_accel_std_mps2**2 - c.accel_std_mps2**2,
                                    c.turn_speed_mps)
             self._x, self._p = kf_predict(self._x, self._p, self._fq[1], q)
+            self._e = self._fq[1] @ self._e @ self._fq[1].T + q
             # a shrinking size's rate carries area and aspect below zero on a tick without a measurement: keep them
             # positive here too, not only after an update (their square roots are the reported length and width)
             self._x[:, 2:4] = np.maximum(self._x[:, 2:4], 1e-3)
@@ -397,6 +429,15 @@ class Tracker:
         r[:, 3, 3] = sd**2 * (1 + (length / width) ** 2) / width**2  # var(l / w)
         return z, r
 
+    def _error_r(self, objects: ObjectBatch, rows: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The covariance of the measurements' error, split into the part that changes from frame to frame and the
+        part that persists (bias_share of the position's): the filter's R with the objects' own position covariance
+        (`ObjectBatch.xy_cov`) where they have one."""
+        cov = r[:, :2, :2] if objects.xy_cov is None else objects.xy_cov[rows]
+        r = r.copy()
+        r[:, :2, :2] = (1 - self.config.bias_share) * cov
+        return r, self.config.bias_share * cov
+
     def _correct(self, objects: ObjectBatch, rows: np.ndarray, tracks: np.ndarray) -> None:
         if len(rows) == 0:
             return
@@ -404,7 +445,9 @@ class Tracker:
         h = np.zeros((len(rows), DIM_Z, DIM_X))
         h[:, np.arange(4), np.arange(4)] = 1.0
         h[:, np.arange(4), np.arange(4) + 4] = ((objects.t_ns[rows] - self._t_ns) / NS_PER_S)[:, None]
-        self._x[tracks], self._p[tracks] = kf_update(self._x[tracks], self._p[tracks], z, h, r)
+        self._x[tracks], self._p[tracks], k = kf_update(self._x[tracks], self._p[tracks], z, h, r)
+        r_e, self._b[tracks] = self._error_r(objects, rows, r)
+        self._e[tracks] = joseph(self._e[tracks], k, h, r_e)
         self._x[tracks, 2:4] = np.maximum(self._x[tracks, 2:4], 1e-3)  # area and aspect stay positive
         self._yaw[tracks] = self._smooth_yaw(self._yaw[tracks], objects.yaw[rows], self._x[tracks, 4:6],
                                              self._hits[tracks])
@@ -480,8 +523,8 @@ class Tracker:
         self._lost = {k_: v[keep] for k_, v in lost.items()}
 
     def _keep(self, keep: np.ndarray) -> None:
-        for name in ("_x", "_p", "_ids", "_age", "_hits", "_streak", "_since_hit", "_last_hit_ns", "_confirmed",
-                     "_need", "_yaw", "_height", "_score", "_votes"):
+        for name in ("_x", "_p", "_e", "_b", "_ids", "_age", "_hits", "_streak", "_since_hit", "_last_hit_ns",
+                     "_confirmed", "_need", "_yaw", "_height", "_score", "_votes"):
             setattr(self, name, getattr(self, name)[keep])
         self._cameras = [c for c, k in zip(self._cameras, keep, strict=True) if k]
 
@@ -520,6 +563,10 @@ class Tracker:
         votes = np.zeros((n, self._votes.shape[1]))
         self._x = np.concatenate([self._x, x])
         self._p = np.concatenate([self._p, p])
+        e = p.copy()
+        e[:, :4, :4], b = self._error_r(objects, born, r)
+        self._e = np.concatenate([self._e, e])
+        self._b = np.concatenate([self._b, b])
         self._ids = np.concatenate([self._ids, ids])
         self._age = np.concatenate([self._age, np.zeros(n, np.int64)])
         self._hits = np.concatenate([self._hits, np.ones(n, np.int64)])
@@ -540,9 +587,12 @@ class Tracker:
         x = self._x[show]
         s, r = x[:, 2], x[:, 3]
         size = np.column_stack([np.sqrt(s * r), np.sqrt(s / r), self._height[show]])
+        along = np.column_stack([np.cos(self._yaw[show]), np.sin(self._yaw[show])])
+        cov = self._e[show, :2, :2] + self._b[show] + (
+            (self.config.along_length_share * size[:, 0]) ** 2)[:, None, None] * along[:, :, None] * along[:, None, :]
         return TrackState(
             t_ns=t_ns, tracker=self.id, id=self._ids[show].copy(), xy=x[:, :2].copy(), velocity=x[:, 4:6].copy(),
             yaw=self._yaw[show].copy(), size_lwh=size,
             vtype=np.argmax(self._votes[show], axis=1).astype(np.int64) if len(show) else np.zeros(0, np.int64),
             score=self._score[show].copy(), age=self._age[show].copy(), hits=self._hits[show].copy(),
-            cameras=[list(self._cameras[j]) for j in show])
+            cameras=[list(self._cameras[j]) for j in show], xy_cov=symmetric(cov))
