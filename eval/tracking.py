@@ -54,6 +54,7 @@ import numpy as np
 
 from eval.ground_truth import GroundTruth, TrackingEvalConfig, _ground_truth
 from shared.messages import CHI2_2DOF_95, err95_m
+from shared.tracks_file import parse_xy_cov
 from sim.recording import Recording
 
 _MATCH_TYPES = ("MATCH", "SWITCH")
@@ -125,16 +126,9 @@ def _parse_line(obj: Any, where: str) -> TrackLine:
 
 
 def _parse_cov(value: Any, where: str) -> np.ndarray:
-    """A track's `xy_cov` ([[a, b], [b, c]], m^2) as a (2, 2) array; NaN when the track has none."""
-    if value is None:
-        return np.full((2, 2), math.nan)
-    if not (isinstance(value, list) and len(value) == 2 and all(isinstance(r, list) and len(r) == 2 for r in value)
-            and all(_is_finite_number(v) for r in value for v in r)):
-        raise ValueError(f"{where}: xy_cov must be [[a, b], [b, c]] of finite numbers (m^2), got {value!r:.80}")
-    c = np.array(value, float)
-    if not (c[0, 0] > 0 and c[0, 0] * c[1, 1] > c[0, 1] * c[1, 0] and c[0, 1] == c[1, 0]):
-        raise ValueError(f"{where}: xy_cov {value} is not a symmetric positive definite covariance")
-    return c
+    """A track's `xy_cov` as a (2, 2) array; NaN when the track has none (`parse_xy_cov`)."""
+    cov = parse_xy_cov(value, where)
+    return np.full((2, 2), math.nan) if cov is None else np.array(cov, float)
 
 
 def load_tracks(source: str | Path | Iterable[Mapping | Any]) -> list[TrackLine]:

@@ -20,7 +20,8 @@ _OPTIONAL_NUMBERS = ("lat", "lon", "vx", "vy", "height", "score", "age", "hits")
 @dataclass(frozen=True)
 class TrackRow:
     """One validated track of a Tracks message. x, y metres (site ENU frame); yaw rad (CCW from east);
-    length, width metres; vx, vy m/s (None when the row has none)."""
+    length, width metres; vx, vy m/s (None when the row has none); xy_cov the position's error covariance,
+    ((east², east·north), (north·east, north²)) m² (None when the row has none)."""
 
     id: int
     x: float
@@ -31,6 +32,7 @@ class TrackRow:
     type: str
     vx: float | None = None
     vy: float | None = None
+    xy_cov: tuple[tuple[float, float], tuple[float, float]] | None = None
 
 
 @dataclass(frozen=True)
@@ -112,7 +114,25 @@ def _parse_row(row: Any, origin: GeoFrame | None) -> TrackRow:
         type=vtype,
         vx=float(row["vx"]) if has_v else None,
         vy=float(row["vy"]) if has_v else None,
+        xy_cov=parse_xy_cov(row.get("xy_cov")),
     )
+
+
+def parse_xy_cov(value: Any, where: str = "") -> tuple[tuple[float, float], tuple[float, float]] | None:
+    """A track row's `xy_cov` ([[a, b], [b, c]], m^2; Tracks.rows()) validated; None when the row has none.
+    ValueError (prefixed with `where`) unless it is a symmetric positive definite 2 x 2 matrix of finite numbers."""
+    if value is None:
+        return None
+    prefix = f"{where}: " if where else ""
+    if not (isinstance(value, list | tuple) and len(value) == 2
+            and all(isinstance(r, list | tuple) and len(r) == 2 for r in value)
+            and all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+                    for r in value for v in r)):
+        raise ValueError(f"{prefix}xy_cov must be [[a, b], [b, c]] of finite numbers (m^2), got {value!r:.80}")
+    (a, b), (c, d) = value
+    if not (a > 0 and a * d > b * c and b == c):
+        raise ValueError(f"{prefix}xy_cov {value} is not a symmetric positive definite covariance")
+    return (float(a), float(b)), (float(c), float(d))
 
 
 def _float(v: Any, key: str) -> float:

@@ -12,6 +12,7 @@ import pytest
 import rerun as rr
 
 from services.rerun_sink import Basemap, TrackSink, live, parse_tracks_message, track_color, tracks_file_to_rrd
+from services.rerun_sink.sink import ellipses_xy
 from shared.geo import GeoFrame
 
 T0_NS = 1_700_000_000_000_000_000
@@ -42,6 +43,7 @@ def _message(k: int, tracker: str = "ft0", ids: tuple[int, ...] = (3, 7)) -> dic
                 "age": k,
                 "hits": k,
                 "cameras": ["NE"],
+                "xy_cov": [[0.09, 0.01], [0.01, 0.04]],
             }
         )
     return {"site": "s1", "seq": k, "t_ns": T0_NS + k * DT_NS, "tracker": tracker, "tracks": rows}
@@ -90,6 +92,7 @@ def test_tracks_file_to_rrd_counts_bad_lines_and_writes_the_entities(tracks_file
         "/world/tracks/ft0/trails",
         "/world/tracks/ft0/positions",
         "/world/tracks/ft0/footprints",
+        "/world/tracks/ft0/uncertainty",
         "/plots/speed/ft0/3",
         "/plots/speed/ft0/7",
         "/plots/tracks/ft0",
@@ -175,6 +178,25 @@ def test_live_counts_bad_messages_and_uses_the_first_site(tmp_path: Path) -> Non
     rec.disconnect()
     assert (summary["lines"], summary["messages"], summary["bad_lines"], summary["first_bad_line"]) == (5, 2, 3, 2)
     assert summary["tracks"] == 2
+
+
+def test_an_uncertainty_ellipse_is_the_95_percent_contour_of_its_covariance() -> None:
+    cov = np.array([[[0.09, 0.05], [0.05, 0.16]], [[4.0, 0.0], [0.0, 0.25]]])
+    ring = ellipses_xy(np.array([10.0, -5.0]), np.array([2.0, 0.0]), cov, points=16)
+    assert ring.shape == (2, 17, 2) and np.allclose(ring[:, 0], ring[:, -1])  # closed
+    d = ring - np.array([[10.0, 2.0], [-5.0, 0.0]])[:, None]
+    np.testing.assert_allclose(np.einsum("npi,nij,npj->np", d, np.linalg.inv(cov), d), 5.991)  # on the contour
+    assert np.abs(d[1, :, 0]).max() == pytest.approx(np.sqrt(5.991) * 2.0)  # 2 m sigma east: 4.9 m half-axis
+
+
+def test_a_bad_position_covariance_is_refused_with_its_reason() -> None:
+    row = _message(0)
+    row["tracks"][0]["xy_cov"] = [[0.1, 0.2], [0.2, 0.1]]
+    with pytest.raises(ValueError, match=r"track 0: xy_cov .* not a symmetric positive definite"):
+        parse_tracks_message(row)
+    row["tracks"][0]["xy_cov"] = [[0.1, "x"], [0.0, 0.1]]
+    with pytest.raises(ValueError, match=r"xy_cov must be \[\[a, b\], \[b, c\]\]"):
+        parse_tracks_message(row)
 
 
 def test_track_colour_is_stable_and_differs_between_tracks() -> None:

@@ -12,6 +12,8 @@ View layout (the blueprint `TrackSink.blueprint()` builds):
     - `world/tracks/<tracker>/positions`  Points3D, one point per track, labelled "<id> <type>"
     - `world/tracks/<tracker>/footprints` LineStrips3D, per track the oriented length x width rectangle
       (closed) and a segment from the centre to the front
+    - `world/tracks/<tracker>/uncertainty` LineStrips3D, per track that carries `xy_cov` the ellipse that holds
+      its true position with 95 % probability (docs/wire-format.md, "Position uncertainty")
   Every track has its own colour, from a stable hash of (tracker, id), and the label "<id> <type>" on all
   three (shown on the point, on hover for the lines). Each message replaces its tracker's drawings, so a
   track that ended leaves the view at the next message but stays in the recording (scrub back to see it).
@@ -26,12 +28,12 @@ A tracks file is JSON lines, one Tracks message per line, as `Tracks.rows()` giv
 
     {"site": str, "seq": int, "t_ns": int, "tracker": str,
      "tracks": [{"id", "x", "y", "lat", "lon", "vx", "vy", "yaw", "length", "width", "height", "type",
-                 "score", "age", "hits", "cameras"}, ...]}
+                 "score", "age", "hits", "cameras", "xy_cov"}, ...]}
 
 x, y: metres, site ENU frame; yaw: radians, counter-clockwise from east; length, width, height: metres;
-vx, vy: m/s. `t_capture_ns` is accepted for `t_ns`. A row without x, y but with lat, lon is placed with the
-site origin, when one is given. Lines that are not such messages (bad JSON, missing keys, NaN or infinite
-numbers, another site) are skipped and counted.
+vx, vy: m/s; xy_cov (optional): [[a, b], [b, c]] m^2. `t_capture_ns` is accepted for `t_ns`. A row without
+x, y but with lat, lon is placed with the site origin, when one is given. Lines that are not such messages (bad
+JSON, missing keys, NaN or infinite numbers, a covariance that is none, another site) are skipped and counted.
 """
 
 from __future__ import annotations
@@ -52,7 +54,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from shared.geo import GeoFrame
-from shared.messages import check_name
+from shared.messages import CHI2_2DOF_95, check_name
 from shared.tracks_file import TrackRow, TracksMessage, _int, parse_tracks_message
 
 from .basemap import Basemap
@@ -80,6 +82,15 @@ def footprints_xy(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, length: np.ndar
     left = np.stack([-np.sin(yaw), np.cos(yaw)], axis=-1) * (np.asarray(width) / 2)[:, None]
     c = np.stack([x, y], axis=-1)
     return np.stack([c + f + left, c + f - left, c - f - left, c - f + left, c + f + left], axis=1)
+
+
+def ellipses_xy(x: np.ndarray, y: np.ndarray, cov: np.ndarray, points: int = 32) -> np.ndarray:
+    """(N,) centres (m, site frame) and (N, 2, 2) position covariances (m^2) -> (N, points + 1, 2) float64 metres:
+    each one's 95 % ellipse (d' C^-1 d = 5.991), closed."""
+    a = np.linspace(0.0, 2 * np.pi, points + 1)
+    circle = np.stack([np.cos(a), np.sin(a)], axis=1) * math.sqrt(CHI2_2DOF_95)  # (P, 2)
+    root = np.linalg.cholesky(np.asarray(cov, np.float64))  # C = L L': the unit circle through L is the ellipse
+    return np.stack([x, y], axis=-1)[:, None, :] + np.einsum("nij,pj->npi", root, circle)
 
 
 @dataclass
@@ -156,6 +167,7 @@ class TrackSink:
         self.speed_flush_ns = int(speed_flush_s * 1e9)
         self.jpeg_quality = jpeg_quality
         self._tracks: dict[tuple[str, int], _TrackState] = {}
+        self._had_cov: dict[str, bool] = {}  # per tracker: its last message drew uncertainty ellipses
         self._last_speed_flush_ns: int | None = None
         self._cameras: set[str] = set()
         self._span = _Span()
@@ -213,6 +225,14 @@ class TrackSink:
                 radii=rr.Radius.ui_points(2.0),
             ),
         )
+        sure = [i for i, r in enumerate(msg.rows) if r.xy_cov is not None]
+        if sure or self._had_cov.get(msg.tracker):  # an empty batch clears the last message's ellipses
+            cov = np.array([msg.rows[i].xy_cov for i in sure], np.float64).reshape(-1, 2, 2)
+            ring = ellipses_xy(x[sure], y[sure], cov)
+            rec.log(f"{base}/uncertainty", rr.LineStrips3D(
+                [_at_z(r, Z_FOOTPRINT_M) for r in ring], colors=colors[sure], labels=[labels[i] for i in sure],
+                show_labels=False, radii=rr.Radius.ui_points(1.0)))
+            self._had_cov[msg.tracker] = bool(sure)
         rec.log(f"plots/tracks/{_path_part(msg.tracker)}", rr.Scalars(n))
         self._forget(msg.tracker, msg.t_ns)
         if self._last_speed_flush_ns is None:
