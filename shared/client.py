@@ -1,11 +1,13 @@
 """A vehicle's view of the bus: subscribe to a site's live tracks.
 
     from shared.client import TrackClient
+    from shared.messages import err95_m
 
     with TrackClient("state_ellsworth", connect=["tcp/192.168.1.10:7447"]) as client:
         for tracks in client.stream():          # shared.messages.Tracks, newest first
-            for row in tracks.rows():           # id, x, y, lat, lon, vx, vy, yaw, length, ..., cameras
+            for row in tracks.rows():           # id, x, y, lat, lon, vx, vy, yaw, length, ..., cameras, xy_cov
                 print(row["id"], row["lat"], row["lon"], row["type"])
+            worst = err95_m(tracks.xy_cov)      # (N,) m: each position's 95 % error ellipse, longest half-axis
 
 A client that joins late gets the current tracks at once: `stream()` first asks fuse_track's
 queryable (`roadside/<site>/tracks/latest`) for the newest message, then follows the live ones.
