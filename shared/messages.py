@@ -234,7 +234,8 @@ class Tracks(Message):
     velocity (N, 2) float32 m/s (east, north); yaw (N,) float32 rad ENU; size_lwh (N, 3) float32 m;
     vtype (N,) int8; score (N,) float32; age (N,) int32 ticks since the track started; hits (N,) int32
     ticks with a measurement; cameras: per track, the cameras whose objects updated it this tick; xy_cov (N, 2, 2)
-    float32 m^2: the covariance of the position's error (east, north), symmetric positive definite.
+    float32 m^2: the covariance of the position's error (east, north), velocity_cov (N, 2, 2) float32 (m/s)^2 the
+    velocity's, each symmetric positive definite.
     An id that drops out and comes back within a few seconds where the lost track was heading is the same vehicle
     (fuse_track's `relink_s`). yaw: of a moving track, its direction of motion (from 4 m/s; drawn towards it from
     1.5 m/s); of a track that stopped, the heading it had; of a vehicle never seen moving, the detector's, whose
@@ -257,6 +258,7 @@ class Tracks(Message):
     hits: Array
     cameras: list[Annotated[list[str], Field(max_length=64)]]
     xy_cov: Array
+    velocity_cov: Array
     frames: list[tuple[str, int, int, int]] = Field(default_factory=list, max_length=MAX_ROWS)
 
     @model_validator(mode="after")
@@ -266,14 +268,15 @@ class Tracks(Message):
             "velocity": (self.velocity, (2,), "f"), "yaw": (self.yaw, (), "f"),
             "size_lwh": (self.size_lwh, (3,), "f"), "vtype": (self.vtype, (), "iu"),
             "score": (self.score, (), "f"), "age": (self.age, (), "iu"), "hits": (self.hits, (), "iu"),
-            "xy_cov": (self.xy_cov, (2, 2), "f")})
+            "xy_cov": (self.xy_cov, (2, 2), "f"), "velocity_cov": (self.velocity_cov, (2, 2), "f")})
         if len(self.cameras) != n:
             raise ValueError(f"Tracks.cameras has {len(self.cameras)} entries, expected {n}")
-        c = self.xy_cov
-        bad = (c[:, 0, 0] <= 0) | (c[:, 0, 0] * c[:, 1, 1] <= c[:, 0, 1] * c[:, 1, 0]) | (c[:, 0, 1] != c[:, 1, 0])
-        if bad.any():
-            raise ValueError(f"Tracks.xy_cov[{int(np.flatnonzero(bad)[0])}] is not a symmetric positive definite "
-                             "covariance")
+        for name in ("xy_cov", "velocity_cov"):
+            c = getattr(self, name)
+            bad = (c[:, 0, 0] <= 0) | (c[:, 0, 0] * c[:, 1, 1] <= c[:, 0, 1] * c[:, 1, 0]) | (c[:, 0, 1] != c[:, 1, 0])
+            if bad.any():
+                raise ValueError(f"Tracks.{name}[{int(np.flatnonzero(bad)[0])}] is not a symmetric positive definite "
+                                 "covariance")
         return self
 
     def __len__(self) -> int:
@@ -289,13 +292,13 @@ class Tracks(Message):
         yaw, score = rounded(self.yaw, 4), rounded(self.score, 3)
         latlon = self.latlon.astype(np.float64).tolist()
         names = [VEHICLE_TYPES[t] if 0 <= t < len(VEHICLE_TYPES) else "unknown" for t in self.vtype.tolist()]
-        cov = rounded(self.xy_cov, 5)
+        cov, vcov = rounded(self.xy_cov, 5), rounded(self.velocity_cov, 5)
         return [{"id": i, "x": p[0], "y": p[1], "lat": ll[0], "lon": ll[1], "vx": v[0], "vy": v[1], "yaw": a,
                  "length": s[0], "width": s[1], "height": s[2], "type": t, "score": sc, "age": age, "hits": hits,
-                 "cameras": list(cams), "xy_cov": c}
-                for i, p, ll, v, a, s, t, sc, age, hits, cams, c in zip(
+                 "cameras": list(cams), "xy_cov": c, "velocity_cov": vc}
+                for i, p, ll, v, a, s, t, sc, age, hits, cams, c, vc in zip(
                     self.id.tolist(), xy, latlon, vel, yaw, size, names, score, self.age.tolist(), self.hits.tolist(),
-                    self.cameras, cov, strict=True)]
+                    self.cameras, cov, vcov, strict=True)]
 
 
 MAX_STATUS_ENTRIES = 300  # names in one of a Status message's maps (BadInput keeps at most 256 reasons, + 1)

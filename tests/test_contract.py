@@ -98,6 +98,7 @@ def make_tracks(n: int = 3, **kw) -> Tracks:
               "score": np.full(n, 0.8, f4), "age": np.arange(n, dtype=np.int32), "hits": np.arange(n, dtype=np.int32),
               "cameras": [["NE"] for _ in range(n)],
               "xy_cov": np.tile(np.array([[0.09, 0.02], [0.02, 0.16]], f4), (n, 1, 1)),
+              "velocity_cov": np.tile(np.array([[0.25, 0.0], [0.0, 0.25]], f4), (n, 1, 1)),
               "frames": [("NE", 7, T0, T0 + 15)]}
     return Tracks(**{**fields, **kw})
 
@@ -175,10 +176,11 @@ def test_tracks_rows_are_json_friendly() -> None:
     ([[0.0, 0.0], [0.0, 0.16]], "not a symmetric"),
     ([[0.09, 0.0], [0.0, np.nan]], "NaN or infinite"),
 ])
-def test_a_position_covariance_that_is_not_one_is_refused(cov, reason: str) -> None:
+@pytest.mark.parametrize("field", ["xy_cov", "velocity_cov"])
+def test_a_covariance_that_is_not_one_is_refused(field: str, cov, reason: str) -> None:
     t = raw(make_tracks(2))
-    t["xy_cov"] = arr(np.array([[[0.09, 0.0], [0.0, 0.16]], cov], np.float32))
-    refused(pack(t), reason)
+    t[field] = arr(np.array([[[0.09, 0.0], [0.0, 0.16]], cov], np.float32))
+    refused(pack(t), f"{field}.*{reason}" if "not a" in reason else reason)
 
 
 def test_err95_is_the_95_percent_ellipses_longest_half_axis() -> None:

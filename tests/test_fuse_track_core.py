@@ -521,11 +521,12 @@ def test_a_fused_objects_covariance_is_its_members_error_combined():
         frame("E", 0, [[0.5, 0.0]]), 0).xy_cov is None  # no error model, no covariance
 
 
-def _nees_of_a_convoy(config: TrackerConfig, rng, noise: str, with_cov: bool = True) -> np.ndarray:
+def _nees_of_a_convoy(config: TrackerConfig, rng, noise: str, with_cov: bool = True,
+                      velocity: bool = False) -> np.ndarray:
     """200 vehicles 25 m apart driving east at 8 m/s for 4 s at 10 Hz, measured with errors of covariance
     C = diag(0.8^2, 0.2^2) m^2 (wider east-west than the filter's 0.3 m): fresh every frame ("white"), or one offset
     per vehicle for the whole run ("bias"). Returns each vehicle's squared Mahalanobis distance at the end under its
-    reported covariance."""
+    reported covariance, of its position or (`velocity`) of its velocity."""
     n, cov = 200, np.diag([0.8**2, 0.2**2])
     start = np.column_stack([np.zeros(n), 25.0 * np.arange(n)])
     offset = rng.multivariate_normal([0, 0], cov, n)
@@ -541,8 +542,11 @@ def _nees_of_a_convoy(config: TrackerConfig, rng, noise: str, with_cov: bool = T
         state = tracker.update(batch, t_ns)
     assert len(state) == n
     order = np.argsort(state.xy[:, 1])
-    d = state.xy[order] - truth
-    return np.einsum("ni,nij,nj->n", d, np.linalg.inv(state.xy_cov[order]), d)
+    if velocity:
+        d, cov = state.velocity[order] - [8.0, 0.0], state.velocity_cov[order]
+    else:
+        d, cov = state.xy[order] - truth, state.xy_cov[order]
+    return np.einsum("ni,nij,nj->n", d, np.linalg.inv(cov), d)
 
 
 def test_the_reported_covariance_is_the_error_of_the_estimate_the_filter_makes():
@@ -551,11 +555,13 @@ def test_the_reported_covariance_is_the_error_of_the_estimate_the_filter_makes()
     Mahalanobis distance averages 2 (chi-square, 2 dof), where the filter's own covariance would claim far less.
     (The vehicles do not accelerate: with the model's process noise near 0, its share of the covariance is too.)"""
     rng = np.random.default_rng(3)
-    steady = TrackerConfig(bias_share=0.0, along_length_share=0.0, accel_std_mps2=0.05, turn_accel_std_mps2=0.05)
+    steady = TrackerConfig(bias_share=0.0, along_length_share=0.0, accel_std_mps2=0.001, turn_accel_std_mps2=0.001)
     nees = _nees_of_a_convoy(steady, rng, "white")
     assert 1.6 < nees.mean() < 2.4 and 0.9 < np.mean(nees <= 5.991) <= 1.0
     own = _nees_of_a_convoy(steady, rng, "white", with_cov=False)  # the filter's R only
     assert own.mean() > 3.5
+    moving = _nees_of_a_convoy(steady, rng, "white", velocity=True)  # the velocity's covariance is E's too
+    assert 1.6 < moving.mean() < 2.4
 
 
 def test_an_error_that_persists_is_not_averaged_away():
@@ -563,7 +569,7 @@ def test_an_error_that_persists_is_not_averaged_away():
     reported covariance keeps the measurements' own (distance 2 on average); with 0 it shrinks as if averaging
     helped."""
     rng = np.random.default_rng(4)
-    steady = {"along_length_share": 0.0, "accel_std_mps2": 0.05, "turn_accel_std_mps2": 0.05}
+    steady = {"along_length_share": 0.0, "accel_std_mps2": 0.001, "turn_accel_std_mps2": 0.001}
     kept = _nees_of_a_convoy(TrackerConfig(bias_share=1.0, **steady), rng, "bias")
     assert 1.6 < kept.mean() < 2.4
     averaged = _nees_of_a_convoy(TrackerConfig(bias_share=0.0, **steady), rng, "bias")

@@ -53,7 +53,8 @@ def example_message(n: int = 2, seq: int = 42) -> Tracks:
         size_lwh=np.array([[12.5, 2.5, 3.25], [4.5, 1.75, 1.5]])[:n], vtype=np.array([3, 0])[:n],
         score=np.array([0.875, 0.5])[:n], age=np.array([31, 4])[:n], hits=np.array([30, 3])[:n],
         cameras=[["NE", "SE"], []][:n],
-        xy_cov=np.array([[[0.125, 0.03125], [0.03125, 0.0625]], [[0.5, -0.125], [-0.125, 0.375]]])[:n])
+        xy_cov=np.array([[[0.125, 0.03125], [0.03125, 0.0625]], [[0.5, -0.125], [-0.125, 0.375]]])[:n],
+        velocity_cov=np.array([[[0.25, 0.0625], [0.0625, 0.5]], [[1.0, 0.0], [0.0, 1.0]]])[:n])
     msg = tracks_message(SITE, state, state.t_ns, seq, ORIGIN,
                          [("tick_closed", 1_764_403_200_180_000_000), ("fuse_track", 1_764_403_200_183_000_000)],
                          [("NE", 1207, 1_764_403_199_990_000_000, 1_764_403_200_150_000_000)][:n])
@@ -141,7 +142,7 @@ def test_the_listener_reads_a_real_payload_as_the_projects_codec_does() -> None:
         assert (row["lat"], row["lon"]) == (want["lat"], want["lon"])  # float64 on the wire: exact
         for key in ("x", "y", "vx", "vy", "yaw", "length", "width", "height", "score"):
             assert row[key] == pytest.approx(want[key], abs=1e-3), key
-        assert row["xy_cov"] == want["xy_cov"]  # exact in float32 here
+        assert row["xy_cov"] == want["xy_cov"] and row["velocity_cov"] == want["velocity_cov"]  # exact in float32 here
         # the 95 % ellipse's longest half-axis: sqrt(chi2(2 dof, 0.95) x the covariance's larger eigenvalue)
         assert row["err95_m"] == pytest.approx(np.sqrt(5.991 * np.linalg.eigvalsh(want["xy_cov"]).max()))
     assert got["tracks"][0]["type"] == "bus" and got["tracks"][1]["cameras"] == []

@@ -91,7 +91,7 @@ def tracks_message(site: str, state: TrackState, t_ns: int, seq: int, geo: GeoFr
         velocity=state.velocity.astype(f4), yaw=state.yaw.astype(f4), size_lwh=state.size_lwh.astype(f4),
         vtype=state.vtype.astype(np.int8), score=state.score.astype(f4), age=state.age.astype(np.int32),
         hits=state.hits.astype(np.int32), cameras=[list(c) for c in state.cameras], xy_cov=state.xy_cov.astype(f4),
-        frames=frames)
+        velocity_cov=state.velocity_cov.astype(f4), frames=frames)
 
 
 def tick_frames(tick: Tick) -> list[tuple[str, int, int, int]]:

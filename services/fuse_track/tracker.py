@@ -53,7 +53,8 @@ of an object's covariance enters E, and the last object's bias_share of it is ad
 detector places a vehicle's bottom centre somewhere along its body, more so the longer it is (buses and trucks
 above all): the report also adds (along_length_share x length)^2 along the track's heading. Then the squared
 Mahalanobis distance of the true position is 2 on average when the report is right (chi-square, 2 dof);
-docs/pipeline.md, "How sure a track is", has the measurements.
+The velocity's covariance is E's own (no persisting share: a constant offset does not move). docs/pipeline.md,
+"How sure a track is", has the measurements.
 
 Yaw is not in the filter: it is smoothed circularly, and once the track moves faster than
 `yaw_from_motion_mps` the direction of motion resolves the detector's 180-degree ambiguity. A road vehicle heads
@@ -180,7 +181,7 @@ class TrackState:
     (score-weighted); score (N,) float64; age (N,) int64 ticks since the track started (0 at birth);
     hits (N,) int64 ticks with a measurement; cameras: per track, the cameras whose objects updated
     it this tick (empty while it coasts); xy_cov (N, 2, 2) float64 m^2 the covariance of the position's error
-    (module doc).
+    (module doc); velocity_cov (N, 2, 2) float64 (m/s)^2 the velocity's (E's, as propagated).
     """
 
     t_ns: int
@@ -196,12 +197,14 @@ class TrackState:
     hits: np.ndarray
     cameras: list[list[str]]
     xy_cov: np.ndarray
+    velocity_cov: np.ndarray
 
     def __post_init__(self) -> None:
         n = check_columns("TrackState", {
             "id": (self.id, ()), "xy": (self.xy, (2,)), "velocity": (self.velocity, (2,)), "yaw": (self.yaw, ()),
             "size_lwh": (self.size_lwh, (3,)), "vtype": (self.vtype, ()), "score": (self.score, ()),
-            "age": (self.age, ()), "hits": (self.hits, ()), "xy_cov": (self.xy_cov, (2, 2))})
+            "age": (self.age, ()), "hits": (self.hits, ()), "xy_cov": (self.xy_cov, (2, 2)),
+            "velocity_cov": (self.velocity_cov, (2, 2))})
         if len(self.cameras) != n:
             raise ValueError(f"TrackState.cameras has {len(self.cameras)} entries, expected {n}")
 
@@ -595,4 +598,5 @@ class Tracker:
             yaw=self._yaw[show].copy(), size_lwh=size,
             vtype=np.argmax(self._votes[show], axis=1).astype(np.int64) if len(show) else np.zeros(0, np.int64),
             score=self._score[show].copy(), age=self._age[show].copy(), hits=self._hits[show].copy(),
-            cameras=[list(self._cameras[j]) for j in show], xy_cov=symmetric(cov))
+            cameras=[list(self._cameras[j]) for j in show], xy_cov=symmetric(cov),
+            velocity_cov=symmetric(self._e[show, 4:6, 4:6]))
