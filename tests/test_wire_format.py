@@ -25,7 +25,7 @@ from services.fuse_track.tracker import TrackState
 from shared.codec import ALLOWED_DTYPES, encode
 from shared.geo import GeoFrame
 from shared.keys import latest_tracks_key, tracks_key
-from shared.messages import VEHICLE_TYPES, Tracks
+from shared.messages import VEHICLE_TYPES, Tracks, err95_m
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "wire-format.md"
@@ -176,8 +176,10 @@ def test_the_listener_refuses_a_bad_payload_with_the_reason(payload: bytes, reas
         listener.decode_tracks(payload)
 
 
-@pytest.mark.slow
-def test_the_listener_gets_the_current_tracks_then_the_live_ones_and_skips_a_bad_one() -> None:
+def run_against_a_cabinet(command: list[str], cwd: str) -> subprocess.CompletedProcess:
+    """`command` run while a Zenoh peer on a free loopback port (its endpoint replaces "{endpoint}" in the command)
+    serves what fuse_track does: the tracks of seq 5 to a `tracks/latest` query, then a tick every 100 ms (seq 6,
+    7, ...), each after a garbage payload."""
     port = free_port_base(span=1)
     conf = zenoh.Config()
     conf.insert_json5("mode", '"peer"')
@@ -190,7 +192,7 @@ def test_the_listener_gets_the_current_tracks_then_the_live_ones_and_skips_a_bad
                                                                                        latest))
         pub = session.declare_publisher(tracks_key(SITE))
 
-        def publish() -> None:  # the ticks after seq 5, each after a garbage payload, until the listener is done
+        def publish() -> None:
             seq = 6
             while not stop.wait(0.1):
                 pub.put(b"garbage")
@@ -200,13 +202,18 @@ def test_the_listener_gets_the_current_tracks_then_the_live_ones_and_skips_a_bad
         thread = threading.Thread(target=publish, daemon=True)
         thread.start()
         try:
-            done = subprocess.run([sys.executable, str(LISTENER), "--site", SITE, "--connect",
-                                   f"tcp/127.0.0.1:{port}", "--count", "3", "--timeout", "10"],
-                                  capture_output=True, text=True, timeout=60, cwd="/")
+            return subprocess.run([c.replace("{endpoint}", f"tcp/127.0.0.1:{port}") for c in command],
+                                  capture_output=True, text=True, timeout=60, cwd=cwd)
         finally:
             stop.set()
             thread.join()
             queryable.undeclare()
+
+
+@pytest.mark.slow
+def test_the_listener_gets_the_current_tracks_then_the_live_ones_and_skips_a_bad_one() -> None:
+    done = run_against_a_cabinet([sys.executable, str(LISTENER), "--site", SITE, "--connect", "{endpoint}",
+                                  "--count", "3", "--timeout", "10"], cwd="/")
     assert done.returncode == 0, done.stderr
     lines = [json.loads(line) for line in done.stdout.splitlines()]
     seqs = [m["seq"] for m in lines]
@@ -214,6 +221,18 @@ def test_the_listener_gets_the_current_tracks_then_the_live_ones_and_skips_a_bad
     assert seqs[0] < seqs[1] < seqs[2]
     assert all(m["tracks"][0]["type"] == "bus" for m in lines)
     assert "skipped a message: not msgpack" in done.stderr
+
+
+@pytest.mark.slow
+def test_roadside_tracks_prints_each_vehicle_with_its_95_percent_error() -> None:
+    done = run_against_a_cabinet([sys.executable, "-m", "roadside", "tracks", "--site", SITE, "--connect",
+                                  "{endpoint}", "--count", "2", "--timeout", "10"], cwd=str(ROOT))
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert lines[0].endswith("2 tracks") and len(lines) == 6
+    want = err95_m(example_message().xy_cov)  # 0.91 m for the bus, 1.86 m for the coasting car
+    assert f"+-{want[0]:4.1f} m" in lines[1] and " bus " in lines[1]
+    assert f"+-{want[1]:4.1f} m" in lines[2] and " car " in lines[2]
 
 
 def test_the_listener_says_in_one_line_when_no_cabinet_answers() -> None:
