@@ -32,6 +32,8 @@ their error, over the same matched positions in the ROI: with d the time-synchro
 d' C^-1 d is chi-square with 2 degrees of freedom when C is right, so `pos_cov_nees_mean` should be 2,
 `pos_cov_within_1sigma` 0.393 (the 1-sigma ellipse), `pos_cov_within_95` 0.95 (the 95 % ellipse, d' C^-1 d <= 5.991);
 `pos_cov_err95_median_m` is the median of the 95 % ellipses' longest half-axes, what a vehicle is told.
+`vel_cov_*` the same for the velocity (`vx`, `vy` and `velocity_cov`) against the vehicle's true velocity (its speed
+along its heading at its ground-truth sample nearest the tick).
 
 Handoff: each GT object's region at t is its nearest chosen camera on the ground. A crossing is a change of
 region between two consecutive GT-object samples of a vehicle at most `handoff_window_s` apart; it is tracked
@@ -54,7 +56,7 @@ import numpy as np
 
 from eval.ground_truth import GroundTruth, TrackingEvalConfig, _ground_truth
 from shared.messages import CHI2_2DOF_95, err95_m
-from shared.tracks_file import parse_xy_cov
+from shared.tracks_file import parse_covariance
 from sim.recording import Recording
 
 _MATCH_TYPES = ("MATCH", "SWITCH")
@@ -78,6 +80,8 @@ class TrackLine:
     xy: np.ndarray
     yaw: np.ndarray | None = None  # (N,) rad, NaN where a track has none
     cov: np.ndarray | None = None  # (N, 2, 2) m^2, the position's error covariance; NaN where a track has none
+    vel: np.ndarray | None = None  # (N, 2) m/s; NaN where a track has none
+    vel_cov: np.ndarray | None = None  # (N, 2, 2) (m/s)^2, the velocity's error covariance; NaN where none
 
     def keys(self) -> list[tuple[str, int]]:
         return [(self.tracker, i) for i in self.ids]
@@ -103,7 +107,7 @@ def _parse_line(obj: Any, where: str) -> TrackLine:
         raise ValueError(f"{where}: tracker must be a string, got {obj['tracker']!r}")
     if not isinstance(obj["tracks"], list):
         raise ValueError(f"{where}: tracks must be a list")
-    ids, xy, yaw, cov = [], [], [], []
+    ids, xy, yaw, cov, vel, vel_cov = [], [], [], [], [], []
     for k, tr in enumerate(obj["tracks"]):
         if not isinstance(tr, dict):
             raise ValueError(f"{where}: track {k} is not an object")
@@ -119,15 +123,20 @@ def _parse_line(obj: Any, where: str) -> TrackLine:
         xy.append((float(tr["x"]), float(tr["y"])))
         yaw.append(float(tr["yaw"]) if _is_finite_number(tr.get("yaw")) else math.nan)
         cov.append(_parse_cov(tr.get("xy_cov"), f"{where}: track {k} (id {tr['id']})"))
+        known = _is_finite_number(tr.get("vx")) and _is_finite_number(tr.get("vy"))
+        vel.append((float(tr["vx"]), float(tr["vy"])) if known else (math.nan, math.nan))
+        vel_cov.append(_parse_cov(tr.get("velocity_cov"), f"{where}: track {k} (id {tr['id']})", "velocity_cov"))
     if len(set(ids)) != len(ids):
         raise ValueError(f"{where}: duplicate track id in one line")
     return TrackLine(0, obj["t_ns"], obj["tracker"], ids, np.array(xy, float).reshape(-1, 2), np.array(yaw, float),
-                     np.array(cov, float).reshape(-1, 2, 2))
+                     np.array(cov, float).reshape(-1, 2, 2), np.array(vel, float).reshape(-1, 2),
+                     np.array(vel_cov, float).reshape(-1, 2, 2))
 
 
-def _parse_cov(value: Any, where: str) -> np.ndarray:
-    """A track's `xy_cov` as a (2, 2) array; NaN when the track has none (`parse_xy_cov`)."""
-    cov = parse_xy_cov(value, where)
+def _parse_cov(value: Any, where: str, name: str = "xy_cov") -> np.ndarray:
+    """A track's `xy_cov` (or another 2 x 2 covariance, `name`) as a (2, 2) array; NaN when the track has none
+    (`parse_covariance`)."""
+    cov = parse_covariance(value, where, name)
     return np.full((2, 2), math.nan) if cov is None else np.array(cov, float)
 
 
@@ -175,6 +184,8 @@ class FrameMatch:
     matched: dict[Any, tuple[str, int]]  # GT id -> track identity, for the matched GT objects
     track_yaw: dict[tuple[str, int], float] = field(default_factory=dict)  # the scored tracks' headings (rad)
     track_cov: dict[tuple[str, int], np.ndarray] = field(default_factory=dict)  # their xy_cov (2, 2), m^2
+    track_vel: dict[tuple[str, int], np.ndarray] = field(default_factory=dict)  # velocity (2,) and its covariance
+    track_vel_cov: dict[tuple[str, int], np.ndarray] = field(default_factory=dict)
 
 
 @dataclass
@@ -224,6 +235,8 @@ def match_tracks(ground_truth: GroundTruth, tracks: str | Path | Iterable, camer
         h_xy = line.xy if line is not None else np.zeros((0, 2))
         h_yaw = line.yaw if line is not None and line.yaw is not None else np.full(len(keys), np.nan)
         h_cov = line.cov if line is not None and line.cov is not None else np.full((len(keys), 2, 2), np.nan)
+        h_vel = line.vel if line is not None and line.vel is not None else np.full((len(keys), 2), np.nan)
+        h_vcov = line.vel_cov if line is not None and line.vel_cov is not None else np.full((len(keys), 2, 2), np.nan)
         res.track_identities.update(keys)
         if cfg.ignore_unscored_tracks and len(keys):
             d2_gt = np.sum((h_xy[:, None, :] - g_xy[None, :, :]) ** 2, axis=2)
@@ -235,7 +248,7 @@ def match_tracks(ground_truth: GroundTruth, tracks: str | Path | Iterable, camer
             keep = near_gt | ~(near_other | outside)
             res.ignored_track_positions += int(np.sum(~keep))
             keys = [k for k, ok in zip(keys, keep, strict=True) if ok]
-            h_xy, h_yaw, h_cov = h_xy[keep], h_yaw[keep], h_cov[keep]
+            h_xy, h_yaw, h_cov, h_vel, h_vcov = h_xy[keep], h_yaw[keep], h_cov[keep], h_vel[keep], h_vcov[keep]
         oids = [gt_index.setdefault(v, len(gt_index)) for v in gids]
         hids = [hyp_index.setdefault(k, len(hyp_index)) for k in keys]
         if oids and hids:
@@ -246,7 +259,9 @@ def match_tracks(ground_truth: GroundTruth, tracks: str | Path | Iterable, camer
         res.frames.append(FrameMatch(t, {v: g_xy[i] for i, v in enumerate(gids)},
                                      {k: h_xy[i] for i, k in enumerate(keys)}, {},
                                      {k: float(h_yaw[i]) for i, k in enumerate(keys)},
-                                     {k: h_cov[i] for i, k in enumerate(keys)}))
+                                     {k: h_cov[i] for i, k in enumerate(keys)},
+                                     {k: h_vel[i] for i, k in enumerate(keys)},
+                                     {k: h_vcov[i] for i, k in enumerate(keys)}))
     if res.frames:
         ev = res.accumulator.mot_events
         ev = ev[ev.Type.isin(_MATCH_TYPES)]
@@ -315,14 +330,15 @@ def handoff_measure(frames: Sequence[FrameMatch], camera_xy_m: Mapping[str, Sequ
     }
 
 
-def covariance_measure(nees: np.ndarray, err95_m: np.ndarray | None = None) -> dict:
-    """`pos_cov_*` (module docstring) of the squared Mahalanobis distances `nees` of matched positions under their
-    tracks' covariances, and with `err95_m` the median of the covariances' 95 % half-axes; NaN where there are none."""
-    out = {"pos_cov_n": len(nees), "pos_cov_nees_mean": float(nees.mean()) if len(nees) else math.nan,
-           "pos_cov_within_1sigma": float(np.mean(nees <= 1.0)) if len(nees) else math.nan,
-           "pos_cov_within_95": float(np.mean(nees <= CHI2_2DOF_95)) if len(nees) else math.nan}
+def covariance_measure(nees: np.ndarray, err95_m: np.ndarray | None = None, prefix: str = "pos_cov") -> dict:
+    """`pos_cov_*` (module docstring; `prefix` names them) of the squared Mahalanobis distances `nees` of matched
+    positions under their tracks' covariances, and with `err95_m` the median of the covariances' 95 % half-axes; NaN
+    where there are none."""
+    out = {f"{prefix}_n": len(nees), f"{prefix}_nees_mean": float(nees.mean()) if len(nees) else math.nan,
+           f"{prefix}_within_1sigma": float(np.mean(nees <= 1.0)) if len(nees) else math.nan,
+           f"{prefix}_within_95": float(np.mean(nees <= CHI2_2DOF_95)) if len(nees) else math.nan}
     if err95_m is not None:
-        out["pos_cov_err95_median_m"] = float(np.median(err95_m)) if len(err95_m) else math.nan
+        out[f"{prefix}_err95_median_m"] = float(np.median(err95_m)) if len(err95_m) else math.nan
     return out
 
 
@@ -365,7 +381,7 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
     gap = gt.max_gap_ns(cfg)
     err_in, err_out, pos_err = [], [], []
     yaw_err, yaw_moving = [], []
-    nees, err95 = [], []
+    nees, err95, vel_nees = [], [], []
     for fm in res.frames:
         if not fm.matched:
             continue
@@ -383,6 +399,11 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
                 err95.append(float(err95_m(cov)))
             tracked = fm.track_yaw.get(fm.matched[v], math.nan)
             true, speed = gt.trajectories[v].heading_at(fm.t_ns)
+            vel, vcov = fm.track_vel.get(fm.matched[v]), fm.track_vel_cov.get(fm.matched[v])
+            if (roi and vel is not None and vcov is not None and np.isfinite(vel).all() and np.isfinite(vcov).all()
+                    and math.isfinite(true) and math.isfinite(speed)):
+                e = vel - speed * np.array([math.cos(true), math.sin(true)])
+                vel_nees.append(float(e @ np.linalg.solve(vcov, e)))
             if roi and math.isfinite(tracked) and math.isfinite(true):
                 yaw_err.append(math.degrees(abs((tracked - true + math.pi) % (2 * math.pi) - math.pi)))
                 yaw_moving.append(speed >= cfg.moving_mps)
@@ -397,6 +418,7 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
     for name, part in (("moving", moving), ("standing", ~moving)):
         out[f"yaw_err_in_roi_{name}_deg"] = float(yaw_err_a[part].mean()) if part.any() else math.nan
     out.update(covariance_measure(np.array(nees), np.array(err95)))
+    out.update(covariance_measure(np.array(vel_nees), prefix="vel_cov"))
     scored = {k for fm in res.frames for k in fm.track_xy}
     out.update({
         "tracks": len(scored), "tracks_total": len(res.track_identities),

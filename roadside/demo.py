@@ -448,10 +448,11 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
         # the tracks' heading against the vehicles' (full circle), in the ROI; moving: 1 m/s or faster
         **{k: fused[k] for k in ("yaw_err_in_roi_deg", "yaw_err_in_roi_median_deg", "yaw_err_in_roi_moving_deg",
                                  "yaw_err_in_roi_standing_deg")},
-        # the tracks' own position uncertainty (xy_cov) against their error in the ROI: consistent when the 95 %
-        # ellipses hold 0.95 of the true positions and the mean squared Mahalanobis distance is 2 (eval.tracking)
+        # the tracks' own position and velocity uncertainty (xy_cov, velocity_cov) against their errors in the ROI:
+        # consistent when the 95 % ellipses hold 0.95 of the true values and the mean squared Mahalanobis distance is 2
+        # (eval.tracking)
         **{k: fused[k] for k in ("pos_cov_n", "pos_cov_nees_mean", "pos_cov_within_1sigma", "pos_cov_within_95",
-                                 "pos_cov_err95_median_m")},
+                                 "pos_cov_err95_median_m", "vel_cov_n", "vel_cov_nees_mean", "vel_cov_within_95")},
         # over `handoff_radius_m` around the cameras: region crossings seen tracked on both sides, the fraction that
         # kept their id, and the fraction of vehicles that kept theirs through every crossing (eval.tracking)
         "handoff_radius_m": cfg.handoff_radius_m,
@@ -499,7 +500,8 @@ def summary_table(s: dict) -> str:
                                                 f"{s['yaw_err_in_roi_standing_deg']:.1f} deg"),
         ("true position within the 95 % ellipse", f"{s['pos_cov_within_95']:.3f} (1 sigma: "
                                                    f"{s['pos_cov_within_1sigma']:.3f}; median half-axis "
-                                                   f"{s['pos_cov_err95_median_m']:.2f} m)"),
+                                                   f"{s['pos_cov_err95_median_m']:.2f} m); velocity "
+                                                   f"{s['vel_cov_within_95']:.3f}"),
         ("frames through the pipeline", f"{s['frames']} of {s['frames_recorded']}"),
         ("region crossings kept", f"{s['handoff_crossing_kept_fraction']:.3f} of {s['handoff_crossings']} "
                                   f"(within {s['handoff_radius_m']:g} m of a camera)"),

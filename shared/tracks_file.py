@@ -114,13 +114,15 @@ def _parse_row(row: Any, origin: GeoFrame | None) -> TrackRow:
         type=vtype,
         vx=float(row["vx"]) if has_v else None,
         vy=float(row["vy"]) if has_v else None,
-        xy_cov=parse_xy_cov(row.get("xy_cov")),
+        xy_cov=parse_covariance(row.get("xy_cov")),
     )
 
 
-def parse_xy_cov(value: Any, where: str = "") -> tuple[tuple[float, float], tuple[float, float]] | None:
-    """A track row's `xy_cov` ([[a, b], [b, c]], m^2; Tracks.rows()) validated; None when the row has none.
-    ValueError (prefixed with `where`) unless it is a symmetric positive definite 2 x 2 matrix of finite numbers."""
+def parse_covariance(value: Any, where: str = "",
+                     name: str = "xy_cov") -> tuple[tuple[float, float], tuple[float, float]] | None:
+    """A track row's `xy_cov` ([[a, b], [b, c]], m^2; Tracks.rows()), or another 2 x 2 covariance of it (`name`, e.g.
+    `velocity_cov`), validated; None when the row has none. ValueError (prefixed with `where`, naming `name`) unless it
+    is a symmetric positive definite 2 x 2 matrix of finite numbers."""
     if value is None:
         return None
     prefix = f"{where}: " if where else ""
@@ -128,10 +130,10 @@ def parse_xy_cov(value: Any, where: str = "") -> tuple[tuple[float, float], tupl
             and all(isinstance(r, list | tuple) and len(r) == 2 for r in value)
             and all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
                     for r in value for v in r)):
-        raise ValueError(f"{prefix}xy_cov must be [[a, b], [b, c]] of finite numbers (m^2), got {value!r:.80}")
+        raise ValueError(f"{prefix}{name} must be [[a, b], [b, c]] of finite numbers, got {value!r:.80}")
     (a, b), (c, d) = value
     if not (a > 0 and a * d > b * c and b == c):
-        raise ValueError(f"{prefix}xy_cov {value} is not a symmetric positive definite covariance")
+        raise ValueError(f"{prefix}{name} {value} is not a symmetric positive definite covariance")
     return (float(a), float(b)), (float(c), float(d))
 
 

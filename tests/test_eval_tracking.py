@@ -200,6 +200,26 @@ def test_a_tracks_position_covariance_is_scored_against_its_error(gt):
         evaluate_tracks(gt, rows)
 
 
+def test_a_tracks_velocity_covariance_is_scored_against_the_true_velocity(gt):
+    """Track velocities off the vehicles' by draws of a known covariance, stating it: about 95 % inside the 95 %
+    ellipse, mean squared distance near 2; a track without velocity_cov is not scored; a malformed one is named."""
+    rng = np.random.default_rng(2)
+    cov = np.array([[0.25, -0.05], [-0.05, 0.16]])
+    velocity = {1: (10.0, 0.0), 2: (0.0, 4.0), 3: (1.5, 2.0), 5: (0.0, 0.0)}
+    rows = make_rows()
+    for row in rows:
+        for t in row["tracks"]:
+            t["vx"], t["vy"] = (np.array(velocity[t["id"] - 10]) + rng.multivariate_normal([0, 0], cov)).tolist()
+            t["velocity_cov"] = cov.tolist()
+    r = evaluate_tracks(gt, rows)
+    assert r["vel_cov_n"] == r["traj_err_in_roi_n"] == 4 * N_FRAMES
+    assert 0.9 < r["vel_cov_within_95"] <= 1.0 and r["vel_cov_nees_mean"] == pytest.approx(2.0, rel=0.25)
+    assert r["pos_cov_n"] == 0  # no xy_cov in these tracks
+    rows[2]["tracks"][0]["velocity_cov"] = [[0.1, 0.3], [0.3, 0.1]]
+    with pytest.raises(ValueError, match=r"tracks line 3: track 0 \(id 11\): velocity_cov .* not a symmetric"):
+        evaluate_tracks(gt, rows)
+
+
 def test_recorder_file_and_rows_give_the_same_result(gt, tmp_path):
     rows = make_rows(offset=lambda v, k: 0.3 * NORMAL[v])
     a = evaluate_tracks(gt, rows)
