@@ -122,10 +122,11 @@ def _parse_line(obj: Any, where: str) -> TrackLine:
         ids.append(tr["id"])
         xy.append((float(tr["x"]), float(tr["y"])))
         yaw.append(float(tr["yaw"]) if _is_finite_number(tr.get("yaw")) else math.nan)
-        cov.append(_parse_cov(tr.get("xy_cov"), f"{where}: track {k} (id {tr['id']})"))
+        who = f"{where}: track {k} (id {tr['id']})"
+        cov.append(_parse_cov(tr.get("xy_cov"), who))
         known = _is_finite_number(tr.get("vx")) and _is_finite_number(tr.get("vy"))
         vel.append((float(tr["vx"]), float(tr["vy"])) if known else (math.nan, math.nan))
-        vel_cov.append(_parse_cov(tr.get("velocity_cov"), f"{where}: track {k} (id {tr['id']})", "velocity_cov"))
+        vel_cov.append(_parse_cov(tr.get("velocity_cov"), who, "velocity_cov"))
     if len(set(ids)) != len(ids):
         raise ValueError(f"{where}: duplicate track id in one line")
     return TrackLine(0, obj["t_ns"], obj["tracker"], ids, np.array(xy, float).reshape(-1, 2), np.array(yaw, float),

@@ -219,6 +219,13 @@ class Objects(CameraMessage):
 CHI2_2DOF_95 = 5.991  # chi-square with 2 degrees of freedom, 95th percentile: a 2D Gaussian's 95 % ellipse
 
 
+def not_covariances(c: np.ndarray) -> np.ndarray:
+    """(N, 2, 2) finite matrices -> (N,) bool: those that are not a covariance, symmetric (exactly: the project
+    symmetrises what it computes) and positive definite. The one rule for Tracks, the fusion's objects and tracks
+    files."""
+    return (c[:, 0, 0] <= 0) | (c[:, 0, 0] * c[:, 1, 1] <= c[:, 0, 1] * c[:, 1, 0]) | (c[:, 0, 1] != c[:, 1, 0])
+
+
 def err95_m(xy_cov: np.ndarray) -> np.ndarray:
     """(..., 2, 2) position covariances (m^2) -> (...) the longest half-axis (m) of each one's 95 % ellipse: the
     true position lies within that ellipse with 95 % probability, and within this distance along its worst axis."""
@@ -272,8 +279,7 @@ class Tracks(Message):
         if len(self.cameras) != n:
             raise ValueError(f"Tracks.cameras has {len(self.cameras)} entries, expected {n}")
         for name in ("xy_cov", "velocity_cov"):
-            c = getattr(self, name)
-            bad = (c[:, 0, 0] <= 0) | (c[:, 0, 0] * c[:, 1, 1] <= c[:, 0, 1] * c[:, 1, 0]) | (c[:, 0, 1] != c[:, 1, 0])
+            bad = not_covariances(getattr(self, name))
             if bad.any():
                 raise ValueError(f"Tracks.{name}[{int(np.flatnonzero(bad)[0])}] is not a symmetric positive definite "
                                  "covariance")

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from shared.geo import GeoFrame
+from shared.messages import not_covariances
 
 _REQUIRED_ROW = ("id", "yaw", "length", "width")
 _OPTIONAL_NUMBERS = ("lat", "lon", "vx", "vy", "height", "score", "age", "hits")
@@ -131,9 +132,9 @@ def parse_covariance(value: Any, where: str = "",
             and all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
                     for r in value for v in r)):
         raise ValueError(f"{prefix}{name} must be [[a, b], [b, c]] of finite numbers, got {value!r:.80}")
-    (a, b), (c, d) = value
-    if not (a > 0 and a * d > b * c and b == c):
+    if not_covariances(np.array(value, np.float64)[None])[0]:
         raise ValueError(f"{prefix}{name} {value} is not a symmetric positive definite covariance")
+    (a, b), (c, d) = value
     return (float(a), float(b)), (float(c), float(d))
 
 

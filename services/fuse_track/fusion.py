@@ -44,6 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from shared.messages import not_covariances
 from shared.position_error import POSITION_SIGMA, check_position_sigma, position_information
 
 NS_PER_S = 1_000_000_000
@@ -103,8 +104,7 @@ def check_covariance(name: str, value: object, n: int) -> np.ndarray:
         raise ValueError(f"{name} must have shape ({n}, 2, 2), got {a.shape}")
     if not np.isfinite(a).all():
         raise ValueError(f"{name} contains a non-finite value ({a[~np.isfinite(a)][0]})")
-    det = a[:, 0, 0] * a[:, 1, 1] - a[:, 0, 1] * a[:, 1, 0]
-    bad = (a[:, 0, 0] <= 0) | (det <= 0) | ~np.isclose(a[:, 0, 1], a[:, 1, 0], rtol=1e-6, atol=1e-12)
+    bad = not_covariances(a)
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
         raise ValueError(f"{name}[{i}] must be a symmetric positive definite 2x2 matrix, got {a[i].tolist()}")
