@@ -50,7 +50,11 @@ def _bus(args):
 
 
 def _add_tracks(sub) -> None:
-    p = sub.add_parser("tracks", help="print live tracks (what a connected vehicle receives)")
+    p = sub.add_parser("tracks", help="print live tracks (what a connected vehicle receives)",
+                       description="Print live tracks: per track its id, type, position with the longest half-axis "
+                       "of its 95 % error ellipse (+- m), heading (rad, counter-clockwise from east; '?' after it: "
+                       "the vehicle has not been seen travelling, so front and back may be swapped), speed and the "
+                       "cameras that saw it.")
     _add_endpoint_flags(p, "the local fuse_track")
     p.add_argument("--count", type=positive_int, help="stop after this many messages")
     p.add_argument("--timeout", type=positive_float, help="stop after this many seconds without tracks")
@@ -75,7 +79,8 @@ def _run_tracks(args) -> int:
                 for r, err in zip(rows, err95_m(tracks.xy_cov).tolist(), strict=True):
                     speed = math.hypot(r["vx"], r["vy"])
                     print(f"  {r['id']:>5} {r['type']:<10} lat {r['lat']:.7f} lon {r['lon']:.7f} +-{err:4.1f} m "
-                          f"yaw {r['yaw']:+.2f} speed {speed:5.1f} m/s  {','.join(r['cameras'])}")
+                          f"yaw {r['yaw']:+.2f}{' ' if r['yaw_confirmed'] else '?'} speed {speed:5.1f} m/s  "
+                          f"{','.join(r['cameras'])}")
             n += 1
             if args.count and n >= args.count:
                 break

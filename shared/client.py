@@ -8,6 +8,7 @@
             for row in tracks.rows():           # id, x, y, lat, lon, vx, vy, yaw, length, ..., cameras, xy_cov
                 print(row["id"], row["lat"], row["lon"], row["type"])
             worst = err95_m(tracks.xy_cov)      # (N,) m: each position's 95 % error ellipse, longest half-axis
+            axis_only = ~tracks.yaw_confirmed   # (N,) bool: not seen travelling, the heading may point backwards
 
 A client that joins late gets the current tracks at once: `stream()` first asks fuse_track's
 queryable (`roadside/<site>/tracks/latest`) for the newest message, then follows the live ones.

@@ -31,7 +31,7 @@ from typing import Annotated, Any, ClassVar, Literal
 import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, field_validator, model_validator
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 VEHICLE_TYPES = ("car", "suv_van", "truck", "bus", "motorcycle")
 SERVICES = ("ingest", "detect", "localize", "fuse_track")
 CAMERA_KINDS = ("pinhole", "fisheye")
@@ -242,11 +242,12 @@ class Tracks(Message):
     vtype (N,) int8; score (N,) float32; age (N,) int32 ticks since the track started; hits (N,) int32
     ticks with a measurement; cameras: per track, the cameras whose objects updated it this tick; xy_cov (N, 2, 2)
     float32 m^2: the covariance of the position's error (east, north), velocity_cov (N, 2, 2) float32 (m/s)^2 the
-    velocity's, each symmetric positive definite.
+    velocity's, each symmetric positive definite; yaw_confirmed (N,) bool: whether the vehicle's own travel has
+    confirmed which way it heads.
     An id that drops out and comes back within a few seconds where the lost track was heading is the same vehicle
     (fuse_track's `relink_s`). yaw: of a moving track, its direction of motion (from 4 m/s; drawn towards it from
-    1.5 m/s); of a track that stopped, the heading it had; of a vehicle never seen moving, the detector's, whose
-    front and back may be reversed (read it as an axis).
+    1.5 m/s); of a track that stopped, the heading it had; of a vehicle not seen travelling (yaw_confirmed false),
+    the detector's, whose front and back may be reversed (read it as an axis).
     `frames`: (camera, seq, t_capture_ns, t_arrival_ns at fuse_track) of every frame whose objects went
     into this tick (latency accounting).
     """
@@ -266,6 +267,7 @@ class Tracks(Message):
     cameras: list[Annotated[list[str], Field(max_length=64)]]
     xy_cov: Array
     velocity_cov: Array
+    yaw_confirmed: Array
     frames: list[tuple[str, int, int, int]] = Field(default_factory=list, max_length=MAX_ROWS)
 
     @model_validator(mode="after")
@@ -275,7 +277,8 @@ class Tracks(Message):
             "velocity": (self.velocity, (2,), "f"), "yaw": (self.yaw, (), "f"),
             "size_lwh": (self.size_lwh, (3,), "f"), "vtype": (self.vtype, (), "iu"),
             "score": (self.score, (), "f"), "age": (self.age, (), "iu"), "hits": (self.hits, (), "iu"),
-            "xy_cov": (self.xy_cov, (2, 2), "f"), "velocity_cov": (self.velocity_cov, (2, 2), "f")})
+            "xy_cov": (self.xy_cov, (2, 2), "f"), "velocity_cov": (self.velocity_cov, (2, 2), "f"),
+            "yaw_confirmed": (self.yaw_confirmed, (), "b")})
         if len(self.cameras) != n:
             raise ValueError(f"Tracks.cameras has {len(self.cameras)} entries, expected {n}")
         for name in ("xy_cov", "velocity_cov"):
@@ -301,10 +304,10 @@ class Tracks(Message):
         cov, vcov = rounded(self.xy_cov, 5), rounded(self.velocity_cov, 5)
         return [{"id": i, "x": p[0], "y": p[1], "lat": ll[0], "lon": ll[1], "vx": v[0], "vy": v[1], "yaw": a,
                  "length": s[0], "width": s[1], "height": s[2], "type": t, "score": sc, "age": age, "hits": hits,
-                 "cameras": list(cams), "xy_cov": c, "velocity_cov": vc}
-                for i, p, ll, v, a, s, t, sc, age, hits, cams, c, vc in zip(
+                 "cameras": list(cams), "xy_cov": c, "velocity_cov": vc, "yaw_confirmed": sure}
+                for i, p, ll, v, a, s, t, sc, age, hits, cams, c, vc, sure in zip(
                     self.id.tolist(), xy, latlon, vel, yaw, size, names, score, self.age.tolist(), self.hits.tolist(),
-                    self.cameras, cov, vcov, strict=True)]
+                    self.cameras, cov, vcov, self.yaw_confirmed.tolist(), strict=True)]
 
 
 MAX_STATUS_ENTRIES = 300  # names in one of a Status message's maps (BadInput keeps at most 256 reasons, + 1)

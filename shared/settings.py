@@ -260,6 +260,11 @@ class FuseTrackSettings(Strict):
     # detector (docs/pipeline.md, "How sure a track is"); another detector may need its own
     bias_share: float = Field(0.6, ge=0, le=1)
     along_length_share: float = Field(0.07, ge=0, le=1)
+    # a track's heading counts as confirmed (Tracks.yaw_confirmed) once it has travelled this far (m) from where it was
+    # first seen, moving; a confirmed heading is turned round only by this long (s) of motion against it, not by a
+    # standing vehicle's jittering detections (docs/pipeline.md, "Front or back")
+    yaw_confirm_travel_m: float = Field(3.0, ge=0, le=100)
+    yaw_reverse_s: float = Field(1.0, ge=0, le=30)
     record: Path | None = None  # append every Tracks message to this JSON-lines file
     # at this size the recording is renamed <stem>.<n>.jsonl and a new one started (services/fuse_track/recorder.py);
     # 0: one file that grows for ever (about 4 MB a minute with the demo's four cameras)

@@ -99,6 +99,7 @@ def make_tracks(n: int = 3, **kw) -> Tracks:
               "cameras": [["NE"] for _ in range(n)],
               "xy_cov": np.tile(np.array([[0.09, 0.02], [0.02, 0.16]], f4), (n, 1, 1)),
               "velocity_cov": np.tile(np.array([[0.25, 0.0], [0.0, 0.25]], f4), (n, 1, 1)),
+              "yaw_confirmed": np.arange(n) % 2 == 0,
               "frames": [("NE", 7, T0, T0 + 15)]}
     return Tracks(**{**fields, **kw})
 
@@ -181,6 +182,15 @@ def test_a_covariance_that_is_not_one_is_refused(field: str, cov, reason: str) -
     t = raw(make_tracks(2))
     t[field] = arr(np.array([[[0.09, 0.0], [0.0, 0.16]], cov], np.float32))
     refused(pack(t), f"{field}.*{reason}" if "not a" in reason else reason)
+
+
+def test_yaw_confirmed_is_one_bool_per_track() -> None:
+    assert [r["yaw_confirmed"] for r in make_tracks(3).rows()] == [True, False, True]
+    for bad, reason in ((np.ones(2, np.float32), "yaw_confirmed has dtype float32, expected kind 'b'"),
+                        (np.ones(3, bool), "yaw_confirmed has 3 rows, expected 2")):
+        t = raw(make_tracks(2))
+        t["yaw_confirmed"] = arr(bad)
+        refused(pack(t), reason)
 
 
 def test_err95_is_the_95_percent_ellipses_longest_half_axis() -> None:

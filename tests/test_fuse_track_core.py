@@ -259,6 +259,42 @@ def test_a_moving_track_heads_where_it_goes_and_a_standing_one_as_detected():
     assert err_deg(run(TrackerConfig(yaw_motion_full_mps=0.0), 8.0, stop_at=38)) == pytest.approx(12.0, abs=1.0)
 
 
+def test_a_heading_confirmed_by_travel_is_not_reversed_by_a_standing_vehicles_jitter():
+    """A vehicle drives north at 8 m/s for 2 s, stops, and 2 s later its detections jump 1.5 m back and return
+    within a second (a standing vehicle's detections do): the filter's velocity points south at 1.8 m/s for a moment,
+    yet the heading its travel confirmed stays north (yaw_reverse_s); with yaw_reverse_s 0 the jitter reverses it
+    for good. A vehicle that really backs
+    up (2 m/s south for 2 s) is turned round after yaw_reverse_s. yaw_confirmed is False until the track has
+    travelled yaw_confirm_travel_m, and stays False for a vehicle that only jitters in place; a vehicle the
+    detector sees backwards at birth is turned round by its motion at once."""
+    def run(config: TrackerConfig, path: list[float], yaw: float = math.pi / 2) -> list[TrackState]:
+        tracker = Tracker(config)
+        return [tracker.update(frame("A", k * 100 * MS, [[0.0, y]], yaw=yaw), k * 100 * MS)
+                for k, y in enumerate(path)]
+
+    def north(state: TrackState) -> bool:
+        return abs(wrap_angle(np.array([state.yaw[0] - math.pi / 2]))[0]) < math.pi / 2
+
+    drive = [0.8 * k for k in range(20)]
+    stop = drive[-1]
+    jitter = [stop] * 20 + [stop - 0.5 * k for k in range(1, 4)] + [stop - 1.5] * 4 + [stop - 1.0, stop - 0.5]
+    jitter += [stop] * 10
+    states = run(TrackerConfig(), drive + jitter)
+    assert not states[2].yaw_confirmed[0] and states[19].yaw_confirmed[0] and north(states[19])
+    assert all(north(s) and s.yaw_confirmed[0] for s in states[19:])
+    assert min(s.velocity[0, 1] for s in states[40:]) < -1.5  # faster than yaw_from_motion_mps, backwards
+    assert not any(north(s) for s in run(TrackerConfig(yaw_reverse_s=0.0), drive + jitter)[45:])
+    backing = [stop - 0.2 * k for k in range(1, 21)]
+    states = run(TrackerConfig(), drive + [stop] * 10 + backing)
+    turned = [k for k, s in enumerate(states) if len(s) and not north(s)]
+    assert turned and 30 + 10 <= turned[0] <= 30 + 18 and all(not north(s) for s in states[turned[0]:])
+    assert all(s.yaw_confirmed[0] for s in states[19:])
+    in_place = run(TrackerConfig(), [0.0] * 5 + jitter)
+    assert not any(s.yaw_confirmed.any() for s in in_place)
+    backwards = run(TrackerConfig(), drive, yaw=-math.pi / 2)  # the detector's heading is reversed
+    assert north(backwards[3]) and backwards[-1].yaw_confirmed[0]
+
+
 def test_a_vehicle_lost_for_a_moment_keeps_its_id():
     """A vehicle at 8 m/s missed for 1 s (ten ticks, far beyond max_age) comes back on its path: the new track takes
     the lost one's id, age and hits (relink, default on), not while it is lost, and never an id of a vehicle elsewhere;
@@ -656,6 +692,8 @@ def test_bad_configs_and_calls_raise_value_errors_naming_the_parameter():
         (lambda: TrackerConfig(relink_s=-1.0), "relink_s"),
         (lambda: TrackerConfig(relink_gate_m=0.0), "relink_gate_m"),
         (lambda: TrackerConfig(yaw_motion_full_mps=1.0), "yaw_motion_full_mps"),
+        (lambda: TrackerConfig(yaw_confirm_travel_m=-1.0), "yaw_confirm_travel_m"),
+        (lambda: TrackerConfig(yaw_reverse_s=math.nan), "yaw_reverse_s"),
         (lambda: TickConfig(tick_ms=0), "tick_ms"),
         (lambda: TickConfig(watermark_ms=-1), "watermark_ms"),
         (lambda: TickConfig(max_empty_ticks=0), "max_empty_ticks"),

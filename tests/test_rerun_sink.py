@@ -147,6 +147,7 @@ def test_parse_rejects_missing_keys_and_accepts_a_tracks_message() -> None:
         cameras=[["NE"]],
         xy_cov=np.array([[[0.1, 0.0], [0.0, 0.1]]], np.float32),
         velocity_cov=np.array([[[0.2, 0.0], [0.0, 0.2]]], np.float32),
+        yaw_confirmed=np.array([True]),
     )
     parsed = parse_tracks_message(msg)
     assert (parsed.t_ns, parsed.tracker, parsed.rows[0].id, parsed.rows[0].type) == (T0_NS, "a", 9, "truck")

@@ -91,7 +91,7 @@ def tracks_message(site: str, state: TrackState, t_ns: int, seq: int, geo: GeoFr
         velocity=state.velocity.astype(f4), yaw=state.yaw.astype(f4), size_lwh=state.size_lwh.astype(f4),
         vtype=state.vtype.astype(np.int8), score=state.score.astype(f4), age=state.age.astype(np.int32),
         hits=state.hits.astype(np.int32), cameras=[list(c) for c in state.cameras], xy_cov=state.xy_cov.astype(f4),
-        velocity_cov=state.velocity_cov.astype(f4), frames=frames)
+        velocity_cov=state.velocity_cov.astype(f4), yaw_confirmed=state.yaw_confirmed.astype(bool), frames=frames)
 
 
 def tick_frames(tick: Tick) -> list[tuple[str, int, int, int]]:
@@ -127,7 +127,8 @@ def tracker_config(cfg: FuseTrackSettings) -> TrackerConfig:
     return TrackerConfig(gate_m=cfg.gate_m, max_age_ticks=cfg.max_age_ticks, min_hits=cfg.min_hits,
                          high_score=cfg.high_score, standing_hits=cfg.standing_hits,
                          relink_s=cfg.relink_s, relink_gate_m=cfg.relink_gate_m, bias_share=cfg.bias_share,
-                         along_length_share=cfg.along_length_share)
+                         along_length_share=cfg.along_length_share, yaw_confirm_travel_m=cfg.yaw_confirm_travel_m,
+                         yaw_reverse_s=cfg.yaw_reverse_s)
 
 
 def new_tracker(settings: Settings) -> Tracker:

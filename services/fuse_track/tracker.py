@@ -63,6 +63,12 @@ track's direction of motion, and from there on it is that direction (the filter'
 measurements, is surer than one detection's heading: on the demo's recording its direction is 3.6-5.4 deg off for
 tracks faster than 3 m/s (median), the smoothed detections' 8.2-8.5 deg). A vehicle that stops keeps the heading it
 had and the detections take over again from there.
+
+Front or back (`TrackState.yaw_confirmed`): a track's heading is confirmed once the track, moving, is
+`yaw_confirm_travel_m` from where it was first seen; until then its sign is the detector's guess, which motion turns
+round at once. A confirmed heading is turned round only after `yaw_reverse_s` of motion against it without a break:
+a standing vehicle's detections jitter by a metre or two, and the filter's velocity with them, which used to
+reverse a waiting car's heading for good. docs/pipeline.md, "Front or back", has the measurements.
 """
 
 from __future__ import annotations
@@ -95,7 +101,9 @@ class TrackerConfig:
     init_speed_std_mps the velocity uncertainty of a new track. Yaw: yaw_gain the weight of a new
     yaw measurement, yaw_from_motion_mps the speed above which motion sets the heading's sign, yaw_motion_full_mps the
     speed from which the heading is the direction of motion (drawn towards it linearly from yaw_from_motion_mps; 0 =
-    the detections' heading at any speed, motion only setting its sign).
+    the detections' heading at any speed, motion only setting its sign); yaw_confirm_travel_m the distance from where
+    a track was first seen that confirms its heading's sign, yaw_reverse_s how long a confirmed heading must be moved
+    against before it is turned round (module doc).
     high_score: objects scoring at least this are associated first and may start tracks; the others only
     extend confirmed tracks that the first round left unmatched (ByteTrack's second round: a vehicle the
     detector is unsure of in one frame keeps its track and id instead of breaking it); 0 = one round.
@@ -129,6 +137,9 @@ class TrackerConfig:
     # 4 m/s: the middle of a plateau over 2.5-6 (mean validation yaw error of the tracks in the ROI 47.0 -> 44.5 deg,
     # the demo's recording 16.7 -> 14.3 deg; docs/pipeline.md, "Heading from motion")
     yaw_motion_full_mps: float = 4.0
+    # 3 m and 1 s: the middle of plateaus over 2-5 m and 0.5-2 s (docs/pipeline.md, "Front or back")
+    yaw_confirm_travel_m: float = 3.0
+    yaw_reverse_s: float = 1.0
     high_score: float = 0.0
     standing_hits: int = 0
     # 3 s and 3 m: the middle of a plateau over 2-5 s and 3-4 m (mean validation IDF1 0.856 -> 0.865, id switches
@@ -165,7 +176,8 @@ class TrackerConfig:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and 0 <= value <= 1):
                 raise ValueError(f"{name} must be within [0, 1], got {value!r}")
-        for name in ("yaw_from_motion_mps", "turn_speed_mps", "relink_s", "yaw_motion_full_mps"):
+        for name in ("yaw_from_motion_mps", "turn_speed_mps", "relink_s", "yaw_motion_full_mps", "yaw_confirm_travel_m",
+                     "yaw_reverse_s"):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
@@ -181,7 +193,9 @@ class TrackState:
     (score-weighted); score (N,) float64; age (N,) int64 ticks since the track started (0 at birth);
     hits (N,) int64 ticks with a measurement; cameras: per track, the cameras whose objects updated
     it this tick (empty while it coasts); xy_cov (N, 2, 2) float64 m^2 the covariance of the position's error
-    (module doc); velocity_cov (N, 2, 2) float64 (m/s)^2 the velocity's (E's, as propagated).
+    (module doc); velocity_cov (N, 2, 2) float64 (m/s)^2 the velocity's (E's, as propagated); yaw_confirmed (N,)
+    bool: whether the track's own travel has confirmed which way it heads (module doc; False: the detector's guess,
+    front and back may be swapped).
     """
 
     t_ns: int
@@ -198,13 +212,14 @@ class TrackState:
     cameras: list[list[str]]
     xy_cov: np.ndarray
     velocity_cov: np.ndarray
+    yaw_confirmed: np.ndarray
 
     def __post_init__(self) -> None:
         n = check_columns("TrackState", {
             "id": (self.id, ()), "xy": (self.xy, (2,)), "velocity": (self.velocity, (2,)), "yaw": (self.yaw, ()),
             "size_lwh": (self.size_lwh, (3,)), "vtype": (self.vtype, ()), "score": (self.score, ()),
             "age": (self.age, ()), "hits": (self.hits, ()), "xy_cov": (self.xy_cov, (2, 2)),
-            "velocity_cov": (self.velocity_cov, (2, 2))})
+            "velocity_cov": (self.velocity_cov, (2, 2)), "yaw_confirmed": (self.yaw_confirmed, ())})
         if len(self.cameras) != n:
             raise ValueError(f"TrackState.cameras has {len(self.cameras)} entries, expected {n}")
 
@@ -310,6 +325,9 @@ class Tracker:
         self._confirmed = np.zeros(0, bool)
         self._need = np.zeros(0, np.int64)  # consecutive hits a tentative track needs: min_hits, or standing_hits
         self._yaw = np.zeros(0)
+        self._confirmed_yaw = np.zeros(0, bool)  # whether the track's travel has confirmed its heading's sign
+        self._origin = np.zeros((0, 2))  # where it was first seen (m)
+        self._against = np.zeros(0)  # how long (s) it has moved against its confirmed heading without a break
         self._height = np.zeros(0)
         self._score = np.zeros(0)
         self._votes = np.zeros((0, 1))  # score-weighted type votes, (T, types)
@@ -318,7 +336,8 @@ class Tracker:
         # Confirmed tracks dropped in the last relink_s, struct of arrays: id, state x at the tick t (ns) they were
         # dropped in, the tick they were born in, their hits and heading
         self._lost = {"id": np.zeros(0, np.int64), "x": np.zeros((0, DIM_X)), "t": np.zeros(0, np.int64),
-                      "born": np.zeros(0, np.int64), "hits": np.zeros(0, np.int64), "yaw": np.zeros(0)}
+                      "born": np.zeros(0, np.int64), "hits": np.zeros(0, np.int64), "yaw": np.zeros(0),
+                      "confirmed_yaw": np.zeros(0, bool)}
 
     def __len__(self) -> int:
         """Live tracks, tentative ones included."""
@@ -452,8 +471,7 @@ class Tracker:
         r_e, self._b[tracks] = self._error_r(objects, rows, r)
         self._e[tracks] = joseph(self._e[tracks], k, h, r_e)
         self._x[tracks, 2:4] = np.maximum(self._x[tracks, 2:4], 1e-3)  # area and aspect stay positive
-        self._yaw[tracks] = self._smooth_yaw(self._yaw[tracks], objects.yaw[rows], self._x[tracks, 4:6],
-                                             self._hits[tracks])
+        self._smooth_yaw(tracks, objects.yaw[rows], (objects.t_ns[rows] - self._last_hit_ns[tracks]) / NS_PER_S)
         self._hits[tracks] += 1
         self._streak[tracks] += 1
         self._since_hit[tracks] = 0
@@ -464,21 +482,31 @@ class Tracker:
         for i, j in zip(rows.tolist(), tracks.tolist(), strict=True):
             self._cameras[j] = objects.sources_of(i)
 
-    def _smooth_yaw(self, yaw: np.ndarray, measured: np.ndarray, velocity: np.ndarray, hits: np.ndarray) -> np.ndarray:
-        """Circular smoothing of yaw (rad); the heading's sign from motion once the track moves, and the heading
-        itself drawn towards the direction of motion (module doc)."""
-        full, low = self.config.yaw_motion_full_mps, self.config.yaw_from_motion_mps
+    def _smooth_yaw(self, tracks: np.ndarray, measured: np.ndarray, dt_s: np.ndarray) -> None:
+        """Circular smoothing of the heading (rad) of the tracks at `tracks` with their measured ones, `dt_s` since
+        their last hit: the sign from motion once a track moves (at once, or after yaw_reverse_s against a heading
+        its travel confirmed), the heading drawn towards the direction of motion (module doc)."""
+        c = self.config
+        full, low = c.yaw_motion_full_mps, c.yaw_from_motion_mps
+        yaw, velocity, sure = self._yaw[tracks], self._x[tracks, 4:6], self._confirmed_yaw[tracks]
         heading = np.arctan2(velocity[:, 1], velocity[:, 0])
         speed = np.hypot(velocity[:, 0], velocity[:, 1])
-        moving = (speed > low) & (hits >= 2)
-        yaw = np.where(moving & (np.abs(wrap_angle(yaw - heading)) > np.pi / 2), yaw + np.pi, yaw)
+        moving = (speed > low) & (self._hits[tracks] >= 2)
+        against = moving & (np.abs(wrap_angle(yaw - heading)) > np.pi / 2)
+        held = np.where(against, self._against[tracks] + dt_s, 0.0)
+        flip = against & (~sure | (held >= c.yaw_reverse_s))
+        yaw = np.where(flip, yaw + np.pi, yaw)
+        moving &= ~against | flip  # not drawn towards a motion that has yet to prove itself
         d = wrap_angle(measured - yaw)
         d = wrap_angle(np.where(np.abs(d) > np.pi / 2, d + np.pi, d))  # the detector's heading may be reversed
-        yaw = wrap_angle(yaw + self.config.yaw_gain * d)
+        yaw = wrap_angle(yaw + c.yaw_gain * d)
         if full > 0:  # towards the direction of motion, all the way from `full` on
             w = np.where(moving, np.clip((speed - low) / (full - low), 0.0, 1.0), 0.0)
             yaw = wrap_angle(yaw + w * wrap_angle(heading - yaw))
-        return yaw
+        travelled = np.hypot(*(self._x[tracks, :2] - self._origin[tracks]).T)
+        self._yaw[tracks] = yaw
+        self._against[tracks] = np.where(flip, 0.0, held)
+        self._confirmed_yaw[tracks] = sure | (moving & (travelled >= c.yaw_confirm_travel_m))
 
     def _vote(self, tracks: np.ndarray, vtype: np.ndarray, score: np.ndarray) -> None:
         need = int(vtype.max()) + 1
@@ -494,14 +522,16 @@ class Tracker:
             if c.relink_s > 0:
                 lost = stale & self._confirmed
                 add = {"id": self._ids[lost], "x": self._x[lost], "t": np.full(int(lost.sum()), t_ns, np.int64),
-                       "born": self._tick - self._age[lost], "hits": self._hits[lost], "yaw": self._yaw[lost]}
+                       "born": self._tick - self._age[lost], "hits": self._hits[lost], "yaw": self._yaw[lost],
+                       "confirmed_yaw": self._confirmed_yaw[lost]}
                 self._lost = {k: np.concatenate([v, add[k]]) for k, v in self._lost.items()}
             self._keep(~stale)
 
     def _relink(self, tracks: np.ndarray, t_ns: int) -> None:
         """Tracks confirmed this tick take the id of a confirmed track lost within relink_s whose motion,
         carried on from where it was lost, brings it within relink_gate_m of them (Hungarian on that distance), and
-        with it the lost track's age (ticks since it was born), hits (added) and heading's sign."""
+        with it the lost track's age (ticks since it was born), hits (added) and heading's sign (and whether travel
+        confirmed it)."""
         c = self.config
         lost = self._lost
         recent = (t_ns - lost["t"]) / NS_PER_S <= c.relink_s
@@ -519,7 +549,10 @@ class Tracker:
         self._ids[new] = lost["id"][old]
         self._age[new] = self._tick - lost["born"][old]
         self._hits[new] += lost["hits"][old]
+        # the lost track's heading's sign, unless only the new track's travel confirmed its own
         reversed_ = np.abs(wrap_angle(self._yaw[new] - lost["yaw"][old])) > np.pi / 2
+        reversed_ &= lost["confirmed_yaw"][old] | ~self._confirmed_yaw[new]
+        self._confirmed_yaw[new] |= lost["confirmed_yaw"][old]
         self._yaw[new] = np.where(reversed_, wrap_angle(self._yaw[new] + np.pi), self._yaw[new])
         keep = np.ones(len(lost["id"]), bool)
         keep[old] = False
@@ -527,7 +560,8 @@ class Tracker:
 
     def _keep(self, keep: np.ndarray) -> None:
         for name in ("_x", "_p", "_e", "_b", "_ids", "_age", "_hits", "_streak", "_since_hit", "_last_hit_ns",
-                     "_confirmed", "_need", "_yaw", "_height", "_score", "_votes"):
+                     "_confirmed", "_need", "_yaw", "_confirmed_yaw", "_origin", "_against", "_height", "_score",
+                     "_votes"):
             setattr(self, name, getattr(self, name)[keep])
         self._cameras = [c for c, k in zip(self._cameras, keep, strict=True) if k]
 
@@ -579,6 +613,9 @@ class Tracker:
         self._confirmed = np.concatenate([self._confirmed, np.zeros(n, bool)])
         self._need = np.concatenate([self._need, np.full(n, need, np.int64)])
         self._yaw = np.concatenate([self._yaw, objects.yaw[born]])
+        self._confirmed_yaw = np.concatenate([self._confirmed_yaw, np.zeros(n, bool)])
+        self._origin = np.concatenate([self._origin, z[:, :2]])
+        self._against = np.concatenate([self._against, np.zeros(n)])
         self._height = np.concatenate([self._height, objects.size_lwh[born, 2]])
         self._score = np.concatenate([self._score, objects.score[born]])
         self._votes = np.concatenate([self._votes, votes])
@@ -599,4 +636,4 @@ class Tracker:
             vtype=np.argmax(self._votes[show], axis=1).astype(np.int64) if len(show) else np.zeros(0, np.int64),
             score=self._score[show].copy(), age=self._age[show].copy(), hits=self._hits[show].copy(),
             cameras=[list(self._cameras[j]) for j in show], xy_cov=symmetric(cov),
-            velocity_cov=symmetric(self._e[show, 4:6, 4:6]))
+            velocity_cov=symmetric(self._e[show, 4:6, 4:6]), yaw_confirmed=self._confirmed_yaw[show].copy())
