@@ -26,7 +26,8 @@ the path is not counted), averaged; `traj_err_out_roi_m` the same for matched po
 `yaw_err_in_roi_deg` (mean; `_median_deg`, `_n`) is the tracked heading's error for the same positions, where the
 tracks carry a `yaw` (rad, ENU, counter-clockwise from east): the full-circle angle to the vehicle's true heading
 at its ground-truth sample nearest the tick (a reversed heading is 180 deg); `yaw_err_in_roi_moving_deg` and
-`_standing_deg` split it at `moving_mps` of true speed.
+`_standing_deg` split it at `moving_mps` of true speed; `yaw_confirmed_*`, `yaw_reversed_*` and
+`yaw_err_(un)confirmed_deg` split it by the tracks' `yaw_confirmed` (`yaw_confirmed_measure`).
 `pos_cov_*`: how well the tracks' own position uncertainty (`xy_cov`, m^2, where the tracks carry one) describes
 their error, over the same matched positions in the ROI: with d the time-synchronised error and C the covariance,
 d' C^-1 d is chi-square with 2 degrees of freedom when C is right, so `pos_cov_nees_mean` should be 2,
@@ -82,6 +83,7 @@ class TrackLine:
     cov: np.ndarray | None = None  # (N, 2, 2) m^2, the position's error covariance; NaN where a track has none
     vel: np.ndarray | None = None  # (N, 2) m/s; NaN where a track has none
     vel_cov: np.ndarray | None = None  # (N, 2, 2) (m/s)^2, the velocity's error covariance; NaN where none
+    yaw_confirmed: np.ndarray | None = None  # (N,) 1.0 where travel confirmed the heading's sign, 0.0 not, NaN unknown
 
     def keys(self) -> list[tuple[str, int]]:
         return [(self.tracker, i) for i in self.ids]
@@ -107,7 +109,7 @@ def _parse_line(obj: Any, where: str) -> TrackLine:
         raise ValueError(f"{where}: tracker must be a string, got {obj['tracker']!r}")
     if not isinstance(obj["tracks"], list):
         raise ValueError(f"{where}: tracks must be a list")
-    ids, xy, yaw, cov, vel, vel_cov = [], [], [], [], [], []
+    ids, xy, yaw, cov, vel, vel_cov, sure = [], [], [], [], [], [], []
     for k, tr in enumerate(obj["tracks"]):
         if not isinstance(tr, dict):
             raise ValueError(f"{where}: track {k} is not an object")
@@ -127,11 +129,15 @@ def _parse_line(obj: Any, where: str) -> TrackLine:
         known = _is_finite_number(tr.get("vx")) and _is_finite_number(tr.get("vy"))
         vel.append((float(tr["vx"]), float(tr["vy"])) if known else (math.nan, math.nan))
         vel_cov.append(_parse_cov(tr.get("velocity_cov"), who, "velocity_cov"))
+        confirmed = tr.get("yaw_confirmed")
+        if confirmed is not None and not isinstance(confirmed, bool):
+            raise ValueError(f"{who}: yaw_confirmed must be true or false, got {confirmed!r:.40}")
+        sure.append(math.nan if confirmed is None else float(confirmed))
     if len(set(ids)) != len(ids):
         raise ValueError(f"{where}: duplicate track id in one line")
     return TrackLine(0, obj["t_ns"], obj["tracker"], ids, np.array(xy, float).reshape(-1, 2), np.array(yaw, float),
                      np.array(cov, float).reshape(-1, 2, 2), np.array(vel, float).reshape(-1, 2),
-                     np.array(vel_cov, float).reshape(-1, 2, 2))
+                     np.array(vel_cov, float).reshape(-1, 2, 2), np.array(sure, float))
 
 
 def _parse_cov(value: Any, where: str, name: str = "xy_cov") -> np.ndarray:
@@ -187,6 +193,7 @@ class FrameMatch:
     track_cov: dict[tuple[str, int], np.ndarray] = field(default_factory=dict)  # their xy_cov (2, 2), m^2
     track_vel: dict[tuple[str, int], np.ndarray] = field(default_factory=dict)  # velocity (2,) and its covariance
     track_vel_cov: dict[tuple[str, int], np.ndarray] = field(default_factory=dict)
+    track_yaw_confirmed: dict[tuple[str, int], float] = field(default_factory=dict)  # 1.0 / 0.0 / NaN (TrackLine)
 
 
 @dataclass
@@ -238,6 +245,8 @@ def match_tracks(ground_truth: GroundTruth, tracks: str | Path | Iterable, camer
         h_cov = line.cov if line is not None and line.cov is not None else np.full((len(keys), 2, 2), np.nan)
         h_vel = line.vel if line is not None and line.vel is not None else np.full((len(keys), 2), np.nan)
         h_vcov = line.vel_cov if line is not None and line.vel_cov is not None else np.full((len(keys), 2, 2), np.nan)
+        h_sure = (line.yaw_confirmed if line is not None and line.yaw_confirmed is not None
+                  else np.full(len(keys), np.nan))
         res.track_identities.update(keys)
         if cfg.ignore_unscored_tracks and len(keys):
             d2_gt = np.sum((h_xy[:, None, :] - g_xy[None, :, :]) ** 2, axis=2)
@@ -249,7 +258,8 @@ def match_tracks(ground_truth: GroundTruth, tracks: str | Path | Iterable, camer
             keep = near_gt | ~(near_other | outside)
             res.ignored_track_positions += int(np.sum(~keep))
             keys = [k for k, ok in zip(keys, keep, strict=True) if ok]
-            h_xy, h_yaw, h_cov, h_vel, h_vcov = h_xy[keep], h_yaw[keep], h_cov[keep], h_vel[keep], h_vcov[keep]
+            h_xy, h_yaw, h_cov, h_vel, h_vcov, h_sure = (h_xy[keep], h_yaw[keep], h_cov[keep], h_vel[keep],
+                                                         h_vcov[keep], h_sure[keep])
         oids = [gt_index.setdefault(v, len(gt_index)) for v in gids]
         hids = [hyp_index.setdefault(k, len(hyp_index)) for k in keys]
         if oids and hids:
@@ -262,7 +272,8 @@ def match_tracks(ground_truth: GroundTruth, tracks: str | Path | Iterable, camer
                                      {k: float(h_yaw[i]) for i, k in enumerate(keys)},
                                      {k: h_cov[i] for i, k in enumerate(keys)},
                                      {k: h_vel[i] for i, k in enumerate(keys)},
-                                     {k: h_vcov[i] for i, k in enumerate(keys)}))
+                                     {k: h_vcov[i] for i, k in enumerate(keys)},
+                                     {k: float(h_sure[i]) for i, k in enumerate(keys)}))
     if res.frames:
         ev = res.accumulator.mot_events
         ev = ev[ev.Type.isin(_MATCH_TYPES)]
@@ -274,6 +285,21 @@ def match_tracks(ground_truth: GroundTruth, tracks: str | Path | Iterable, camer
 
 
 # -- measures -------------------------------------------------------------------------------------------------
+
+
+def yaw_confirmed_measure(err_deg: np.ndarray, confirmed: np.ndarray) -> dict:
+    """How well a track's `yaw_confirmed` tells a heading's sign: of the headings (errors in deg, full circle) of
+    tracks that carry it (1.0 / 0.0; NaN: none), `yaw_confirmed_share` those confirmed, `yaw_reversed_confirmed` /
+    `_unconfirmed` the share of each more than 90 deg off (pointing backwards), `yaw_err_confirmed_deg` /
+    `_unconfirmed_deg` their mean error. NaN where there are none."""
+    known = np.isfinite(confirmed)
+    sure = known & (confirmed > 0.5)
+    out = {"yaw_confirmed_n": int(known.sum()),
+           "yaw_confirmed_share": float(sure.sum() / known.sum()) if known.any() else math.nan}
+    for name, part in (("confirmed", sure), ("unconfirmed", known & ~sure)):
+        out[f"yaw_reversed_{name}"] = float(np.mean(err_deg[part] > 90)) if part.any() else math.nan
+        out[f"yaw_err_{name}_deg"] = float(err_deg[part].mean()) if part.any() else math.nan
+    return out
 
 
 def _mean_std(values: list[float]) -> tuple[float, float]:
@@ -381,7 +407,7 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
     window = round(cfg.traj_window_s * 1e9)
     gap = gt.max_gap_ns(cfg)
     err_in, err_out, pos_err = [], [], []
-    yaw_err, yaw_moving = [], []
+    yaw_err, yaw_moving, yaw_sure = [], [], []
     nees, err95, vel_nees = [], [], []
     for fm in res.frames:
         if not fm.matched:
@@ -408,6 +434,7 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
             if roi and math.isfinite(tracked) and math.isfinite(true):
                 yaw_err.append(math.degrees(abs((tracked - true + math.pi) % (2 * math.pi) - math.pi)))
                 yaw_moving.append(speed >= cfg.moving_mps)
+                yaw_sure.append(fm.track_yaw_confirmed.get(fm.matched[v], math.nan))
     for name, vals in (("in_roi", err_in), ("out_roi", err_out)):
         m, sd = _mean_std(vals)
         out[f"traj_err_{name}_m"], out[f"traj_err_{name}_std_m"], out[f"traj_err_{name}_n"] = m, sd, len(vals)
@@ -418,6 +445,7 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
     out["yaw_err_in_roi_n"] = len(yaw_err_a)
     for name, part in (("moving", moving), ("standing", ~moving)):
         out[f"yaw_err_in_roi_{name}_deg"] = float(yaw_err_a[part].mean()) if part.any() else math.nan
+    out.update(yaw_confirmed_measure(yaw_err_a, np.array(yaw_sure, float)))
     out.update(covariance_measure(np.array(nees), np.array(err95)))
     out.update(covariance_measure(np.array(vel_nees), prefix="vel_cov"))
     scored = {k for fm in res.frames for k in fm.track_xy}

@@ -448,6 +448,10 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
         # the tracks' heading against the vehicles' (full circle), in the ROI; moving: 1 m/s or faster
         **{k: fused[k] for k in ("yaw_err_in_roi_deg", "yaw_err_in_roi_median_deg", "yaw_err_in_roi_moving_deg",
                                  "yaw_err_in_roi_standing_deg")},
+        # the share of those headings the tracks' travel confirmed (yaw_confirmed), and of each kind those pointing
+        # backwards (more than 90 deg off)
+        **{k: fused[k] for k in ("yaw_confirmed_share", "yaw_reversed_confirmed", "yaw_reversed_unconfirmed",
+                                 "yaw_err_confirmed_deg", "yaw_err_unconfirmed_deg")},
         # the tracks' own position and velocity uncertainty (xy_cov, velocity_cov) against their errors in the ROI:
         # consistent when the 95 % ellipses hold 0.95 of the true values and the mean squared Mahalanobis distance is 2
         # (eval.tracking)
@@ -498,6 +502,9 @@ def summary_table(s: dict) -> str:
         ("heading error in ROI: mean (median)", f"{s['yaw_err_in_roi_deg']:.1f} ({s['yaw_err_in_roi_median_deg']:.1f}) "
                                                 f"deg; moving {s['yaw_err_in_roi_moving_deg']:.1f}, standing "
                                                 f"{s['yaw_err_in_roi_standing_deg']:.1f} deg"),
+        ("  confirmed by travel: share; backwards", f"{s['yaw_confirmed_share']:.3f}; "
+                                                    f"{s['yaw_reversed_confirmed']:.3f} of them, "
+                                                    f"{s['yaw_reversed_unconfirmed']:.3f} of the others"),
         ("true position within the 95 % ellipse", f"{s['pos_cov_within_95']:.3f} (1 sigma: "
                                                    f"{s['pos_cov_within_1sigma']:.3f}; median half-axis "
                                                    f"{s['pos_cov_err95_median_m']:.2f} m); velocity "

@@ -54,7 +54,8 @@ def test_summary_table_renders_a_summary():
                             "tick_wait_p99")}
     s = {"mota": 0.7, "idf1": 0.7, "id_switches": 4, "traj_err_in_roi_m": 0.5, "traj_err_best_single_camera_m": 0.4,
          "best_single_camera": "SW", "yaw_err_in_roi_deg": 14.33, "yaw_err_in_roi_median_deg": 7.1,
-         "yaw_err_in_roi_moving_deg": 6.0, "yaw_err_in_roi_standing_deg": 22.5, "pos_cov_within_95": 0.93,
+         "yaw_err_in_roi_moving_deg": 6.0, "yaw_err_in_roi_standing_deg": 22.5, "yaw_confirmed_share": 0.6846,
+         "yaw_reversed_confirmed": 0.0, "yaw_reversed_unconfirmed": 0.0724, "pos_cov_within_95": 0.93,
          "pos_cov_within_1sigma": 0.45, "pos_cov_err95_median_m": 1.234, "vel_cov_within_95": 0.9215,
          "single_camera": {"NE": {"traj_err_in_roi_m": 0.62, "fused_traj_err_in_roi_m": 0.71},
                            "SW": {"traj_err_in_roi_m": 0.35, "fused_traj_err_in_roi_m": 0.36}},
@@ -68,4 +69,5 @@ def test_summary_table_renders_a_summary():
     assert "80.0 / 75.0 frames/s" in table
     assert "NE 0.71 / 0.62, SW 0.36 / 0.35 m" in table
     assert "14.3 (7.1) deg; moving 6.0, standing 22.5 deg" in table
+    assert "0.685; 0.000 of them, 0.072 of the others" in table
     assert "0.930 (1 sigma: 0.450; median half-axis 1.23 m); velocity 0.921" in table

@@ -200,6 +200,32 @@ def test_a_tracks_position_covariance_is_scored_against_its_error(gt):
         evaluate_tracks(gt, rows)
 
 
+def test_headings_are_split_by_whether_travel_confirmed_them(gt):
+    """The moving vehicles' tracks head 10 deg off and say their heading is confirmed, the parked one's is reversed
+    and says it is not: confirmed 3 of 4, none of them backwards, all the others; tracks that do not say are left
+    out; a yaw_confirmed that is not true or false is named."""
+    rows = make_rows()
+    for row in rows:
+        for t in row["tracks"]:
+            vid = t["id"] - 10
+            t["yaw"] = YAW[vid] + (math.pi if vid == 5 else math.radians(10))
+            t["yaw_confirmed"] = vid != 5
+    r = evaluate_tracks(gt, rows)
+    assert r["yaw_confirmed_n"] == 4 * N_FRAMES and r["yaw_confirmed_share"] == pytest.approx(0.75)
+    assert r["yaw_reversed_confirmed"] == 0.0 and r["yaw_reversed_unconfirmed"] == 1.0
+    assert r["yaw_err_confirmed_deg"] == pytest.approx(10.0) and r["yaw_err_unconfirmed_deg"] == pytest.approx(180.0)
+    for row in rows:
+        for t in row["tracks"]:
+            if t["id"] != 15:
+                del t["yaw_confirmed"]
+    r = evaluate_tracks(gt, rows)
+    assert r["yaw_confirmed_n"] == N_FRAMES and r["yaw_confirmed_share"] == 0.0
+    assert math.isnan(r["yaw_reversed_confirmed"]) and r["yaw_reversed_unconfirmed"] == 1.0
+    rows[1]["tracks"][0]["yaw_confirmed"] = 1
+    with pytest.raises(ValueError, match=r"tracks line 2: track 0 \(id \d+\): yaw_confirmed must be true or false"):
+        evaluate_tracks(gt, rows)
+
+
 def test_a_tracks_velocity_covariance_is_scored_against_the_true_velocity(gt):
     """Track velocities off the vehicles' by draws of a known covariance, stating it: about 95 % inside the 95 %
     ellipse, mean squared distance near 2; a track without velocity_cov is not scored; a malformed one is named."""
