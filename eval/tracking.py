@@ -57,7 +57,7 @@ import numpy as np
 
 from eval.ground_truth import GroundTruth, TrackingEvalConfig, _ground_truth
 from shared.messages import CHI2_2DOF_95, err95_m
-from shared.tracks_file import parse_covariance
+from shared.tracks_file import parse_covariance, parse_yaw_confirmed
 from sim.recording import Recording
 
 _MATCH_TYPES = ("MATCH", "SWITCH")
@@ -129,9 +129,7 @@ def _parse_line(obj: Any, where: str) -> TrackLine:
         known = _is_finite_number(tr.get("vx")) and _is_finite_number(tr.get("vy"))
         vel.append((float(tr["vx"]), float(tr["vy"])) if known else (math.nan, math.nan))
         vel_cov.append(_parse_cov(tr.get("velocity_cov"), who, "velocity_cov"))
-        confirmed = tr.get("yaw_confirmed")
-        if confirmed is not None and not isinstance(confirmed, bool):
-            raise ValueError(f"{who}: yaw_confirmed must be true or false, got {confirmed!r:.40}")
+        confirmed = parse_yaw_confirmed(tr.get("yaw_confirmed"), who)
         sure.append(math.nan if confirmed is None else float(confirmed))
     if len(set(ids)) != len(ids):
         raise ValueError(f"{where}: duplicate track id in one line")

@@ -22,7 +22,8 @@ _OPTIONAL_NUMBERS = ("lat", "lon", "vx", "vy", "height", "score", "age", "hits")
 class TrackRow:
     """One validated track of a Tracks message. x, y metres (site ENU frame); yaw rad (CCW from east);
     length, width metres; vx, vy m/s (None when the row has none); xy_cov the position's error covariance,
-    ((east², east·north), (north·east, north²)) m² (None when the row has none)."""
+    ((east², east·north), (north·east, north²)) m² (None when the row has none); yaw_confirmed whether the track's
+    travel confirmed which way it heads (None when the row does not say)."""
 
     id: int
     x: float
@@ -34,6 +35,7 @@ class TrackRow:
     vx: float | None = None
     vy: float | None = None
     xy_cov: tuple[tuple[float, float], tuple[float, float]] | None = None
+    yaw_confirmed: bool | None = None
 
 
 @dataclass(frozen=True)
@@ -116,6 +118,7 @@ def _parse_row(row: Any, origin: GeoFrame | None) -> TrackRow:
         vx=float(row["vx"]) if has_v else None,
         vy=float(row["vy"]) if has_v else None,
         xy_cov=parse_covariance(row.get("xy_cov")),
+        yaw_confirmed=parse_yaw_confirmed(row.get("yaw_confirmed")),
     )
 
 
@@ -136,6 +139,14 @@ def parse_covariance(value: Any, where: str = "",
         raise ValueError(f"{prefix}{name} {value} is not a symmetric positive definite covariance")
     (a, b), (c, d) = value
     return (float(a), float(b)), (float(c), float(d))
+
+
+def parse_yaw_confirmed(value: Any, where: str = "") -> bool | None:
+    """A track row's `yaw_confirmed` (true or false; None when the row has none). ValueError (prefixed with
+    `where`) otherwise."""
+    if value is not None and not isinstance(value, bool):
+        raise ValueError(f"{where + ': ' if where else ''}yaw_confirmed must be true or false, got {value!r:.40}")
+    return value
 
 
 def _float(v: Any, key: str) -> float:

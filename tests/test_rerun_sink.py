@@ -12,7 +12,7 @@ import pytest
 import rerun as rr
 
 from services.rerun_sink import Basemap, TrackSink, live, parse_tracks_message, track_color, tracks_file_to_rrd
-from services.rerun_sink.sink import ellipses_xy
+from services.rerun_sink.sink import ellipses_xy, footprint_strips
 from shared.geo import GeoFrame
 
 T0_NS = 1_700_000_000_000_000_000
@@ -189,6 +189,22 @@ def test_an_uncertainty_ellipse_is_the_95_percent_contour_of_its_covariance() ->
     d = ring - np.array([[10.0, 2.0], [-5.0, 0.0]])[:, None]
     np.testing.assert_allclose(np.einsum("npi,nij,npj->np", d, np.linalg.inv(cov), d), 5.991)  # on the contour
     assert np.abs(d[1, :, 0]).max() == pytest.approx(np.sqrt(5.991) * 2.0)  # 2 m sigma east: 4.9 m half-axis
+
+
+def test_a_track_whose_heading_is_not_confirmed_is_drawn_without_its_front() -> None:
+    """Two tracks heading east, the second not confirmed: both rectangles, then the first's nose (centre to front)
+    only, each strip with its track's index; a row's yaw_confirmed is read (absent: None), a bad one named."""
+    strips, owner = footprint_strips(np.array([0.0, 10.0]), np.array([0.0, 5.0]), np.zeros(2), np.array([4.0, 4.0]),
+                                     np.array([2.0, 2.0]), np.array([True, False]))
+    assert len(strips) == 3 and owner.tolist() == [0, 1, 0]
+    np.testing.assert_allclose(strips[2], [[0.0, 0.0], [2.0, 0.0]])
+    row = _message(0)
+    row["tracks"][0]["yaw_confirmed"] = False
+    parsed = parse_tracks_message(row)
+    assert parsed.rows[0].yaw_confirmed is False and parsed.rows[1].yaw_confirmed is None
+    row["tracks"][0]["yaw_confirmed"] = "no"
+    with pytest.raises(ValueError, match="track 0: yaw_confirmed must be true or false"):
+        parse_tracks_message(row)
 
 
 def test_a_bad_position_covariance_is_refused_with_its_reason() -> None:

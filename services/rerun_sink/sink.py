@@ -11,7 +11,8 @@ View layout (the blueprint `TrackSink.blueprint()` builds):
     - `world/tracks/<tracker>/trails`     LineStrips3D, one strip per track: its last positions (bounded)
     - `world/tracks/<tracker>/positions`  Points3D, one point per track, labelled "<id> <type>"
     - `world/tracks/<tracker>/footprints` LineStrips3D, per track the oriented length x width rectangle
-      (closed) and a segment from the centre to the front
+      (closed) and, where the track's travel confirmed which way it heads (`yaw_confirmed`; a row without the key
+      counts as confirmed), a segment from the centre to the front
     - `world/tracks/<tracker>/uncertainty` LineStrips3D, per track that carries `xy_cov` the ellipse that holds
       its true position with 95 % probability (docs/wire-format.md, "Position uncertainty")
   Every track has its own colour, from a stable hash of (tracker, id), and the label "<id> <type>" on all
@@ -28,12 +29,13 @@ A tracks file is JSON lines, one Tracks message per line, as `Tracks.rows()` giv
 
     {"site": str, "seq": int, "t_ns": int, "tracker": str,
      "tracks": [{"id", "x", "y", "lat", "lon", "vx", "vy", "yaw", "length", "width", "height", "type",
-                 "score", "age", "hits", "cameras", "xy_cov"}, ...]}
+                 "score", "age", "hits", "cameras", "xy_cov", "yaw_confirmed"}, ...]}
 
 x, y: metres, site ENU frame; yaw: radians, counter-clockwise from east; length, width, height: metres;
-vx, vy: m/s; xy_cov (optional): [[a, b], [b, c]] m^2. `t_capture_ns` is accepted for `t_ns`. A row without
-x, y but with lat, lon is placed with the site origin, when one is given. Lines that are not such messages (bad
-JSON, missing keys, NaN or infinite numbers, a covariance that is none, another site) are skipped and counted.
+vx, vy: m/s; xy_cov (optional): [[a, b], [b, c]] m^2; yaw_confirmed (optional): true or false. `t_capture_ns` is
+accepted for `t_ns`. A row without x, y but with lat, lon is placed with the site origin, when one is given. Lines
+that are not such messages (bad JSON, missing keys, NaN or infinite numbers, a covariance that is none, another
+site) are skipped and counted.
 """
 
 from __future__ import annotations
@@ -82,6 +84,17 @@ def footprints_xy(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, length: np.ndar
     left = np.stack([-np.sin(yaw), np.cos(yaw)], axis=-1) * (np.asarray(width) / 2)[:, None]
     c = np.stack([x, y], axis=-1)
     return np.stack([c + f + left, c + f - left, c - f - left, c - f + left, c + f + left], axis=1)
+
+
+def footprint_strips(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, length: np.ndarray, width: np.ndarray,
+                     nose: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+    """The footprints' line strips (each (k, 2) metres): every track's rectangle (`footprints_xy`), then a segment
+    from the centre to the front of the tracks where `nose` (N,) bool is set; and for each strip the index of its
+    track (for its colour and label)."""
+    rect = footprints_xy(x, y, yaw, length, width)  # (N, 5, 2)
+    front = np.flatnonzero(nose)
+    noses = np.stack([np.column_stack([x, y])[front], (rect[front, 0] + rect[front, 1]) / 2], axis=1)  # (M, 2, 2)
+    return [*rect, *noses], np.concatenate([np.arange(len(x)), front])
 
 
 def ellipses_xy(x: np.ndarray, y: np.ndarray, cov: np.ndarray, points: int = 32) -> np.ndarray:
@@ -204,8 +217,8 @@ class TrackSink:
             if row.vx is not None:
                 state.speed_t_ns.append(msg.t_ns)
                 state.speed_mps.append(math.hypot(row.vx, row.vy))
-        rect = footprints_xy(x, y, yaw, length, width)  # (N, 5, 2)
-        nose = np.stack([np.column_stack([x, y]), (rect[:, 0] + rect[:, 1]) / 2], axis=1)  # (N, 2, 2)
+        strips, owner = footprint_strips(x, y, yaw, length, width,
+                                         np.array([r.yaw_confirmed is not False for r in msg.rows], bool))
         rec.set_time(TIMELINE, timestamp=np.datetime64(msg.t_ns, "ns"))
         rec.log(
             f"{base}/trails",
@@ -218,9 +231,9 @@ class TrackSink:
         rec.log(
             f"{base}/footprints",
             rr.LineStrips3D(
-                [_at_z(s, Z_FOOTPRINT_M) for s in [*rect, *nose]],
-                colors=np.concatenate([colors, colors]),
-                labels=labels + labels,
+                [_at_z(s, Z_FOOTPRINT_M) for s in strips],
+                colors=colors[owner],
+                labels=[labels[i] for i in owner],
                 show_labels=False,
                 radii=rr.Radius.ui_points(2.0),
             ),
