@@ -325,8 +325,8 @@ class Status(Message):
     (e.g. frames_in, detections_out); `rates`: the same per second over the last `period_s`; `bad`: messages
     dropped since the start, by reason (the reasons the service logs); `gauges`: readings of now (e.g. tracks
     held, mean inference ms over the period); `last_output_ns`: when the service last published its output (0:
-    not yet); `cpu_s`: the process's CPU time; `peak_rss_mb`: its peak resident memory; `final`: the report of a
-    service that is stopping."""
+    not yet); `cpu_s`: the process's CPU time; `rss_mb`: its resident memory now, `peak_rss_mb` its peak; `final`: the
+    report of a service that is stopping."""
 
     kind: ClassVar[str] = "status"
     service: Literal[SERVICES]  # type: ignore[valid-type]
@@ -340,6 +340,7 @@ class Status(Message):
     gauges: dict[StatusName, Reading] = Field(default_factory=dict, max_length=MAX_STATUS_ENTRIES)
     last_output_ns: int = Field(0, ge=0, lt=T_CAPTURE_END)
     cpu_s: float = Field(ge=0, allow_inf_nan=False)
+    rss_mb: float = Field(ge=0, allow_inf_nan=False)
     peak_rss_mb: float = Field(ge=0, allow_inf_nan=False)
     final: bool = False
 

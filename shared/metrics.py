@@ -28,6 +28,7 @@ FAMILIES = {
     "bad_messages_total": ("counter", "bad input dropped since the service started, all reasons"),
     "reading": ("gauge", "the service's readings of now (Status gauges)"),
     "cpu_seconds_total": ("counter", "CPU time of the service's process"),
+    "resident_memory_bytes": ("gauge", "resident memory of the service's process at its last report"),
     "peak_resident_memory_bytes": ("gauge", "peak resident memory of the service's process"),
     "start_time_seconds": ("gauge", "when the service started, UNIX time"),
     "last_output_age_seconds": ("gauge", "seconds since the service last published its output (absent: never)"),
@@ -63,6 +64,7 @@ def render(reports: list[Status], now_ns: int | None = None) -> str:
         for name, value in sorted(r.gauges.items()):
             samples["reading"].append(({**base, "name": name}, value))
         samples["cpu_seconds_total"].append((base, r.cpu_s))
+        samples["resident_memory_bytes"].append((base, round(r.rss_mb * 2**20)))
         samples["peak_resident_memory_bytes"].append((base, round(r.peak_rss_mb * 2**20)))
         samples["start_time_seconds"].append((base, r.started_ns / 1e9))
         if r.last_output_ns:

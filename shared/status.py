@@ -37,17 +37,29 @@ log = logging.getLogger("roadside.status")
 UPSTREAM = {"detect": "ingest", "localize": "detect", "fuse_track": "localize"}  # whose output feeds whom
 
 
-def peak_rss_mb() -> float:
-    """This process's peak resident memory (MB): VmHWM, which starts again at exec (getrusage's maximum would carry
-    the parent's over: a service started by a large process)."""
+def _proc_status_mb(key: str) -> float | None:
+    """A memory figure of /proc/self/status (e.g. "VmHWM", "VmRSS") in MB; None where there is none."""
     try:
         with open("/proc/self/status") as f:
             for line in f:
-                if line.startswith("VmHWM:"):
+                if line.startswith(key + ":"):
                     return int(line.split()[1]) / 1024
     except OSError:
         pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return None
+
+
+def peak_rss_mb() -> float:
+    """This process's peak resident memory (MB): VmHWM, which starts again at exec (getrusage's maximum would carry
+    the parent's over: a service started by a large process)."""
+    peak = _proc_status_mb("VmHWM")
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 if peak is None else peak
+
+
+def rss_mb() -> float:
+    """This process's resident memory now (MB): VmRSS; the peak where the system does not say."""
+    now = _proc_status_mb("VmRSS")
+    return peak_rss_mb() if now is None else now
 
 
 def instance_name() -> str:
@@ -113,7 +125,7 @@ class StatusReporter:
                      counts=dict(counts), rates={k: round(max(v - before[k], 0) / span, 3) for k, v in counts.items()},
                      bad=dict(self.bad.counts), gauges=gauges,
                      last_output_ns=last_out, cpu_s=round(time.process_time(), 3),
-                     peak_rss_mb=round(peak_rss_mb(), 1), final=final)
+                     rss_mb=round(rss_mb(), 1), peak_rss_mb=round(peak_rss_mb(), 1), final=final)
         self._seq += 1
         return msg
 
@@ -182,7 +194,8 @@ def status_table(reports: list[Status], now_ns: int | None = None) -> str:
         up = (now_ns - m.started_ns) / 1e9
         idle = f"{(now_ns - m.last_output_ns) / 1e9:.1f} s ago" if m.last_output_ns else "never"
         lines.append(f"{m.service}/{m.instance}: up {up:.0f} s, last output {idle}, CPU {m.cpu_s:.1f} s, "
-                     f"peak memory {m.peak_rss_mb:.0f} MB (reported {(now_ns - m.t_capture_ns) / 1e9:.1f} s ago)"
+                     f"memory {m.rss_mb:.0f} MB, peak {m.peak_rss_mb:.0f} MB (reported "
+                     f"{(now_ns - m.t_capture_ns) / 1e9:.1f} s ago)"
                      f"{', stopping' if m.final else ''}")
         for name in sorted(m.counts):
             lines.append(f"  {name:<24} {m.counts[name]:>10}  {m.rates.get(name, 0.0):8.1f}/s")

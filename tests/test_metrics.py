@@ -22,7 +22,7 @@ SAMPLE = re.compile(r'^([a-z_]+)\{((?:[a-z_]+="(?:[^"\\\\\n]|\\\\.)*",?)*)\} (-?
 
 def status(**fields) -> Status:
     base = dict(site="se", seq=3, t_capture_ns=NOW - 2 * 10**9, service="detect", instance="cab-1",
-                started_ns=NOW - 600 * 10**9, period_s=2.0, cpu_s=12.5, peak_rss_mb=212.5)
+                started_ns=NOW - 600 * 10**9, period_s=2.0, cpu_s=12.5, rss_mb=200.25, peak_rss_mb=212.5)
     return Status(**{**base, **fields})
 
 
@@ -54,6 +54,7 @@ def test_render_gives_each_family_once_and_every_report_its_samples() -> None:
     assert got[("roadside_bad_messages_total", frozenset(detect))] == 3
     assert got[("roadside_reading", frozenset(detect | {("name", "infer_ms")}))] == 61.25
     assert got[("roadside_cpu_seconds_total", frozenset(detect))] == 12.5
+    assert got[("roadside_resident_memory_bytes", frozenset(detect))] == 200.25 * 2**20
     assert got[("roadside_peak_resident_memory_bytes", frozenset(detect))] == 212.5 * 2**20
     assert got[("roadside_start_time_seconds", frozenset(detect))] == (NOW - 600 * 10**9) / 1e9
     assert got[("roadside_last_output_age_seconds", frozenset(detect))] == 0.5

@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import msgpack
+import numpy as np
 import pytest
 import yaml
 from pipeline_fixtures import free_port_base, wait_until
@@ -24,7 +25,7 @@ from shared.status import StatusReporter, instance_name, status_table
 
 def status(**fields) -> Status:
     base = dict(site="se", seq=0, t_capture_ns=2_000_000_000, service="localize", instance="main",
-                started_ns=1_000_000_000, period_s=2.0, cpu_s=1.5, peak_rss_mb=80.0)
+                started_ns=1_000_000_000, period_s=2.0, cpu_s=1.5, rss_mb=72.0, peak_rss_mb=80.0)
     return Status(**{**base, **fields})
 
 
@@ -54,6 +55,19 @@ def test_reporter_counts_rates_readings_and_bad_input():
     assert decode(encode(second), Status) == second
 
 
+def test_a_report_gives_the_memory_of_now_beside_the_peak():
+    """200 MB taken and given back: the report of now rises by it and falls again, the peak stays."""
+    rep = StatusReporter(None, "se", "localize", BadInput("localize"), 0.0, instance="main")
+    before = rep.report()
+    block = np.ones(200 * 2**20, np.uint8)  # touched: resident
+    held = rep.report()
+    del block
+    after = rep.report()
+    # the kernel updates its high-water mark lazily: it may trail the resident figure by a little
+    assert held.rss_mb - before.rss_mb > 150 and held.peak_rss_mb >= held.rss_mb - 2
+    assert held.rss_mb - after.rss_mb > 150 and after.peak_rss_mb >= held.rss_mb - 2
+
+
 def test_reporter_refuses_a_bad_period_and_names_its_process():
     with pytest.raises(ValueError, match="period_s must be a finite number >= 0, got -1"):
         StatusReporter(None, "se", "detect", BadInput("detect"), -1.0)
@@ -73,6 +87,7 @@ def test_reporter_refuses_a_bad_period_and_names_its_process():
     ({"bad": {str(i): 1 for i in range(301)}}, "at most 300 items"),
     ({"period_s": 0.0}, "greater than 0"),
     ({"peak_rss_mb": math.nan}, "finite number"),
+    ({"rss_mb": -1.0}, "greater than or equal to 0"),
 ])
 def test_a_status_message_validates_what_it_carries(fields, message):
     with pytest.raises(ValueError, match=message):
@@ -90,8 +105,8 @@ def test_a_status_map_on_the_wire_is_a_map_not_an_array():
 def test_status_table_reads_like_the_service_it_describes():
     text = status_table([status(counts={"objects_out": 10}, rates={"objects_out": 5.0}, bad={"not msgpack": 2},
                                 gauges={"held": 3.0}, last_output_ns=1_500_000_000)], now_ns=3_000_000_000)
-    assert text.splitlines()[0] == ("localize/main: up 2 s, last output 1.5 s ago, CPU 1.5 s, peak memory 80 MB "
-                                    "(reported 1.0 s ago)")
+    assert text.splitlines()[0] == ("localize/main: up 2 s, last output 1.5 s ago, CPU 1.5 s, memory 72 MB, peak "
+                                    "80 MB (reported 1.0 s ago)")
     assert "objects_out" in text and "5.0/s" in text and "bad x2: not msgpack" in text and "held" in text
 
 
