@@ -318,6 +318,9 @@ def test_a_vehicle_lost_for_a_moment_keeps_its_id():
     assert all(len(s) == 0 for s in states[25:32])  # max_age ends the lost track; the new one is confirmed at 32
     # and it goes on as the lost track: its age counts from the lost one's birth, its hits add up
     assert states[40].age.tolist() == [40] and states[40].hits.tolist() == [20 + 11]
+    # and with the heading the lost track's travel confirmed, before its own 3 m (2.4 m at its confirmation)
+    assert states[32].yaw_confirmed.tolist() == [True]
+    assert run(TrackerConfig(relink_s=0), range(20, 30))[32].yaw_confirmed.tolist() == [False]
     assert ids_on_path(run(TrackerConfig(relink_s=0), range(20, 30))) == [1, 2]
     assert ids_on_path(run(TrackerConfig(), range(20, 55))) == [1, 2]  # lost (at tick 24) 3.3 s before it is back
     # a second vehicle appears 6 m from where the lost one would be by now: it gets its own id, the first keeps its own
