@@ -676,7 +676,7 @@ def test_localize_drops_bad_detections_and_keeps_running(site, site_name, port_b
     uv[1, 0] = np.nan
     cases = [
         (key, b"\x00\x01garbage", "not msgpack"),
-        (key, tampered(det, v=3), "schema version 3 is not supported"),
+        (key, tampered(det, v=4), "schema version 4 is not supported"),
         (key, tampered(det, uv=arr(det.uv.astype(">f8"))), "field 'uv': dtype '>f8' is not allowed"),
         (key, tampered(det, uv=arr(det.uv.astype(np.complex128))), "dtype '<c16' is not allowed"),
         (key, tampered(det, uv={"dtype": "<f4", "shape": [3, 2], "data": det.uv.tobytes()}),
