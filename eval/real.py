@@ -258,8 +258,7 @@ def tracks_at(lines: list, t_ns: int, max_gap_ns: int) -> tuple[np.ndarray, np.n
         return None
 
     def rows(line) -> dict:  # track identity -> position and covariance (6 values)
-        cov = line.cov if line.cov is not None else np.full((len(line.ids), 2, 2), np.nan)
-        return dict(zip(line.keys(), np.hstack([line.xy.reshape(-1, 2), cov.reshape(-1, 4)]), strict=True))
+        return dict(zip(line.keys(), np.hstack([line.xy.reshape(-1, 2), line.cov.reshape(-1, 4)]), strict=True))
 
     if len(near) == 1 or near[1].t_ns == near[0].t_ns:
         out = list(rows(near[0]).values())

@@ -72,18 +72,19 @@ _MM_METRICS = (
 
 @dataclass
 class TrackLine:
-    """One tracks line (tick): capture time, tracker instance, track ids and ground positions (N, 2)."""
+    """One tracks line (tick): capture time, tracker instance, track ids and, per track, what the line gives of it
+    (NaN where a track has none)."""
 
     line: int
     t_ns: int
     tracker: str
     ids: list[int]
-    xy: np.ndarray
-    yaw: np.ndarray | None = None  # (N,) rad, NaN where a track has none
-    cov: np.ndarray | None = None  # (N, 2, 2) m^2, the position's error covariance; NaN where a track has none
-    vel: np.ndarray | None = None  # (N, 2) m/s; NaN where a track has none
-    vel_cov: np.ndarray | None = None  # (N, 2, 2) (m/s)^2, the velocity's error covariance; NaN where none
-    yaw_confirmed: np.ndarray | None = None  # (N,) 1.0 where travel confirmed the heading's sign, 0.0 not, NaN unknown
+    xy: np.ndarray  # (N, 2) m, ground positions
+    yaw: np.ndarray  # (N,) rad
+    cov: np.ndarray  # (N, 2, 2) m^2, the position's error covariance
+    vel: np.ndarray  # (N, 2) m/s
+    vel_cov: np.ndarray  # (N, 2, 2) (m/s)^2, the velocity's error covariance
+    yaw_confirmed: np.ndarray  # (N,) 1.0 where travel confirmed the heading's sign, 0.0 not
 
     def keys(self) -> list[tuple[str, int]]:
         return [(self.tracker, i) for i in self.ids]
@@ -237,14 +238,11 @@ def match_tracks(ground_truth: GroundTruth, tracks: str | Path | Iterable, camer
         objs = gt.gt_objects(t, cams, cfg, pos)
         gids = list(objs)
         g_xy = np.array([objs[v][:2] for v in gids], float).reshape(-1, 2)
-        keys = line.keys() if line is not None else []
-        h_xy = line.xy if line is not None else np.zeros((0, 2))
-        h_yaw = line.yaw if line is not None and line.yaw is not None else np.full(len(keys), np.nan)
-        h_cov = line.cov if line is not None and line.cov is not None else np.full((len(keys), 2, 2), np.nan)
-        h_vel = line.vel if line is not None and line.vel is not None else np.full((len(keys), 2), np.nan)
-        h_vcov = line.vel_cov if line is not None and line.vel_cov is not None else np.full((len(keys), 2, 2), np.nan)
-        h_sure = (line.yaw_confirmed if line is not None and line.yaw_confirmed is not None
-                  else np.full(len(keys), np.nan))
+        if line is None:  # a silent tick: no tracks
+            line = _parse_line({"t_ns": t, "tracker": "", "tracks": []}, "silent tick")
+        keys = line.keys()
+        h_xy, h_yaw, h_cov, h_vel, h_vcov, h_sure = (line.xy, line.yaw, line.cov, line.vel, line.vel_cov,
+                                                     line.yaw_confirmed)
         res.track_identities.update(keys)
         if cfg.ignore_unscored_tracks and len(keys):
             d2_gt = np.sum((h_xy[:, None, :] - g_xy[None, :, :]) ** 2, axis=2)
