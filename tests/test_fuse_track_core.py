@@ -263,10 +263,9 @@ def test_a_heading_confirmed_by_travel_is_not_reversed_by_a_standing_vehicles_ji
     """A vehicle drives north at 8 m/s for 2 s, stops, and 2 s later its detections jump 1.5 m back and return
     within a second (a standing vehicle's detections do): the filter's velocity points south at 1.8 m/s for a moment,
     yet the heading its travel confirmed stays north (yaw_reverse_s); with yaw_reverse_s 0 the jitter reverses it
-    for good. A vehicle that really backs
-    up (2 m/s south for 2 s) is turned round after yaw_reverse_s. yaw_confirmed is False until the track has
-    travelled yaw_confirm_travel_m, and stays False for a vehicle that only jitters in place; a vehicle the
-    detector sees backwards at birth is turned round by its motion at once."""
+    for good. A vehicle that really backs up (2 m/s south for 2 s) is turned round after yaw_reverse_s.
+    yaw_confirmed is False until the track has travelled yaw_confirm_travel_m, and stays False for a vehicle that
+    only jitters in place; a vehicle the detector sees backwards at birth is turned round by its motion at once."""
     def run(config: TrackerConfig, path: list[float], yaw: float = math.pi / 2) -> list[TrackState]:
         tracker = Tracker(config)
         return [tracker.update(frame("A", k * 100 * MS, [[0.0, y]], yaw=yaw), k * 100 * MS)
