@@ -57,7 +57,7 @@ import numpy as np
 
 from eval.ground_truth import GroundTruth, TrackingEvalConfig, _ground_truth
 from shared.messages import CHI2_2DOF_95, err95_m
-from shared.tracks_file import parse_covariance, parse_yaw_confirmed
+from shared.tracks_file import parse_covariance, parse_yaw_confirmed, parse_yaw_std
 from sim.recording import Recording
 
 _MATCH_TYPES = ("MATCH", "SWITCH")
@@ -85,6 +85,7 @@ class TrackLine:
     vel: np.ndarray  # (N, 2) m/s
     vel_cov: np.ndarray  # (N, 2, 2) (m/s)^2, the velocity's error covariance
     yaw_confirmed: np.ndarray  # (N,) 1.0 where travel confirmed the heading's sign, 0.0 not
+    yaw_std: np.ndarray  # (N,) rad, the heading's error on its axis (1 sigma)
 
     def keys(self) -> list[tuple[str, int]]:
         return [(self.tracker, i) for i in self.ids]
@@ -110,7 +111,7 @@ def _parse_line(obj: Any, where: str) -> TrackLine:
         raise ValueError(f"{where}: tracker must be a string, got {obj['tracker']!r}")
     if not isinstance(obj["tracks"], list):
         raise ValueError(f"{where}: tracks must be a list")
-    ids, xy, yaw, cov, vel, vel_cov, sure = [], [], [], [], [], [], []
+    ids, xy, yaw, cov, vel, vel_cov, sure, yaw_sd = [], [], [], [], [], [], [], []
     for k, tr in enumerate(obj["tracks"]):
         if not isinstance(tr, dict):
             raise ValueError(f"{where}: track {k} is not an object")
@@ -132,11 +133,13 @@ def _parse_line(obj: Any, where: str) -> TrackLine:
         vel_cov.append(_parse_cov(tr.get("velocity_cov"), who, "velocity_cov"))
         confirmed = parse_yaw_confirmed(tr.get("yaw_confirmed"), who)
         sure.append(math.nan if confirmed is None else float(confirmed))
+        sd = parse_yaw_std(tr.get("yaw_std"), who)
+        yaw_sd.append(math.nan if sd is None else sd)
     if len(set(ids)) != len(ids):
         raise ValueError(f"{where}: duplicate track id in one line")
     return TrackLine(0, obj["t_ns"], obj["tracker"], ids, np.array(xy, float).reshape(-1, 2), np.array(yaw, float),
                      np.array(cov, float).reshape(-1, 2, 2), np.array(vel, float).reshape(-1, 2),
-                     np.array(vel_cov, float).reshape(-1, 2, 2), np.array(sure, float))
+                     np.array(vel_cov, float).reshape(-1, 2, 2), np.array(sure, float), np.array(yaw_sd, float))
 
 
 def _parse_cov(value: Any, where: str, name: str = "xy_cov") -> np.ndarray:
@@ -193,6 +196,7 @@ class FrameMatch:
     track_vel: dict[tuple[str, int], np.ndarray] = field(default_factory=dict)  # velocity (2,) and its covariance
     track_vel_cov: dict[tuple[str, int], np.ndarray] = field(default_factory=dict)
     track_yaw_confirmed: dict[tuple[str, int], float] = field(default_factory=dict)  # 1.0 / 0.0 / NaN (TrackLine)
+    track_yaw_std: dict[tuple[str, int], float] = field(default_factory=dict)  # rad, NaN where a track has none
 
 
 @dataclass
@@ -241,8 +245,8 @@ def match_tracks(ground_truth: GroundTruth, tracks: str | Path | Iterable, camer
         if line is None:  # a silent tick: no tracks
             line = _parse_line({"t_ns": t, "tracker": "", "tracks": []}, "silent tick")
         keys = line.keys()
-        h_xy, h_yaw, h_cov, h_vel, h_vcov, h_sure = (line.xy, line.yaw, line.cov, line.vel, line.vel_cov,
-                                                     line.yaw_confirmed)
+        h_xy, h_yaw, h_cov, h_vel, h_vcov, h_sure, h_sd = (line.xy, line.yaw, line.cov, line.vel, line.vel_cov,
+                                                           line.yaw_confirmed, line.yaw_std)
         res.track_identities.update(keys)
         if cfg.ignore_unscored_tracks and len(keys):
             d2_gt = np.sum((h_xy[:, None, :] - g_xy[None, :, :]) ** 2, axis=2)
@@ -254,8 +258,8 @@ def match_tracks(ground_truth: GroundTruth, tracks: str | Path | Iterable, camer
             keep = near_gt | ~(near_other | outside)
             res.ignored_track_positions += int(np.sum(~keep))
             keys = [k for k, ok in zip(keys, keep, strict=True) if ok]
-            h_xy, h_yaw, h_cov, h_vel, h_vcov, h_sure = (h_xy[keep], h_yaw[keep], h_cov[keep], h_vel[keep],
-                                                         h_vcov[keep], h_sure[keep])
+            h_xy, h_yaw, h_cov, h_vel, h_vcov, h_sure, h_sd = (h_xy[keep], h_yaw[keep], h_cov[keep], h_vel[keep],
+                                                               h_vcov[keep], h_sure[keep], h_sd[keep])
         oids = [gt_index.setdefault(v, len(gt_index)) for v in gids]
         hids = [hyp_index.setdefault(k, len(hyp_index)) for k in keys]
         if oids and hids:
@@ -269,7 +273,8 @@ def match_tracks(ground_truth: GroundTruth, tracks: str | Path | Iterable, camer
                                      {k: h_cov[i] for i, k in enumerate(keys)},
                                      {k: h_vel[i] for i, k in enumerate(keys)},
                                      {k: h_vcov[i] for i, k in enumerate(keys)},
-                                     {k: float(h_sure[i]) for i, k in enumerate(keys)}))
+                                     {k: float(h_sure[i]) for i, k in enumerate(keys)},
+                                     {k: float(h_sd[i]) for i, k in enumerate(keys)}))
     if res.frames:
         ev = res.accumulator.mot_events
         ev = ev[ev.Type.isin(_MATCH_TYPES)]
@@ -353,6 +358,27 @@ def handoff_measure(frames: Sequence[FrameMatch], camera_xy_m: Mapping[str, Sequ
     }
 
 
+def yaw_std_measure(err_deg: np.ndarray, std_deg: np.ndarray) -> dict:
+    """How well the tracks' `yaw_std` says how far off their heading is, on its axis (front and back are
+    `yaw_confirmed`'s): of the headings (errors in deg, full circle) of tracks that carry one (deg; NaN: none), each
+    one's axis error (the error, or 180 - it, whichever is less) over its sigma, z: `yaw_std_z2_mean` (1 when right),
+    `yaw_std_within_1sigma` (0.683 when right), `yaw_std_within_95` (|z| <= 1.96), `yaw_std_loglik` the mean
+    Gaussian log-likelihood per heading (rad: higher is better, for a sigma that is right and small),
+    `yaw_std_median_deg` the median sigma. NaN where there are none."""
+    known = np.isfinite(std_deg) & (std_deg > 0)
+    axis = np.minimum(err_deg[known], 180.0 - err_deg[known])
+    sd = std_deg[known]
+    z = axis / sd
+    n = len(z)
+    nan = math.nan
+    loglik = -0.5 * z**2 - np.log(np.radians(sd)) - 0.5 * math.log(2 * math.pi)
+    return {"yaw_std_n": n, "yaw_std_z2_mean": float(np.mean(z**2)) if n else nan,
+            "yaw_std_within_1sigma": float(np.mean(z <= 1.0)) if n else nan,
+            "yaw_std_within_95": float(np.mean(z <= 1.96)) if n else nan,
+            "yaw_std_loglik": float(np.mean(loglik)) if n else nan,
+            "yaw_std_median_deg": float(np.median(sd)) if n else nan}
+
+
 def covariance_measure(nees: np.ndarray, err95_m: np.ndarray | None = None, prefix: str = "pos_cov") -> dict:
     """`pos_cov_*` (module docstring; `prefix` names them) of the squared Mahalanobis distances `nees` of matched
     positions under their tracks' covariances, and with `err95_m` the median of the covariances' 95 % half-axes; NaN
@@ -403,7 +429,7 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
     window = round(cfg.traj_window_s * 1e9)
     gap = gt.max_gap_ns(cfg)
     err_in, err_out, pos_err = [], [], []
-    yaw_err, yaw_moving, yaw_sure = [], [], []
+    yaw_err, yaw_moving, yaw_sure, yaw_sd = [], [], [], []
     nees, err95, vel_nees = [], [], []
     for fm in res.frames:
         if not fm.matched:
@@ -431,6 +457,7 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
                 yaw_err.append(math.degrees(abs((tracked - true + math.pi) % (2 * math.pi) - math.pi)))
                 yaw_moving.append(speed >= cfg.moving_mps)
                 yaw_sure.append(fm.track_yaw_confirmed.get(fm.matched[v], math.nan))
+                yaw_sd.append(math.degrees(fm.track_yaw_std.get(fm.matched[v], math.nan)))
     for name, vals in (("in_roi", err_in), ("out_roi", err_out)):
         m, sd = _mean_std(vals)
         out[f"traj_err_{name}_m"], out[f"traj_err_{name}_std_m"], out[f"traj_err_{name}_n"] = m, sd, len(vals)
@@ -442,6 +469,7 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
     for name, part in (("moving", moving), ("standing", ~moving)):
         out[f"yaw_err_in_roi_{name}_deg"] = float(yaw_err_a[part].mean()) if part.any() else math.nan
     out.update(yaw_confirmed_measure(yaw_err_a, np.array(yaw_sure, float)))
+    out.update(yaw_std_measure(yaw_err_a, np.array(yaw_sd, float)))
     out.update(covariance_measure(np.array(nees), np.array(err95)))
     out.update(covariance_measure(np.array(vel_nees), prefix="vel_cov"))
     scored = {k for fm in res.frames for k in fm.track_xy}

@@ -9,9 +9,10 @@ code: a vehicle written in another language (C++, Rust, ...) does the same steps
 libraries. It asks for the newest Tracks message first (a vehicle that joins late gets the current tracks at once),
 then prints one JSON line per message: `{"site", "seq", "t_capture_ns", "tracker", "tracks": [{"id", "x", "y",
 "lat", "lon", "vx", "vy", "yaw", "length", "width", "height", "type", "score", "age", "hits", "cameras", "xy_cov",
-"velocity_cov", "yaw_confirmed", "err95_m"}, ...]}` (`err95_m`: the longest half-axis of the ellipse that holds the
-vehicle's true position with 95 % probability, from `xy_cov`; `yaw_confirmed` false: the vehicle has not been seen
-travelling, and its `yaw` may point backwards).
+"velocity_cov", "yaw_confirmed", "yaw_std", "err95_m"}, ...]}` (`err95_m`: the longest half-axis of the ellipse that
+holds the vehicle's true position with 95 % probability, from `xy_cov`; `yaw_confirmed` false: the vehicle has not
+been seen travelling, and its `yaw` may point backwards; `yaw_std`: how far off, 1 sigma in rad, the heading's axis
+may be).
 A message it cannot read is reported on stderr with the reason and skipped. (Inside the project,
 `shared.client.TrackClient` and `roadside tracks` do the same with the project's own codec.)
 """
@@ -27,7 +28,7 @@ import time
 
 import msgpack
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 VEHICLE_TYPES = ("car", "suv_van", "truck", "bus", "motorcycle")  # vtype indexes this list
 # dtype on the wire -> struct format character (all little-endian, "<" below)
 STRUCT_FORMATS = {"<f8": "d", "<f4": "f", "<i8": "q", "<i4": "i", "<u4": "I", "<i2": "h", "<u2": "H", "|i1": "b",
@@ -36,7 +37,7 @@ STRUCT_FORMATS = {"<f8": "d", "<f4": "f", "<i8": "q", "<i4": "i", "<u4": "I", "<
 TRACK_COLUMNS = {"id": ("<i8", ()), "xy": ("<f8", (2,)), "latlon": ("<f8", (2,)), "velocity": ("<f4", (2,)),
                  "yaw": ("<f4", ()), "size_lwh": ("<f4", (3,)), "vtype": ("|i1", ()), "score": ("<f4", ()),
                  "age": ("<i4", ()), "hits": ("<i4", ()), "xy_cov": ("<f4", (2, 2)), "velocity_cov": ("<f4", (2, 2)),
-                 "yaw_confirmed": ("|b1", ())}
+                 "yaw_confirmed": ("|b1", ()), "yaw_std": ("<f4", ())}
 CHI2_2DOF_95 = 5.991  # a 2D Gaussian's 95 % ellipse: squared Mahalanobis distance within this
 
 
@@ -102,7 +103,7 @@ def decode_tracks(payload: bytes) -> dict:
                        "score": cols["score"][i][0], "age": cols["age"][i][0], "hits": cols["hits"][i][0],
                        "cameras": cameras[i], "xy_cov": [[see, sen], [sne, snn]],
                        "velocity_cov": [list(cols["velocity_cov"][i][:2]), list(cols["velocity_cov"][i][2:])],
-                       "yaw_confirmed": cols["yaw_confirmed"][i][0],
+                       "yaw_confirmed": cols["yaw_confirmed"][i][0], "yaw_std": cols["yaw_std"][i][0],
                        "err95_m": math.sqrt(CHI2_2DOF_95 * largest)})
     return {"site": msg["site"], "seq": msg["seq"], "t_capture_ns": msg["t_capture_ns"],
             "tracker": msg.get("tracker", ""), "tracks": tracks}

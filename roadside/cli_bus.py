@@ -80,7 +80,7 @@ def _run_tracks(args) -> int:
                     speed = math.hypot(r["vx"], r["vy"])
                     print(f"  {r['id']:>5} {r['type']:<10} lat {r['lat']:.7f} lon {r['lon']:.7f} +-{err:4.1f} m "
                           f"yaw {r['yaw']:+.2f}{' ' if r['yaw_confirmed'] else '?'} speed {speed:5.1f} m/s  "
-                          f"{','.join(r['cameras'])}")
+                          f"heading +-{math.degrees(r['yaw_std']):2.0f} deg  {','.join(r['cameras'])}")
             n += 1
             if args.count and n >= args.count:
                 break

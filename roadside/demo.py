@@ -452,6 +452,10 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
         # backwards (more than 90 deg off)
         **{k: fused[k] for k in ("yaw_confirmed_share", "yaw_reversed_confirmed", "yaw_reversed_unconfirmed",
                                  "yaw_err_confirmed_deg", "yaw_err_unconfirmed_deg")},
+        # the tracks' own heading uncertainty (yaw_std) against those headings' errors on their axis: consistent when
+        # 0.95 of them lie within 1.96 sigma and the mean squared error over sigma^2 is 1 (eval.tracking)
+        **{k: fused[k] for k in ("yaw_std_n", "yaw_std_z2_mean", "yaw_std_within_1sigma", "yaw_std_within_95",
+                                 "yaw_std_median_deg")},
         # the tracks' own position and velocity uncertainty (xy_cov, velocity_cov) against their errors in the ROI:
         # consistent when the 95 % ellipses hold 0.95 of the true values and the mean squared Mahalanobis distance is 2
         # (eval.tracking)
@@ -505,6 +509,8 @@ def summary_table(s: dict) -> str:
         ("  confirmed by travel: share; backwards", f"{s['yaw_confirmed_share']:.3f}; "
                                                     f"{s['yaw_reversed_confirmed']:.3f} of them, "
                                                     f"{s['yaw_reversed_unconfirmed']:.3f} of the others"),
+        ("  axis within 1.96 yaw_std", f"{s['yaw_std_within_95']:.3f} (1 sigma: {s['yaw_std_within_1sigma']:.3f}; "
+                                      f"median sigma {s['yaw_std_median_deg']:.1f} deg)"),
         ("true position within the 95 % ellipse", f"{s['pos_cov_within_95']:.3f} (1 sigma: "
                                                    f"{s['pos_cov_within_1sigma']:.3f}; median half-axis "
                                                    f"{s['pos_cov_err95_median_m']:.2f} m); velocity "

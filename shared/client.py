@@ -9,6 +9,7 @@
                 print(row["id"], row["lat"], row["lon"], row["type"])
             worst = err95_m(tracks.xy_cov)      # (N,) m: each position's 95 % error ellipse, longest half-axis
             axis_only = ~tracks.yaw_confirmed   # (N,) bool: not seen travelling, the heading may point backwards
+            heading_sd = tracks.yaw_std         # (N,) rad: 1 sigma of the heading's error on its axis
 
 A client that joins late gets the current tracks at once: `stream()` first asks fuse_track's
 queryable (`roadside/<site>/tracks/latest`) for the newest message, then follows the live ones.

@@ -31,7 +31,7 @@ from typing import Annotated, Any, ClassVar, Literal
 import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, field_validator, model_validator
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 VEHICLE_TYPES = ("car", "suv_van", "truck", "bus", "motorcycle")
 SERVICES = ("ingest", "detect", "localize", "fuse_track")
 CAMERA_KINDS = ("pinhole", "fisheye")
@@ -243,7 +243,8 @@ class Tracks(Message):
     ticks with a measurement; cameras: per track, the cameras whose objects updated it this tick; xy_cov (N, 2, 2)
     float32 m^2: the covariance of the position's error (east, north), velocity_cov (N, 2, 2) float32 (m/s)^2 the
     velocity's, each symmetric positive definite; yaw_confirmed (N,) bool: whether the vehicle's own travel has
-    confirmed which way it heads.
+    confirmed which way it heads; yaw_std (N,) float32 rad > 0: the heading's error on its axis, 1 sigma (how far
+    the axis may be off; front and back are yaw_confirmed's).
     An id that drops out and comes back within a few seconds where the lost track was heading is the same vehicle
     (fuse_track's `relink_s`). yaw: of a moving track, its direction of motion (from 4 m/s; drawn towards it from
     1.5 m/s); of a track that stopped, the heading it had; of a vehicle not seen travelling (yaw_confirmed false),
@@ -268,6 +269,7 @@ class Tracks(Message):
     xy_cov: Array
     velocity_cov: Array
     yaw_confirmed: Array
+    yaw_std: Array
     frames: list[tuple[str, int, int, int]] = Field(default_factory=list, max_length=MAX_ROWS)
 
     @model_validator(mode="after")
@@ -278,7 +280,7 @@ class Tracks(Message):
             "size_lwh": (self.size_lwh, (3,), "f"), "vtype": (self.vtype, (), "iu"),
             "score": (self.score, (), "f"), "age": (self.age, (), "iu"), "hits": (self.hits, (), "iu"),
             "xy_cov": (self.xy_cov, (2, 2), "f"), "velocity_cov": (self.velocity_cov, (2, 2), "f"),
-            "yaw_confirmed": (self.yaw_confirmed, (), "b")})
+            "yaw_confirmed": (self.yaw_confirmed, (), "b"), "yaw_std": (self.yaw_std, (), "f")})
         if len(self.cameras) != n:
             raise ValueError(f"Tracks.cameras has {len(self.cameras)} entries, expected {n}")
         for name in ("xy_cov", "velocity_cov"):
@@ -286,6 +288,8 @@ class Tracks(Message):
             if bad.any():
                 raise ValueError(f"Tracks.{name}[{int(np.flatnonzero(bad)[0])}] is not a symmetric positive definite "
                                  "covariance")
+        if np.any(self.yaw_std <= 0):
+            raise ValueError(f"Tracks.yaw_std[{int(np.flatnonzero(self.yaw_std <= 0)[0])}] is not > 0")
         return self
 
     def __len__(self) -> int:
@@ -301,13 +305,14 @@ class Tracks(Message):
         yaw, score = rounded(self.yaw, 4), rounded(self.score, 3)
         latlon = self.latlon.astype(np.float64).tolist()
         names = [VEHICLE_TYPES[t] if 0 <= t < len(VEHICLE_TYPES) else "unknown" for t in self.vtype.tolist()]
-        cov, vcov = rounded(self.xy_cov, 5), rounded(self.velocity_cov, 5)
+        cov, vcov, yaw_sd = rounded(self.xy_cov, 5), rounded(self.velocity_cov, 5), rounded(self.yaw_std, 5)
         return [{"id": i, "x": p[0], "y": p[1], "lat": ll[0], "lon": ll[1], "vx": v[0], "vy": v[1], "yaw": a,
                  "length": s[0], "width": s[1], "height": s[2], "type": t, "score": sc, "age": age, "hits": hits,
-                 "cameras": list(cams), "xy_cov": c, "velocity_cov": vc, "yaw_confirmed": sure}
-                for i, p, ll, v, a, s, t, sc, age, hits, cams, c, vc, sure in zip(
+                 "cameras": list(cams), "xy_cov": c, "velocity_cov": vc, "yaw_confirmed": sure,
+                 "yaw_std": sd}
+                for i, p, ll, v, a, s, t, sc, age, hits, cams, c, vc, sure, sd in zip(
                     self.id.tolist(), xy, latlon, vel, yaw, size, names, score, self.age.tolist(), self.hits.tolist(),
-                    self.cameras, cov, vcov, self.yaw_confirmed.tolist(), strict=True)]
+                    self.cameras, cov, vcov, self.yaw_confirmed.tolist(), yaw_sd, strict=True)]
 
 
 MAX_STATUS_ENTRIES = 300  # names in one of a Status message's maps (BadInput keeps at most 256 reasons, + 1)

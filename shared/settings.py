@@ -265,6 +265,12 @@ class FuseTrackSettings(Strict):
     # standing vehicle's jittering detections (docs/pipeline.md, "Front or back")
     yaw_confirm_travel_m: float = Field(3.0, ge=0, le=100)
     yaw_reverse_s: float = Field(1.0, ge=0, le=30)
+    # how far off (deg, 1 sigma, on its axis) the detector's heading of a standing vehicle is, one not seen travelling
+    # and one whose travel confirmed its heading: what such a track reports as its heading's error (Tracks.yaw_std; a
+    # moving track's comes from its velocity's). Chosen for the shipped detector (docs/pipeline.md, "How sure a
+    # heading is"); another detector may need its own
+    yaw_std_deg: float = Field(24.0, gt=0, le=90)
+    yaw_std_travelled_deg: float = Field(12.0, gt=0, le=90)
     record: Path | None = None  # append every Tracks message to this JSON-lines file
     # at this size the recording is renamed <stem>.<n>.jsonl and a new one started (services/fuse_track/recorder.py);
     # 0: one file that grows for ever (about 4 MB a minute with the demo's four cameras)

@@ -23,7 +23,8 @@ class TrackRow:
     """One validated track of a Tracks message. x, y metres (site ENU frame); yaw rad (CCW from east);
     length, width metres; vx, vy m/s (None when the row has none); xy_cov the position's error covariance,
     ((east², east·north), (north·east, north²)) m² (None when the row has none); yaw_confirmed whether the track's
-    travel confirmed which way it heads (None when the row does not say)."""
+    travel confirmed which way it heads, yaw_std rad the heading's error on its axis, 1 sigma (each None when the
+    row does not say)."""
 
     id: int
     x: float
@@ -36,6 +37,7 @@ class TrackRow:
     vy: float | None = None
     xy_cov: tuple[tuple[float, float], tuple[float, float]] | None = None
     yaw_confirmed: bool | None = None
+    yaw_std: float | None = None
 
 
 @dataclass(frozen=True)
@@ -119,6 +121,7 @@ def _parse_row(row: Any, origin: GeoFrame | None) -> TrackRow:
         vy=float(row["vy"]) if has_v else None,
         xy_cov=parse_covariance(row.get("xy_cov")),
         yaw_confirmed=parse_yaw_confirmed(row.get("yaw_confirmed")),
+        yaw_std=parse_yaw_std(row.get("yaw_std")),
     )
 
 
@@ -147,6 +150,16 @@ def parse_yaw_confirmed(value: Any, where: str = "") -> bool | None:
     if value is not None and not isinstance(value, bool):
         raise ValueError(f"{where + ': ' if where else ''}yaw_confirmed must be true or false, got {value!r:.40}")
     return value
+
+
+def parse_yaw_std(value: Any, where: str = "") -> float | None:
+    """A track row's `yaw_std` (rad, a finite number > 0; None when the row has none). ValueError (prefixed with
+    `where`) otherwise."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | float) or not (math.isfinite(value) and value > 0):
+        raise ValueError(f"{where + ': ' if where else ''}yaw_std must be a finite number > 0 (rad), got {value!r:.40}")
+    return float(value)
 
 
 def _float(v: Any, key: str) -> float:

@@ -99,7 +99,7 @@ def make_tracks(n: int = 3, **kw) -> Tracks:
               "cameras": [["NE"] for _ in range(n)],
               "xy_cov": np.tile(np.array([[0.09, 0.02], [0.02, 0.16]], f4), (n, 1, 1)),
               "velocity_cov": np.tile(np.array([[0.25, 0.0], [0.0, 0.25]], f4), (n, 1, 1)),
-              "yaw_confirmed": np.arange(n) % 2 == 0,
+              "yaw_confirmed": np.arange(n) % 2 == 0, "yaw_std": np.full(n, 0.125, f4),
               "frames": [("NE", 7, T0, T0 + 15)]}
     return Tracks(**{**fields, **kw})
 
@@ -190,6 +190,17 @@ def test_yaw_confirmed_is_one_bool_per_track() -> None:
                         (np.ones(3, bool), "yaw_confirmed has 3 rows, expected 2")):
         t = raw(make_tracks(2))
         t["yaw_confirmed"] = arr(bad)
+        refused(pack(t), reason)
+
+
+def test_yaw_std_is_one_positive_float_per_track() -> None:
+    assert [r["yaw_std"] for r in make_tracks(2).rows()] == [0.125, 0.125]
+    for bad, reason in ((np.array([0.1, 0.0], np.float32), r"Tracks.yaw_std\[1\] is not > 0"),
+                        (np.array([0.1, np.nan], np.float32), "yaw_std contains NaN"),
+                        (np.ones(2, bool), "yaw_std has dtype bool, expected kind 'f'"),
+                        (np.ones(3, np.float32), "yaw_std has 3 rows, expected 2")):
+        t = raw(make_tracks(2))
+        t["yaw_std"] = arr(bad)
         refused(pack(t), reason)
 
 

@@ -57,6 +57,7 @@ def test_summary_table_renders_a_summary():
          "yaw_err_in_roi_moving_deg": 6.0, "yaw_err_in_roi_standing_deg": 22.5, "yaw_confirmed_share": 0.6846,
          "yaw_reversed_confirmed": 0.0, "yaw_reversed_unconfirmed": 0.0724, "pos_cov_within_95": 0.93,
          "pos_cov_within_1sigma": 0.45, "pos_cov_err95_median_m": 1.234, "vel_cov_within_95": 0.9215,
+         "yaw_std_within_95": 0.9512, "yaw_std_within_1sigma": 0.6801, "yaw_std_median_deg": 8.04,
          "single_camera": {"NE": {"traj_err_in_roi_m": 0.62, "fused_traj_err_in_roi_m": 0.71},
                            "SW": {"traj_err_in_roi_m": 0.35, "fused_traj_err_in_roi_m": 0.36}},
          "handoff_crossings": 33, "handoff_crossing_kept_fraction": 32 / 33, "frames": 2393, "frames_recorded": 2400,
@@ -71,3 +72,4 @@ def test_summary_table_renders_a_summary():
     assert "14.3 (7.1) deg; moving 6.0, standing 22.5 deg" in table
     assert "0.685; 0.000 of them, 0.072 of the others" in table
     assert "0.930 (1 sigma: 0.450; median half-axis 1.23 m); velocity 0.921" in table
+    assert "0.951 (1 sigma: 0.680; median sigma 8.0 deg)" in table

@@ -226,6 +226,39 @@ def test_headings_are_split_by_whether_travel_confirmed_them(gt):
         evaluate_tracks(gt, rows)
 
 
+def test_a_headings_sigma_is_scored_against_its_error_on_the_axis(gt):
+    """Headings off by draws of a known sigma (5 deg), stating it: about 95 % within 1.96 sigma and a mean squared
+    error over sigma^2 near 1; the parked vehicle's heading reversed as well counts by its axis alone (the same);
+    stating half the sigma: fewer, and 4 times the ratio. Tracks without one are not scored; a bad one is named."""
+    rng = np.random.default_rng(2)
+    draws = {(v, k): rng.normal(0, math.radians(5)) for v in GT_IDS for k in range(N_FRAMES)}
+    rows = make_rows()
+    for k, row in enumerate(rows):
+        for t in row["tracks"]:
+            vid = t["id"] - 10
+            t["yaw"] = YAW[vid] + draws[(vid, k)] + (math.pi if vid == 5 else 0.0)
+    for stated, within in ((5.0, (0.9, 0.99)), (2.5, (0.5, 0.8))):
+        for row in rows:
+            for t in row["tracks"]:
+                t["yaw_std"] = math.radians(stated)
+        r = evaluate_tracks(gt, rows)
+        assert r["yaw_std_n"] == r["yaw_err_in_roi_n"] == 4 * N_FRAMES
+        assert within[0] < r["yaw_std_within_95"] < within[1] and r["yaw_std_within_1sigma"] < r["yaw_std_within_95"]
+        assert r["yaw_std_z2_mean"] == pytest.approx(25 / stated**2, rel=0.25)
+        assert r["yaw_std_median_deg"] == pytest.approx(stated)
+        if stated == 5.0:
+            loglik_right = r["yaw_std_loglik"]
+    assert r["yaw_std_loglik"] < loglik_right  # a sigma too small scores worse
+    for row in rows:
+        for t in row["tracks"]:
+            del t["yaw_std"]
+    r = evaluate_tracks(gt, rows)
+    assert r["yaw_std_n"] == 0 and math.isnan(r["yaw_std_within_95"])
+    rows[2]["tracks"][0]["yaw_std"] = -0.1
+    with pytest.raises(ValueError, match=r"tracks line 3: track 0 \(id \d+\): yaw_std must be a finite number > 0"):
+        evaluate_tracks(gt, rows)
+
+
 def test_a_tracks_velocity_covariance_is_scored_against_the_true_velocity(gt):
     """Track velocities off the vehicles' by draws of a known covariance, stating it: about 95 % inside the 95 %
     ellipse, mean squared distance near 2; a track without velocity_cov is not scored; a malformed one is named."""

@@ -294,6 +294,37 @@ def test_a_heading_confirmed_by_travel_is_not_reversed_by_a_standing_vehicles_ji
     assert north(backwards[3]) and backwards[-1].yaw_confirmed[0]
 
 
+def test_a_headings_sigma_is_the_detectors_until_the_vehicle_moves_and_its_velocitys_while_it_does():
+    """yaw_std: a standing vehicle's is yaw_std_deg throughout (detections without jitter); one driving north at
+    8 m/s with detections 0.3 m apart across its path gets its heading from its velocity, and the sigma with it: down
+    to the velocity's error across the motion over the speed (a few degrees), smaller at 16 m/s than at 8, and up to
+    yaw_std_travelled_deg once it has stopped (its detections' heading errors persist; its travel confirmed it)."""
+    rng = np.random.default_rng(3)
+
+    def run(config: TrackerConfig, path: list[float], noise_m: float = 0.3) -> list[TrackState]:
+        tracker = Tracker(config)
+        return [tracker.update(frame("A", k * 100 * MS, [[rng.normal(0, noise_m), y]], yaw=math.pi / 2), k * 100 * MS)
+                for k, y in enumerate(path)]
+
+    sd = math.radians(TrackerConfig().yaw_std_deg)
+    standing = run(TrackerConfig(), [0.0] * 30, noise_m=0.0)
+    assert all(np.allclose(s.yaw_std, sd) for s in standing if len(s))
+    drive = [0.8 * k for k in range(40)]
+    states = run(TrackerConfig(), drive + [drive[-1]] * 40)
+    moving = [s for s in states[20:40]]
+    assert all(0.005 < s.yaw_std[0] < math.radians(5) for s in moving), [round(s.yaw_std[0], 3) for s in moving]
+    e = moving[-1].velocity_cov[0]
+    assert moving[-1].yaw_std[0] == pytest.approx(math.sqrt(e[0, 0]) / np.linalg.norm(moving[-1].velocity[0]),
+                                                  rel=0.05)  # across a northward motion: east's variance
+    fast = run(TrackerConfig(), [1.6 * k for k in range(40)])
+    assert np.median([s.yaw_std[0] for s in fast[20:]]) < np.median([s.yaw_std[0] for s in moving])
+    travelled = math.radians(TrackerConfig().yaw_std_travelled_deg)
+    assert 0.9 * travelled < states[-1].yaw_std[0] <= travelled
+    assert np.all(np.diff([s.yaw_std[0] for s in states[55:]]) >= -1e-12)
+    assert run(TrackerConfig(yaw_std_deg=20.0), [0.0] * 5, noise_m=0.0)[-1].yaw_std[0] == pytest.approx(
+        math.radians(20.0))
+
+
 def test_a_vehicle_lost_for_a_moment_keeps_its_id():
     """A vehicle at 8 m/s missed for 1 s (ten ticks, far beyond max_age) comes back on its path: the new track takes
     the lost one's id, age and hits (relink, default on), not while it is lost, and never an id of a vehicle elsewhere;

@@ -148,6 +148,7 @@ def test_parse_rejects_missing_keys_and_accepts_a_tracks_message() -> None:
         xy_cov=np.array([[[0.1, 0.0], [0.0, 0.1]]], np.float32),
         velocity_cov=np.array([[[0.2, 0.0], [0.0, 0.2]]], np.float32),
         yaw_confirmed=np.array([True]),
+        yaw_std=np.array([0.05], np.float32),
     )
     parsed = parse_tracks_message(msg)
     assert (parsed.t_ns, parsed.tracker, parsed.rows[0].id, parsed.rows[0].type) == (T0_NS, "a", 9, "truck")
@@ -205,6 +206,17 @@ def test_a_track_whose_heading_is_not_confirmed_is_drawn_without_its_front() -> 
     row["tracks"][0]["yaw_confirmed"] = "no"
     with pytest.raises(ValueError, match="track 0: yaw_confirmed must be true or false"):
         parse_tracks_message(row)
+
+
+def test_a_rows_heading_sigma_is_read_and_a_bad_one_named() -> None:
+    row = _message(0)
+    row["tracks"][0]["yaw_std"] = 0.0625
+    parsed = parse_tracks_message(row)
+    assert parsed.rows[0].yaw_std == 0.0625 and parsed.rows[1].yaw_std is None
+    for bad in (0.0, float("nan"), "0.1", True):
+        row["tracks"][0]["yaw_std"] = bad
+        with pytest.raises(ValueError, match="track 0: yaw_std must be a finite number > 0"):
+            parse_tracks_message(row)
 
 
 def test_a_bad_position_covariance_is_refused_with_its_reason() -> None:

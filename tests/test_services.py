@@ -41,7 +41,7 @@ from pipeline_fixtures import (
 
 from shared.codec import encode
 from shared.keys import alive_key, all_alive_key, all_cameras_key, camera_key, tracks_key
-from shared.messages import MAX_FRAME_BYTES, Detections, Frame, Objects, Status, Tracks
+from shared.messages import MAX_FRAME_BYTES, SCHEMA_VERSION, Detections, Frame, Objects, Status, Tracks
 from shared.status import collect_status
 
 pytestmark = pytest.mark.slow
@@ -676,7 +676,7 @@ def test_localize_drops_bad_detections_and_keeps_running(site, site_name, port_b
     uv[1, 0] = np.nan
     cases = [
         (key, b"\x00\x01garbage", "not msgpack"),
-        (key, tampered(det, v=4), "schema version 4 is not supported"),
+        (key, tampered(det, v=SCHEMA_VERSION + 1), f"schema version {SCHEMA_VERSION + 1} is not supported"),
         (key, tampered(det, uv=arr(det.uv.astype(">f8"))), "field 'uv': dtype '>f8' is not allowed"),
         (key, tampered(det, uv=arr(det.uv.astype(np.complex128))), "dtype '<c16' is not allowed"),
         (key, tampered(det, uv={"dtype": "<f4", "shape": [3, 2], "data": det.uv.tobytes()}),

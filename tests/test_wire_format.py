@@ -55,7 +55,7 @@ def example_message(n: int = 2, seq: int = 42) -> Tracks:
         cameras=[["NE", "SE"], []][:n],
         xy_cov=np.array([[[0.125, 0.03125], [0.03125, 0.0625]], [[0.5, -0.125], [-0.125, 0.375]]])[:n],
         velocity_cov=np.array([[[0.25, 0.0625], [0.0625, 0.5]], [[1.0, 0.0], [0.0, 1.0]]])[:n],
-        yaw_confirmed=np.array([True, False])[:n])
+        yaw_confirmed=np.array([True, False])[:n], yaw_std=np.array([0.0625, 0.25])[:n])
     msg = tracks_message(SITE, state, state.t_ns, seq, ORIGIN,
                          [("tick_closed", 1_764_403_200_180_000_000), ("fuse_track", 1_764_403_200_183_000_000)],
                          [("NE", 1207, 1_764_403_199_990_000_000, 1_764_403_200_150_000_000)][:n])
@@ -144,7 +144,7 @@ def test_the_listener_reads_a_real_payload_as_the_projects_codec_does() -> None:
         for key in ("x", "y", "vx", "vy", "yaw", "length", "width", "height", "score"):
             assert row[key] == pytest.approx(want[key], abs=1e-3), key
         assert row["xy_cov"] == want["xy_cov"] and row["velocity_cov"] == want["velocity_cov"]  # exact in float32 here
-        assert row["yaw_confirmed"] is want["yaw_confirmed"]
+        assert row["yaw_confirmed"] is want["yaw_confirmed"] and row["yaw_std"] == want["yaw_std"]  # exact here
         # the 95 % ellipse's longest half-axis: sqrt(chi2(2 dof, 0.95) x the covariance's larger eigenvalue)
         assert row["err95_m"] == pytest.approx(np.sqrt(5.991 * np.linalg.eigvalsh(want["xy_cov"]).max()))
     assert got["tracks"][0]["type"] == "bus" and got["tracks"][1]["cameras"] == []
@@ -236,6 +236,7 @@ def test_roadside_tracks_prints_each_vehicle_with_its_95_percent_error() -> None
     assert f"+-{want[0]:4.1f} m" in lines[1] and " bus " in lines[1] and "yaw +0.27  speed" in lines[1]
     assert f"+-{want[1]:4.1f} m" in lines[2] and " car " in lines[2]
     assert "yaw -1.57? speed" in lines[2]  # the car was not seen travelling: its heading may be reversed
+    assert "heading +- 4 deg" in lines[1] and "heading +-14 deg" in lines[2]  # yaw_std 0.0625 and 0.25 rad
 
 
 def test_the_listener_says_in_one_line_when_no_cabinet_answers() -> None:

@@ -91,7 +91,8 @@ def tracks_message(site: str, state: TrackState, t_ns: int, seq: int, geo: GeoFr
         velocity=state.velocity.astype(f4), yaw=state.yaw.astype(f4), size_lwh=state.size_lwh.astype(f4),
         vtype=state.vtype.astype(np.int8), score=state.score.astype(f4), age=state.age.astype(np.int32),
         hits=state.hits.astype(np.int32), cameras=[list(c) for c in state.cameras], xy_cov=state.xy_cov.astype(f4),
-        velocity_cov=state.velocity_cov.astype(f4), yaw_confirmed=state.yaw_confirmed.astype(bool), frames=frames)
+        velocity_cov=state.velocity_cov.astype(f4), yaw_confirmed=state.yaw_confirmed.astype(bool),
+        yaw_std=state.yaw_std.astype(f4), frames=frames)
 
 
 def tick_frames(tick: Tick) -> list[tuple[str, int, int, int]]:
@@ -128,7 +129,8 @@ def tracker_config(cfg: FuseTrackSettings) -> TrackerConfig:
                          high_score=cfg.high_score, standing_hits=cfg.standing_hits,
                          relink_s=cfg.relink_s, relink_gate_m=cfg.relink_gate_m, bias_share=cfg.bias_share,
                          along_length_share=cfg.along_length_share, yaw_confirm_travel_m=cfg.yaw_confirm_travel_m,
-                         yaw_reverse_s=cfg.yaw_reverse_s)
+                         yaw_reverse_s=cfg.yaw_reverse_s, yaw_std_deg=cfg.yaw_std_deg,
+                         yaw_std_travelled_deg=cfg.yaw_std_travelled_deg)
 
 
 def new_tracker(settings: Settings) -> Tracker:

@@ -69,6 +69,16 @@ Front or back (`TrackState.yaw_confirmed`): a track's heading is confirmed once 
 round at once. A confirmed heading is turned round only after `yaw_reverse_s` of motion against it without a break:
 a standing vehicle's detections jitter by a metre or two, and the filter's velocity with them, which used to
 reverse a waiting car's heading for good. docs/pipeline.md, "Front or back", has the measurements.
+
+How sure a heading is (`TrackState.yaw_std`, rad, 1 sigma of the heading's error on its axis: front and back are
+`yaw_confirmed`'s). The detector's heading of a vehicle is off by `yaw_std_deg` while the vehicle has not been seen
+travelling (parked cars above all) and by `yaw_std_travelled_deg` once its travel confirmed its heading (a vehicle
+that stopped in its lane): a new track reports the first. The detector misplaces a vehicle's heading much the same way
+from one frame to the next, so smoothing its detections does not shrink that error: at each hit the track's sigma
+moves towards the detector's by the yaw gain, as a standard deviation. Drawn towards the direction of motion by w
+(0 to 1), the sigma becomes sqrt((1 - w)^2 sd^2 + w^2 var_motion), where var_motion, the direction's variance, is
+E's velocity variance across the motion over the speed squared. docs/pipeline.md, "How sure a heading is", has the
+measurements.
 """
 
 from __future__ import annotations
@@ -103,7 +113,8 @@ class TrackerConfig:
     speed from which the heading is the direction of motion (drawn towards it linearly from yaw_from_motion_mps; 0 =
     the detections' heading at any speed, motion only setting its sign); yaw_confirm_travel_m the distance from where
     a track was first seen that confirms its heading's sign, yaw_reverse_s how long a confirmed heading must be moved
-    against before it is turned round (module doc).
+    against before it is turned round; yaw_std_deg and yaw_std_travelled_deg the detections' heading error (1 sigma,
+    on its axis) of a vehicle not seen travelling and of one whose travel confirmed its heading (module doc).
     high_score: objects scoring at least this are associated first and may start tracks; the others only
     extend confirmed tracks that the first round left unmatched (ByteTrack's second round: a vehicle the
     detector is unsure of in one frame keeps its track and id instead of breaking it); 0 = one round.
@@ -140,6 +151,10 @@ class TrackerConfig:
     # 3 m and 1 s: the middle of plateaus over 2-5 m and 0.5-2 s (docs/pipeline.md, "Front or back")
     yaw_confirm_travel_m: float = 3.0
     yaw_reverse_s: float = 1.0
+    # 24 and 12 deg: the best mean log-likelihood of the validation recordings' headings, on a plateau over 24-28 and
+    # 12-14 (docs/pipeline.md, "How sure a heading is")
+    yaw_std_deg: float = 24.0
+    yaw_std_travelled_deg: float = 12.0
     high_score: float = 0.0
     standing_hits: int = 0
     # 3 s and 3 m: the middle of a plateau over 2-5 s and 3-4 m (mean validation IDF1 0.856 -> 0.865, id switches
@@ -153,7 +168,8 @@ class TrackerConfig:
 
     def __post_init__(self) -> None:
         positive = ("gate_m", "max_coast_s", "position_std_m", "size_std_m", "accel_std_mps2", "area_accel_std_m2ps2",
-                    "aspect_accel_std_ps2", "init_speed_std_mps", "turn_accel_std_mps2", "relink_gate_m")
+                    "aspect_accel_std_ps2", "init_speed_std_mps", "turn_accel_std_mps2", "relink_gate_m", "yaw_std_deg",
+                    "yaw_std_travelled_deg")
         for name in positive:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
@@ -195,7 +211,7 @@ class TrackState:
     it this tick (empty while it coasts); xy_cov (N, 2, 2) float64 m^2 the covariance of the position's error
     (module doc); velocity_cov (N, 2, 2) float64 (m/s)^2 the velocity's (E's, as propagated); yaw_confirmed (N,)
     bool: whether the track's own travel has confirmed which way it heads (module doc; False: the detector's guess,
-    front and back may be swapped).
+    front and back may be swapped); yaw_std (N,) float64 rad: 1 sigma of the heading's error on its axis (module doc).
     """
 
     t_ns: int
@@ -213,13 +229,15 @@ class TrackState:
     xy_cov: np.ndarray
     velocity_cov: np.ndarray
     yaw_confirmed: np.ndarray
+    yaw_std: np.ndarray
 
     def __post_init__(self) -> None:
         n = check_columns("TrackState", {
             "id": (self.id, ()), "xy": (self.xy, (2,)), "velocity": (self.velocity, (2,)), "yaw": (self.yaw, ()),
             "size_lwh": (self.size_lwh, (3,)), "vtype": (self.vtype, ()), "score": (self.score, ()),
             "age": (self.age, ()), "hits": (self.hits, ()), "xy_cov": (self.xy_cov, (2, 2)),
-            "velocity_cov": (self.velocity_cov, (2, 2)), "yaw_confirmed": (self.yaw_confirmed, ())})
+            "velocity_cov": (self.velocity_cov, (2, 2)), "yaw_confirmed": (self.yaw_confirmed, ()),
+            "yaw_std": (self.yaw_std, ())})
         if len(self.cameras) != n:
             raise ValueError(f"TrackState.cameras has {len(self.cameras)} entries, expected {n}")
 
@@ -328,6 +346,7 @@ class Tracker:
         self._confirmed_yaw = np.zeros(0, bool)  # whether the track's travel has confirmed its heading's sign
         self._origin = np.zeros((0, 2))  # where it was first seen (m)
         self._against = np.zeros(0)  # how long (s) it has moved against its confirmed heading without a break
+        self._yaw_std = np.zeros(0)  # the heading's error on its axis, 1 sigma (rad; module doc)
         self._height = np.zeros(0)
         self._score = np.zeros(0)
         self._votes = np.zeros((0, 1))  # score-weighted type votes, (T, types)
@@ -500,13 +519,24 @@ class Tracker:
         d = wrap_angle(measured - yaw)
         d = wrap_angle(np.where(np.abs(d) > np.pi / 2, d + np.pi, d))  # the detector's heading may be reversed
         yaw = wrap_angle(yaw + c.yaw_gain * d)
+        travelled = np.hypot(*(self._x[tracks, :2] - self._origin[tracks]).T)
+        sure = sure | (moving & (travelled >= c.yaw_confirm_travel_m))
+        # a detector misplaces a vehicle's heading much the same way from frame to frame: the smoothed heading's
+        # error moves towards the detections' own, as a standard deviation (errors that persist add up linearly)
+        own = np.radians(np.where(sure, c.yaw_std_travelled_deg, c.yaw_std_deg))
+        sd = (1 - c.yaw_gain) * self._yaw_std[tracks] + c.yaw_gain * own
         if full > 0:  # towards the direction of motion, all the way from `full` on
             w = np.where(moving, np.clip((speed - low) / (full - low), 0.0, 1.0), 0.0)
             yaw = wrap_angle(yaw + w * wrap_angle(heading - yaw))
-        travelled = np.hypot(*(self._x[tracks, :2] - self._origin[tracks]).T)
+            # the direction of the velocity is as sure as the velocity across it (E's), over the speed
+            across = np.column_stack([-np.sin(heading), np.cos(heading)])
+            var_across = np.einsum("ti,tij,tj->t", across, self._e[tracks, 4:6, 4:6], across)
+            var_motion = var_across / np.maximum(speed, low) ** 2
+            sd = np.sqrt((1 - w) ** 2 * sd**2 + w**2 * var_motion)
+        self._yaw_std[tracks] = sd
         self._yaw[tracks] = yaw
         self._against[tracks] = np.where(flip, 0.0, held)
-        self._confirmed_yaw[tracks] = sure | (moving & (travelled >= c.yaw_confirm_travel_m))
+        self._confirmed_yaw[tracks] = sure
 
     def _vote(self, tracks: np.ndarray, vtype: np.ndarray, score: np.ndarray) -> None:
         need = int(vtype.max()) + 1
@@ -560,8 +590,8 @@ class Tracker:
 
     def _keep(self, keep: np.ndarray) -> None:
         for name in ("_x", "_p", "_e", "_b", "_ids", "_age", "_hits", "_streak", "_since_hit", "_last_hit_ns",
-                     "_confirmed", "_need", "_yaw", "_confirmed_yaw", "_origin", "_against", "_height", "_score",
-                     "_votes"):
+                     "_confirmed", "_need", "_yaw", "_confirmed_yaw", "_origin", "_against", "_yaw_std", "_height",
+                     "_score", "_votes"):
             setattr(self, name, getattr(self, name)[keep])
         self._cameras = [c for c, k in zip(self._cameras, keep, strict=True) if k]
 
@@ -616,6 +646,7 @@ class Tracker:
         self._confirmed_yaw = np.concatenate([self._confirmed_yaw, np.zeros(n, bool)])
         self._origin = np.concatenate([self._origin, z[:, :2]])
         self._against = np.concatenate([self._against, np.zeros(n)])
+        self._yaw_std = np.concatenate([self._yaw_std, np.full(n, math.radians(c.yaw_std_deg))])
         self._height = np.concatenate([self._height, objects.size_lwh[born, 2]])
         self._score = np.concatenate([self._score, objects.score[born]])
         self._votes = np.concatenate([self._votes, votes])
@@ -636,4 +667,5 @@ class Tracker:
             vtype=np.argmax(self._votes[show], axis=1).astype(np.int64) if len(show) else np.zeros(0, np.int64),
             score=self._score[show].copy(), age=self._age[show].copy(), hits=self._hits[show].copy(),
             cameras=[list(self._cameras[j]) for j in show], xy_cov=symmetric(cov),
-            velocity_cov=symmetric(self._e[show, 4:6, 4:6]), yaw_confirmed=self._confirmed_yaw[show].copy())
+            velocity_cov=symmetric(self._e[show, 4:6, 4:6]), yaw_confirmed=self._confirmed_yaw[show].copy(),
+            yaw_std=self._yaw_std[show].copy())
