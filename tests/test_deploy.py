@@ -211,6 +211,24 @@ def test_every_service_restarts_and_has_a_healthcheck():
     assert str(ROUTER_PORT) in router_test
 
 
+def _bytes(size: str) -> int:
+    """A Compose byte value ("512m", "4g", "256k", or a plain number of bytes) in bytes."""
+    m = re.fullmatch(r"(\d+)([bkmg]?)", str(size).lower())
+    assert m, f"not a Compose byte value: {size!r}"
+    return int(m.group(1)) * 1024 ** "bkmg".index(m.group(2) or "b")
+
+
+def test_every_service_has_a_memory_limit_well_above_its_budget():
+    """A leaking service is killed and restarted at its limit, not let starve the cabinet; the limit leaves room above
+    the issue's budget (150 MB resident for each service, 600 MB for detect): twice it at least."""
+    doc = _compose()
+    for name, svc in doc["services"].items():
+        assert "mem_limit" in svc, f"{name} has no mem_limit"
+    for name, svc in _app_services(doc).items():
+        assert _bytes(svc["mem_limit"]) >= 2 * (600 if name == "detect" else 150) * 2**20, name
+    assert _bytes("512m") == 512 * 2**20 and _bytes(1024) == 1024
+
+
 def test_every_service_waits_for_a_healthy_router():
     doc = _compose()
     for name, svc in _app_services(doc).items():
