@@ -241,6 +241,9 @@ class FuseTrackSettings(Strict):
     # track, never start one (a vehicle hidden from its region's camera keeps its track while a neighbour sees it;
     # chosen on the validation recording, docs/pipeline.md "Hidden from its own camera"). 0: dropped, the paper's rule
     extend_range_m: float = Field(50.0, ge=0)
+    # a fused object's heading weighs each camera's by yaw_range_m^2 / (yaw_range_m^2 + r^2), r the vehicle's distance
+    # from that camera: a detector's heading is the worse the farther (docs/pipeline.md, "Far headings"). 0: off
+    yaw_range_m: float = Field(20.0, ge=0)
     gate_m: float = Field(3.0, gt=0)  # largest track-to-measurement distance
     max_age_ticks: int = Field(3, ge=1)
     min_hits: int = Field(3, ge=1)
@@ -265,12 +268,10 @@ class FuseTrackSettings(Strict):
     # standing vehicle's jittering detections (docs/pipeline.md, "Front or back")
     yaw_confirm_travel_m: float = Field(3.0, ge=0, le=100)
     yaw_reverse_s: float = Field(1.0, ge=0, le=30)
-    # how far off (deg, 1 sigma, on its axis) the detector's heading of a standing vehicle is, one not seen travelling
-    # and one whose travel confirmed its heading: what such a track reports as its heading's error (Tracks.yaw_std; a
-    # moving track's comes from its velocity's). Chosen for the shipped detector (docs/pipeline.md, "How sure a
-    # heading is"); another detector may need its own
-    yaw_std_deg: float = Field(24.0, gt=0, le=90)
-    yaw_std_travelled_deg: float = Field(12.0, gt=0, le=90)
+    # how far off (deg, 1 sigma, on its axis) the detector's heading of a vehicle is: what a standing track reports as
+    # its heading's error (Tracks.yaw_std; a moving track's comes from its velocity's). Chosen for the shipped detector
+    # (docs/pipeline.md, "How sure a heading is"); another detector may need its own
+    yaw_std_deg: float = Field(14.0, gt=0, le=90)
     record: Path | None = None  # append every Tracks message to this JSON-lines file
     # at this size the recording is renamed <stem>.<n>.jsonl and a new one started (services/fuse_track/recorder.py);
     # 0: one file that grows for ever (about 4 MB a minute with the demo's four cameras)

@@ -297,8 +297,8 @@ def test_a_heading_confirmed_by_travel_is_not_reversed_by_a_standing_vehicles_ji
 def test_a_headings_sigma_is_the_detectors_until_the_vehicle_moves_and_its_velocitys_while_it_does():
     """yaw_std: a standing vehicle's is yaw_std_deg throughout (detections without jitter); one driving north at
     8 m/s with detections 0.3 m apart across its path gets its heading from its velocity, and the sigma with it: down
-    to the velocity's error across the motion over the speed (a few degrees), smaller at 16 m/s than at 8, and up to
-    yaw_std_travelled_deg once it has stopped (its detections' heading errors persist; its travel confirmed it)."""
+    to the velocity's error across the motion over the speed (a few degrees), smaller at 16 m/s than at 8, and back up
+    to yaw_std_deg once it has stopped (its detections' heading errors persist)."""
     rng = np.random.default_rng(3)
 
     def run(config: TrackerConfig, path: list[float], noise_m: float = 0.3) -> list[TrackState]:
@@ -318,8 +318,7 @@ def test_a_headings_sigma_is_the_detectors_until_the_vehicle_moves_and_its_veloc
                                                   rel=0.05)  # across a northward motion: east's variance
     fast = run(TrackerConfig(), [1.6 * k for k in range(40)])
     assert np.median([s.yaw_std[0] for s in fast[20:]]) < np.median([s.yaw_std[0] for s in moving])
-    travelled = math.radians(TrackerConfig().yaw_std_travelled_deg)
-    assert 0.9 * travelled < states[-1].yaw_std[0] <= travelled
+    assert 0.9 * sd < states[-1].yaw_std[0] <= sd
     assert np.all(np.diff([s.yaw_std[0] for s in states[55:]]) >= -1e-12)
     assert run(TrackerConfig(yaw_std_deg=20.0), [0.0] * 5, noise_m=0.0)[-1].yaw_std[0] == pytest.approx(
         math.radians(20.0))

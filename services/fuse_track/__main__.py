@@ -120,7 +120,7 @@ def fusion_config(cfg: FuseTrackSettings) -> FusionConfig:
     return FusionConfig(merge_gate_m=cfg.merge_gate_m, out_of_region_weight=cfg.out_of_region_weight,
                         position_sigma=cfg.position_sigma, crowded_sigma_factor=cfg.crowded_sigma_factor,
                         occlusion_fallback=cfg.occlusion_fallback, extend_range_m=cfg.extend_range_m,
-                        split_score=cfg.high_score)
+                        split_score=cfg.high_score, yaw_range_m=cfg.yaw_range_m)
 
 
 def tracker_config(cfg: FuseTrackSettings) -> TrackerConfig:
@@ -129,8 +129,7 @@ def tracker_config(cfg: FuseTrackSettings) -> TrackerConfig:
                          high_score=cfg.high_score, standing_hits=cfg.standing_hits,
                          relink_s=cfg.relink_s, relink_gate_m=cfg.relink_gate_m, bias_share=cfg.bias_share,
                          along_length_share=cfg.along_length_share, yaw_confirm_travel_m=cfg.yaw_confirm_travel_m,
-                         yaw_reverse_s=cfg.yaw_reverse_s, yaw_std_deg=cfg.yaw_std_deg,
-                         yaw_std_travelled_deg=cfg.yaw_std_travelled_deg)
+                         yaw_reverse_s=cfg.yaw_reverse_s, yaw_std_deg=cfg.yaw_std_deg)
 
 
 def new_tracker(settings: Settings) -> Tracker:

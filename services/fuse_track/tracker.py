@@ -71,11 +71,10 @@ a standing vehicle's detections jitter by a metre or two, and the filter's veloc
 reverse a waiting car's heading for good. docs/pipeline.md, "Front or back", has the measurements.
 
 How sure a heading is (`TrackState.yaw_std`, rad, 1 sigma of the heading's error on its axis: front and back are
-`yaw_confirmed`'s). The detector's heading of a vehicle is off by `yaw_std_deg` while the vehicle has not been seen
-travelling (parked cars above all) and by `yaw_std_travelled_deg` once its travel confirmed its heading (a vehicle
-that stopped in its lane): a new track reports the first. The detector misplaces a vehicle's heading much the same way
-from one frame to the next, so smoothing its detections does not shrink that error: at each hit the track's sigma
-moves towards the detector's by the yaw gain, as a standard deviation. Drawn towards the direction of motion by w
+`yaw_confirmed`'s). The detector's heading of a vehicle, fused over the cameras that see it, is off by `yaw_std_deg`:
+a new track reports that. The detector misplaces a vehicle's heading much the same way from one frame to the next, so
+smoothing its detections does not shrink that error: at each hit the track's sigma moves towards `yaw_std_deg` by the
+yaw gain, as a standard deviation. Drawn towards the direction of motion by w
 (0 to 1), the sigma becomes sqrt((1 - w)^2 sd^2 + w^2 var_motion), where var_motion, the direction's variance, is
 E's velocity variance across the motion over the speed squared. docs/pipeline.md, "How sure a heading is", has the
 measurements.
@@ -113,8 +112,7 @@ class TrackerConfig:
     speed from which the heading is the direction of motion (drawn towards it linearly from yaw_from_motion_mps; 0 =
     the detections' heading at any speed, motion only setting its sign); yaw_confirm_travel_m the distance from where
     a track was first seen that confirms its heading's sign, yaw_reverse_s how long a confirmed heading must be moved
-    against before it is turned round; yaw_std_deg and yaw_std_travelled_deg the detections' heading error (1 sigma,
-    on its axis) of a vehicle not seen travelling and of one whose travel confirmed its heading (module doc).
+    against before it is turned round; yaw_std_deg the detections' heading error, 1 sigma on its axis (module doc).
     high_score: objects scoring at least this are associated first and may start tracks; the others only
     extend confirmed tracks that the first round left unmatched (ByteTrack's second round: a vehicle the
     detector is unsure of in one frame keeps its track and id instead of breaking it); 0 = one round.
@@ -151,10 +149,9 @@ class TrackerConfig:
     # 3 m and 1 s: the middle of plateaus over 2-5 m and 0.5-2 s (docs/pipeline.md, "Front or back")
     yaw_confirm_travel_m: float = 3.0
     yaw_reverse_s: float = 1.0
-    # 24 and 12 deg: the best mean log-likelihood of the validation recordings' headings, on a plateau over 24-28 and
-    # 12-14 (docs/pipeline.md, "How sure a heading is")
-    yaw_std_deg: float = 24.0
-    yaw_std_travelled_deg: float = 12.0
+    # 14 deg: the best mean log-likelihood of the validation recordings' headings, on a plateau over 13-15
+    # (docs/pipeline.md, "How sure a heading is")
+    yaw_std_deg: float = 14.0
     high_score: float = 0.0
     standing_hits: int = 0
     # 3 s and 3 m: the middle of a plateau over 2-5 s and 3-4 m (mean validation IDF1 0.856 -> 0.865, id switches
@@ -168,8 +165,7 @@ class TrackerConfig:
 
     def __post_init__(self) -> None:
         positive = ("gate_m", "max_coast_s", "position_std_m", "size_std_m", "accel_std_mps2", "area_accel_std_m2ps2",
-                    "aspect_accel_std_ps2", "init_speed_std_mps", "turn_accel_std_mps2", "relink_gate_m", "yaw_std_deg",
-                    "yaw_std_travelled_deg")
+                    "aspect_accel_std_ps2", "init_speed_std_mps", "turn_accel_std_mps2", "relink_gate_m", "yaw_std_deg")
         for name in positive:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
@@ -519,12 +515,9 @@ class Tracker:
         d = wrap_angle(measured - yaw)
         d = wrap_angle(np.where(np.abs(d) > np.pi / 2, d + np.pi, d))  # the detector's heading may be reversed
         yaw = wrap_angle(yaw + c.yaw_gain * d)
-        travelled = np.hypot(*(self._x[tracks, :2] - self._origin[tracks]).T)
-        sure = sure | (moving & (travelled >= c.yaw_confirm_travel_m))
         # a detector misplaces a vehicle's heading much the same way from frame to frame: the smoothed heading's
         # error moves towards the detections' own, as a standard deviation (errors that persist add up linearly)
-        own = np.radians(np.where(sure, c.yaw_std_travelled_deg, c.yaw_std_deg))
-        sd = (1 - c.yaw_gain) * self._yaw_std[tracks] + c.yaw_gain * own
+        sd = (1 - c.yaw_gain) * self._yaw_std[tracks] + c.yaw_gain * math.radians(c.yaw_std_deg)
         if full > 0:  # towards the direction of motion, all the way from `full` on
             w = np.where(moving, np.clip((speed - low) / (full - low), 0.0, 1.0), 0.0)
             yaw = wrap_angle(yaw + w * wrap_angle(heading - yaw))
@@ -534,9 +527,10 @@ class Tracker:
             var_motion = var_across / np.maximum(speed, low) ** 2
             sd = np.sqrt((1 - w) ** 2 * sd**2 + w**2 * var_motion)
         self._yaw_std[tracks] = sd
+        travelled = np.hypot(*(self._x[tracks, :2] - self._origin[tracks]).T)
         self._yaw[tracks] = yaw
         self._against[tracks] = np.where(flip, 0.0, held)
-        self._confirmed_yaw[tracks] = sure
+        self._confirmed_yaw[tracks] = sure | (moving & (travelled >= c.yaw_confirm_travel_m))
 
     def _vote(self, tracks: np.ndarray, vtype: np.ndarray, score: np.ndarray) -> None:
         need = int(vtype.max()) + 1
