@@ -74,10 +74,9 @@ How sure a heading is (`TrackState.yaw_std`, rad, 1 sigma of the heading's error
 `yaw_confirmed`'s). The detector's heading of a vehicle, fused over the cameras that see it, is off by `yaw_std_deg`:
 a new track reports that. The detector misplaces a vehicle's heading much the same way from one frame to the next, so
 smoothing its detections does not shrink that error: at each hit the track's sigma moves towards `yaw_std_deg` by the
-yaw gain, as a standard deviation. Drawn towards the direction of motion by w
-(0 to 1), the sigma becomes sqrt((1 - w)^2 sd^2 + w^2 var_motion), where var_motion, the direction's variance, is
-E's velocity variance across the motion over the speed squared. docs/pipeline.md, "How sure a heading is", has the
-measurements.
+yaw gain, as a standard deviation. Drawn towards the direction of motion by w (0 to 1), the sigma becomes
+sqrt((1 - w)^2 sd^2 + w^2 var_motion), where var_motion, the direction's variance, is E's velocity variance across the
+motion over the speed squared. docs/pipeline.md, "How sure a heading is", has the measurements.
 """
 
 from __future__ import annotations
