@@ -27,7 +27,8 @@ the path is not counted), averaged; `traj_err_out_roi_m` the same for matched po
 tracks carry a `yaw` (rad, ENU, counter-clockwise from east): the full-circle angle to the vehicle's true heading
 at its ground-truth sample nearest the tick (a reversed heading is 180 deg); `yaw_err_in_roi_moving_deg` and
 `_standing_deg` split it at `moving_mps` of true speed; `yaw_confirmed_*`, `yaw_reversed_*` and
-`yaw_err_(un)confirmed_deg` split it by the tracks' `yaw_confirmed` (`yaw_confirmed_measure`).
+`yaw_err_(un)confirmed_deg` split it by the tracks' `yaw_confirmed` (`yaw_confirmed_measure`); `yaw_std_*` score
+the tracks' `yaw_std` against those errors on the heading's axis (`yaw_std_measure`).
 `pos_cov_*`: how well the tracks' own position uncertainty (`xy_cov`, m^2, where the tracks carry one) describes
 their error, over the same matched positions in the ROI: with d the time-synchronised error and C the covariance,
 d' C^-1 d is chi-square with 2 degrees of freedom when C is right, so `pos_cov_nees_mean` should be 2,
