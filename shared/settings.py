@@ -241,9 +241,10 @@ class FuseTrackSettings(Strict):
     # track, never start one (a vehicle hidden from its region's camera keeps its track while a neighbour sees it;
     # chosen on the validation recording, docs/pipeline.md "Hidden from its own camera"). 0: dropped, the paper's rule
     extend_range_m: float = Field(50.0, ge=0)
-    # a fused object's heading weighs each camera's by yaw_range_m^2 / (yaw_range_m^2 + r^2), r the vehicle's distance
-    # from that camera: a detector's heading is the worse the farther (docs/pipeline.md, "Far headings"). 0: off
-    yaw_range_m: float = Field(20.0, ge=0)
+    # a fused object's heading and size weigh each camera's by yaw_size_range_m^2 / (yaw_size_range_m^2 + r^2), r the
+    # vehicle's distance from that camera: a detector's are the worse the farther (docs/pipeline.md, "Far headings and
+    # sizes"). 0: off
+    yaw_size_range_m: float = Field(20.0, ge=0)
     gate_m: float = Field(3.0, gt=0)  # largest track-to-measurement distance
     max_age_ticks: int = Field(3, ge=1)
     min_hits: int = Field(3, ge=1)

@@ -197,24 +197,32 @@ def test_fusion_aligns_reversed_headings_and_brings_objects_to_a_common_time():
     assert len(without) == 1
 
 
-def test_a_far_cameras_heading_counts_less_in_the_fused_one():
-    """A vehicle 20 m from camera A (its region's) and 40 m from B: B's heading weighs 0.5 (out of its region) over
-    1 + (40 / 20)^2 against A's 1 over 1 + 1 with yaw_range_m 20 m; with yaw_range_m 0 as in the position (0.5 and
-    1), which stays the same either way."""
+def test_a_far_cameras_heading_and_size_count_less_in_the_fused_ones():
+    """A vehicle 20 m from camera A (its region's) and 40 m from B: B's heading and size weigh 0.5 (out of its
+    region) over 1 + (40 / 20)^2 against A's 1 over 1 + 1 with yaw_size_range_m 20 m; with yaw_size_range_m 0 as in the
+    position (0.5 and 1), which stays the same either way."""
     cameras = [CameraRegion("A", (-20.0, 0.0)), CameraRegion("B", (40.0, 0.0))]
-    objects = ObjectBatch.concat([frame("A", 0, [[0.0, 0.0]], yaw=0.0), frame("B", 0, [[0.0, 0.0]], yaw=0.3)])
+
+    def seen(camera: str, yaw: float, length: float) -> ObjectBatch:
+        return ObjectBatch.from_frame(camera, 0, np.zeros((1, 2)), np.array([yaw]), np.array([[length, 1.8, 1.5]]),
+                                      np.zeros(1, np.int64), np.array([0.9]))
+
+    objects = ObjectBatch.concat([seen("A", 0.0, 4.5), seen("B", 0.3, 6.0)])
 
     def circular_mean(w_a: float, w_b: float) -> float:
         return math.atan2(w_b * math.sin(0.3), w_a + w_b * math.cos(0.3))
 
     ranged = Fusion(cameras).fuse(objects, 0)
-    plain = Fusion(cameras, FusionConfig(yaw_range_m=0.0)).fuse(objects, 0)
+    plain = Fusion(cameras, FusionConfig(yaw_size_range_m=0.0)).fuse(objects, 0)
     assert len(ranged) == len(plain) == 1
     assert ranged.yaw[0] == pytest.approx(circular_mean(1 / 2, 0.5 / 5))
     assert plain.yaw[0] == pytest.approx(circular_mean(1.0, 0.5))
+    assert ranged.size_lwh[0, 0] == pytest.approx((4.5 / 2 + 6.0 * 0.5 / 5) / (1 / 2 + 0.5 / 5))
+    assert plain.size_lwh[0, 0] == pytest.approx((4.5 + 6.0 * 0.5) / 1.5)
+    np.testing.assert_allclose(ranged.size_lwh[0, 1:], [1.8, 1.5])
     np.testing.assert_allclose(ranged.xy, plain.xy)
-    with pytest.raises(ValueError, match="yaw_range_m must be >= 0"):
-        FusionConfig(yaw_range_m=-1.0)
+    with pytest.raises(ValueError, match="yaw_size_range_m must be >= 0"):
+        FusionConfig(yaw_size_range_m=-1.0)
 
 
 def test_fusion_of_an_empty_tick_and_of_unknown_cameras():

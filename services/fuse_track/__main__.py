@@ -120,7 +120,7 @@ def fusion_config(cfg: FuseTrackSettings) -> FusionConfig:
     return FusionConfig(merge_gate_m=cfg.merge_gate_m, out_of_region_weight=cfg.out_of_region_weight,
                         position_sigma=cfg.position_sigma, crowded_sigma_factor=cfg.crowded_sigma_factor,
                         occlusion_fallback=cfg.occlusion_fallback, extend_range_m=cfg.extend_range_m,
-                        split_score=cfg.high_score, yaw_range_m=cfg.yaw_range_m)
+                        split_score=cfg.high_score, yaw_size_range_m=cfg.yaw_size_range_m)
 
 
 def tracker_config(cfg: FuseTrackSettings) -> TrackerConfig:

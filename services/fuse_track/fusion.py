@@ -27,11 +27,11 @@ default), optionally cut at `max_range_m`. Then, for the objects of one tick:
    just in front of it, between it and its camera, counts with `crowded_sigma_factor` times its sigmas: the
    detector places such a vehicle, in a queue or beside a neighbour, worse, above all across the line of sight);
    yaw the weighted circular mean after
-   aligning 180-degree reversals to the heaviest member, each member's weight there times
-   yaw_range_m^2 / (yaw_range_m^2 + r^2), r its distance from its camera (the detector's heading of a vehicle is the
-   worse the farther it is: the shipped fisheye detector's is off by 9-11 deg rms within 20 m, 22-27 deg at 20-45 m
-   and 39 deg at 45-70 m; docs/pipeline.md, "Far headings"), size the weighted mean, type the weighted vote,
-   score the maximum; `sources` lists its cameras; with `position_sigma`, `xy_cov` is the covariance of its
+   aligning 180-degree reversals to the heaviest member, size the weighted mean, each member's weight in both times
+   yaw_size_range_m^2 / (yaw_size_range_m^2 + r^2), r its distance from its camera (the detector's heading and size
+   of a vehicle are the worse the farther it is: the shipped fisheye detector's heading is off by 9-11 deg rms within
+   20 m, 22-27 deg at 20-45 m and 39 deg at 45-70 m; docs/pipeline.md, "Far headings and sizes"), type the weighted
+   vote, score the maximum; `sources` lists its cameras; with `position_sigma`, `xy_cov` is the covariance of its
    position's error that its members' error model implies (the tracker turns it into each track's, to report).
 
 A fused object is stated at its members' weighted mean capture time `t_ns` (each member shifted
@@ -307,8 +307,8 @@ class FusionConfig:
     split_score: objects below it are fused only with each other, those at or above it only with each other
     (for the tracker's two rounds, `TrackerConfig.high_score`: a low-score object inside its camera's region
     would otherwise let a high-score one from outside it join its group and start a track; 0 = one pool);
-    yaw_range_m: a member's weight in its group's heading falls with its distance r from its camera as
-    yaw_range_m^2 / (yaw_range_m^2 + r^2) (module doc, 4; 0 = the same weight as in its position)."""
+    yaw_size_range_m: a member's weight in its group's heading and size falls with its distance r from its camera as
+    yaw_size_range_m^2 / (yaw_size_range_m^2 + r^2) (module doc, 4; 0 = the same weight as in its position)."""
 
     merge_gate_m: float = 3.0
     out_of_region_weight: float = 0.5
@@ -322,8 +322,8 @@ class FusionConfig:
     extend_range_m: float = 0.0
     split_score: float = 0.0
     # 20 m: the far end of a plateau over 5-20 m of the validation recordings' median heading errors, a mean 2.9 deg
-    # lower than without (docs/pipeline.md, "Far headings")
-    yaw_range_m: float = 20.0
+    # lower than without, and as good as 10 m for the sizes (docs/pipeline.md, "Far headings and sizes")
+    yaw_size_range_m: float = 20.0
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.merge_gate_m) and self.merge_gate_m > 0):
@@ -340,7 +340,7 @@ class FusionConfig:
         object.__setattr__(self, "crowd_ahead_m", (float(ahead[0]), float(ahead[1])))
         if not (np.isfinite(self.crowd_across_m) and self.crowd_across_m > 0):
             raise ValueError(f"crowd_across_m must be > 0, got {self.crowd_across_m}")
-        for name in ("extend_range_m", "yaw_range_m"):
+        for name in ("extend_range_m", "yaw_size_range_m"):
             if not (np.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("min_score", "split_score"):
@@ -611,16 +611,17 @@ class Fusion:
         anchor_yaw = objects.yaw[kept][first]
         d = wrap_angle(objects.yaw[kept] - anchor_yaw[lab])
         d = wrap_angle(np.where(np.abs(d) > np.pi / 2, d + np.pi, d))  # a reversed heading counts as the same
-        w_yaw = w
-        if self.config.yaw_range_m > 0:  # the farther from its camera, the less a member's heading counts
+        w_view = w
+        if self.config.yaw_size_range_m > 0:  # the farther from its camera, the less a member's heading and size count
             cam = cam_idx[kept]
             r2 = np.zeros(len(kept))
             located = cam >= 0
             r2[located] = np.sum((objects.xy[kept][located] - self._pos[cam[located]]) ** 2, axis=1)
-            w_yaw = w / (1.0 + r2 / self.config.yaw_range_m**2)
-        mean_d = np.arctan2(np.bincount(lab, w_yaw * np.sin(d), g), np.bincount(lab, w_yaw * np.cos(d), g))
+            w_view = w / (1.0 + r2 / self.config.yaw_size_range_m**2)
+        mean_d = np.arctan2(np.bincount(lab, w_view * np.sin(d), g), np.bincount(lab, w_view * np.cos(d), g))
         yaw = wrap_angle(anchor_yaw + mean_d)
-        size = np.stack([np.bincount(lab, w * objects.size_lwh[kept, k], g) for k in range(3)], 1) / wsum[:, None]
+        size = np.stack([np.bincount(lab, w_view * objects.size_lwh[kept, k], g) for k in range(3)], 1)
+        size /= np.bincount(lab, w_view, g)[:, None]
         votes = np.zeros((g, int(objects.vtype[kept].max()) + 1))
         np.add.at(votes, (lab, objects.vtype[kept]), w)
         score = np.zeros(g)
