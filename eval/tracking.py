@@ -49,7 +49,7 @@ import itertools
 import json
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -90,6 +90,12 @@ class TrackLine:
 
     def keys(self) -> list[tuple[str, int]]:
         return [(self.tracker, i) for i in self.ids]
+
+    def subset(self, keep: np.ndarray) -> TrackLine:
+        """The tracks where `keep` (N,) bool is set."""
+        arrays = {f.name: getattr(self, f.name)[keep] for f in fields(self)
+                  if isinstance(getattr(self, f.name), np.ndarray)}
+        return replace(self, ids=[i for i, k in zip(self.ids, keep, strict=True) if k], **arrays)
 
 
 def _is_int(v: Any) -> bool:
@@ -192,12 +198,8 @@ class FrameMatch:
     gt_xy: dict[Any, np.ndarray]
     track_xy: dict[tuple[str, int], np.ndarray]
     matched: dict[Any, tuple[str, int]]  # GT id -> track identity, for the matched GT objects
-    track_yaw: dict[tuple[str, int], float] = field(default_factory=dict)  # the scored tracks' headings (rad)
-    track_cov: dict[tuple[str, int], np.ndarray] = field(default_factory=dict)  # their xy_cov (2, 2), m^2
-    track_vel: dict[tuple[str, int], np.ndarray] = field(default_factory=dict)  # velocity (2,) and its covariance
-    track_vel_cov: dict[tuple[str, int], np.ndarray] = field(default_factory=dict)
-    track_yaw_confirmed: dict[tuple[str, int], float] = field(default_factory=dict)  # 1.0 / 0.0 / NaN (TrackLine)
-    track_yaw_std: dict[tuple[str, int], float] = field(default_factory=dict)  # rad, NaN where a track has none
+    tracks: TrackLine | None = None  # the scored tracks, in track_xy's order: what else the line gives of them
+    row: dict[tuple[str, int], int] = field(default_factory=dict)  # track identity -> its row in `tracks`
 
 
 @dataclass
@@ -246,8 +248,7 @@ def match_tracks(ground_truth: GroundTruth, tracks: str | Path | Iterable, camer
         if line is None:  # a silent tick: no tracks
             line = _parse_line({"t_ns": t, "tracker": "", "tracks": []}, "silent tick")
         keys = line.keys()
-        h_xy, h_yaw, h_cov, h_vel, h_vcov, h_sure, h_sd = (line.xy, line.yaw, line.cov, line.vel, line.vel_cov,
-                                                           line.yaw_confirmed, line.yaw_std)
+        h_xy = line.xy
         res.track_identities.update(keys)
         if cfg.ignore_unscored_tracks and len(keys):
             d2_gt = np.sum((h_xy[:, None, :] - g_xy[None, :, :]) ** 2, axis=2)
@@ -258,9 +259,8 @@ def match_tracks(ground_truth: GroundTruth, tracks: str | Path | Iterable, camer
             outside = ~gt.in_area(h_xy, cams, cfg)
             keep = near_gt | ~(near_other | outside)
             res.ignored_track_positions += int(np.sum(~keep))
-            keys = [k for k, ok in zip(keys, keep, strict=True) if ok]
-            h_xy, h_yaw, h_cov, h_vel, h_vcov, h_sure, h_sd = (h_xy[keep], h_yaw[keep], h_cov[keep], h_vel[keep],
-                                                               h_vcov[keep], h_sure[keep], h_sd[keep])
+            line = line.subset(keep)
+            keys, h_xy = line.keys(), line.xy
         oids = [gt_index.setdefault(v, len(gt_index)) for v in gids]
         hids = [hyp_index.setdefault(k, len(hyp_index)) for k in keys]
         if oids and hids:
@@ -269,13 +269,8 @@ def match_tracks(ground_truth: GroundTruth, tracks: str | Path | Iterable, camer
             dist = np.empty((len(oids), len(hids)))
         res.accumulator.update(oids, hids, dist, frameid=frame_id)
         res.frames.append(FrameMatch(t, {v: g_xy[i] for i, v in enumerate(gids)},
-                                     {k: h_xy[i] for i, k in enumerate(keys)}, {},
-                                     {k: float(h_yaw[i]) for i, k in enumerate(keys)},
-                                     {k: h_cov[i] for i, k in enumerate(keys)},
-                                     {k: h_vel[i] for i, k in enumerate(keys)},
-                                     {k: h_vcov[i] for i, k in enumerate(keys)},
-                                     {k: float(h_sure[i]) for i, k in enumerate(keys)},
-                                     {k: float(h_sd[i]) for i, k in enumerate(keys)}))
+                                     {k: h_xy[i] for i, k in enumerate(keys)}, {}, line,
+                                     {k: i for i, k in enumerate(keys)}))
     if res.frames:
         ev = res.accumulator.mot_events
         ev = ev[ev.Type.isin(_MATCH_TYPES)]
@@ -442,23 +437,24 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
             d = gt.trajectories[v].distance_to_path(xy, fm.t_ns, window, gap)
             (err_in if roi else err_out).append(d)
             pos_err.append(float(np.linalg.norm(xy - fm.gt_xy[v])))
-            cov = fm.track_cov.get(fm.matched[v])
-            if roi and cov is not None and np.isfinite(cov).all():
+            tr, j = fm.tracks, fm.row[fm.matched[v]]
+            cov = tr.cov[j]
+            if roi and np.isfinite(cov).all():
                 e = xy - fm.gt_xy[v]
                 nees.append(float(e @ np.linalg.solve(cov, e)))
                 err95.append(float(err95_m(cov)))
-            tracked = fm.track_yaw.get(fm.matched[v], math.nan)
+            tracked = float(tr.yaw[j])
             true, speed = gt.trajectories[v].heading_at(fm.t_ns)
-            vel, vcov = fm.track_vel.get(fm.matched[v]), fm.track_vel_cov.get(fm.matched[v])
-            if (roi and vel is not None and vcov is not None and np.isfinite(vel).all() and np.isfinite(vcov).all()
-                    and math.isfinite(true) and math.isfinite(speed)):
+            vel, vcov = tr.vel[j], tr.vel_cov[j]
+            if (roi and np.isfinite(vel).all() and np.isfinite(vcov).all() and math.isfinite(true)
+                    and math.isfinite(speed)):
                 e = vel - speed * np.array([math.cos(true), math.sin(true)])
                 vel_nees.append(float(e @ np.linalg.solve(vcov, e)))
             if roi and math.isfinite(tracked) and math.isfinite(true):
                 yaw_err.append(math.degrees(abs((tracked - true + math.pi) % (2 * math.pi) - math.pi)))
                 yaw_moving.append(speed >= cfg.moving_mps)
-                yaw_sure.append(fm.track_yaw_confirmed.get(fm.matched[v], math.nan))
-                yaw_sd.append(math.degrees(fm.track_yaw_std.get(fm.matched[v], math.nan)))
+                yaw_sure.append(float(tr.yaw_confirmed[j]))
+                yaw_sd.append(math.degrees(tr.yaw_std[j]))
     for name, vals in (("in_roi", err_in), ("out_roi", err_out)):
         m, sd = _mean_std(vals)
         out[f"traj_err_{name}_m"], out[f"traj_err_{name}_std_m"], out[f"traj_err_{name}_n"] = m, sd, len(vals)
