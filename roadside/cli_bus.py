@@ -53,8 +53,8 @@ def _add_tracks(sub) -> None:
     p = sub.add_parser("tracks", help="print live tracks (what a connected vehicle receives)",
                        description="Print live tracks: per track its id, type, position with the longest half-axis "
                        "of its 95 % error ellipse (+- m), heading (rad, counter-clockwise from east; '?' after it: "
-                       "the vehicle has not been seen travelling, so front and back may be swapped), speed and the "
-                       "cameras that saw it.")
+                       "the vehicle has not been seen travelling, so front and back may be swapped), speed, how far "
+                       "off the heading's axis may be (+- deg, 1 sigma: yaw_std) and the cameras that saw it.")
     _add_endpoint_flags(p, "the local fuse_track")
     p.add_argument("--count", type=positive_int, help="stop after this many messages")
     p.add_argument("--timeout", type=positive_float, help="stop after this many seconds without tracks")

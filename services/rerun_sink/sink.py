@@ -29,13 +29,13 @@ A tracks file is JSON lines, one Tracks message per line, as `Tracks.rows()` giv
 
     {"site": str, "seq": int, "t_ns": int, "tracker": str,
      "tracks": [{"id", "x", "y", "lat", "lon", "vx", "vy", "yaw", "length", "width", "height", "type",
-                 "score", "age", "hits", "cameras", "xy_cov", "yaw_confirmed"}, ...]}
+                 "score", "age", "hits", "cameras", "xy_cov", "yaw_confirmed", "yaw_std"}, ...]}
 
 x, y: metres, site ENU frame; yaw: radians, counter-clockwise from east; length, width, height: metres;
-vx, vy: m/s; xy_cov (optional): [[a, b], [b, c]] m^2; yaw_confirmed (optional): true or false. `t_capture_ns` is
-accepted for `t_ns`. A row without x, y but with lat, lon is placed with the site origin, when one is given. Lines
-that are not such messages (bad JSON, missing keys, NaN or infinite numbers, a covariance that is none, another
-site) are skipped and counted.
+vx, vy: m/s; xy_cov (optional): [[a, b], [b, c]] m^2; yaw_confirmed (optional): true or false; yaw_std (optional):
+rad > 0 (read, not drawn). `t_capture_ns` is accepted for `t_ns`. A row without x, y but with lat, lon is placed
+with the site origin, when one is given. Lines that are not such messages (bad JSON, missing keys, NaN or infinite
+numbers, a covariance that is none, another site) are skipped and counted.
 """
 
 from __future__ import annotations
