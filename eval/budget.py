@@ -47,7 +47,8 @@ SCENARIOS = ("as_run", "exact_lift", "true_positions", "no_false_alarms", "true_
              "true_long_vehicles", "truth")
 LONG_VEHICLES = ("bus", "truck")
 FOOTPRINT_MARGIN_M = 0.5  # an object this close to a long vehicle's footprint is taken to be of it
-SCORES = ("mota", "idf1", "id_switches", "precision", "recall", "traj_err_in_roi_m", "yaw_err_in_roi_deg")
+SCORES = ("mota", "idf1", "id_switches", "precision", "recall", "traj_err_in_roi_m", "yaw_err_in_roi_deg",
+          "yaw_err_in_roi_median_deg", "yaw_std_within_95", "yaw_std_loglik")
 OBJECT_KEYS = ("camera", "seq", "t_ns", "xy", "yaw", "size_lwh", "vtype", "score")
 TRUTH_SCORE = 0.9  # the score of a `truth` object: above any threshold a site uses
 
