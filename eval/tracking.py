@@ -33,7 +33,10 @@ the tracks' `yaw_std` against those errors on the heading's axis (`yaw_std_measu
 their error, over the same matched positions in the ROI: with d the time-synchronised error and C the covariance,
 d' C^-1 d is chi-square with 2 degrees of freedom when C is right, so `pos_cov_nees_mean` should be 2,
 `pos_cov_within_1sigma` 0.393 (the 1-sigma ellipse), `pos_cov_within_95` 0.95 (the 95 % ellipse, d' C^-1 d <= 5.991);
-`pos_cov_err95_median_m` is the median of the 95 % ellipses' longest half-axes, what a vehicle is told.
+`pos_cov_err95_median_m` is the median of the 95 % ellipses' longest half-axes, what a vehicle is told;
+`pos_cov_loglik` the mean log-likelihood (nats) of the true positions under the stated Gaussians, a proper score
+(higher is better: it rewards a covariance for being right and for being tight); `pos_cov_by_type` the same keys
+for each true vehicle type present.
 `vel_cov_*` the same for the velocity (`vx`, `vy` and `velocity_cov`) against the vehicle's true velocity (its speed
 along its heading at its ground-truth sample nearest the tick).
 
@@ -375,15 +378,20 @@ def yaw_std_measure(err_deg: np.ndarray, std_deg: np.ndarray) -> dict:
             "yaw_std_median_deg": float(np.median(sd)) if n else nan}
 
 
-def covariance_measure(nees: np.ndarray, err95_m: np.ndarray | None = None, prefix: str = "pos_cov") -> dict:
+def covariance_measure(nees: np.ndarray, err95_m: np.ndarray | None = None, prefix: str = "pos_cov",
+                       logdet: np.ndarray | None = None) -> dict:
     """`pos_cov_*` (module docstring; `prefix` names them) of the squared Mahalanobis distances `nees` of matched
-    positions under their tracks' covariances, and with `err95_m` the median of the covariances' 95 % half-axes; NaN
-    where there are none."""
+    positions under their tracks' covariances, with `err95_m` the median of the covariances' 95 % half-axes and with
+    `logdet` (the covariances' log-determinants) the mean log-likelihood of the 2D errors; NaN where there are
+    none."""
     out = {f"{prefix}_n": len(nees), f"{prefix}_nees_mean": float(nees.mean()) if len(nees) else math.nan,
            f"{prefix}_within_1sigma": float(np.mean(nees <= 1.0)) if len(nees) else math.nan,
            f"{prefix}_within_95": float(np.mean(nees <= CHI2_2DOF_95)) if len(nees) else math.nan}
     if err95_m is not None:
         out[f"{prefix}_err95_median_m"] = float(np.median(err95_m)) if len(err95_m) else math.nan
+    if logdet is not None:
+        out[f"{prefix}_loglik"] = (float(np.mean(-0.5 * nees - 0.5 * logdet - math.log(2 * math.pi)))
+                                   if len(nees) else math.nan)
     return out
 
 
@@ -426,7 +434,7 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
     gap = gt.max_gap_ns(cfg)
     err_in, err_out, pos_err = [], [], []
     yaw_err, yaw_moving, yaw_sure, yaw_sd = [], [], [], []
-    nees, err95, vel_nees = [], [], []
+    nees, err95, logdet, nees_type, vel_nees = [], [], [], [], []
     for fm in res.frames:
         if not fm.matched:
             continue
@@ -443,6 +451,8 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
                 e = xy - fm.gt_xy[v]
                 nees.append(float(e @ np.linalg.solve(cov, e)))
                 err95.append(float(err95_m(cov)))
+                logdet.append(float(np.linalg.slogdet(cov)[1]))
+                nees_type.append(gt.trajectories[v].type)
             tracked = float(tr.yaw[j])
             true, speed = gt.trajectories[v].heading_at(fm.t_ns)
             vel, vcov = tr.vel[j], tr.vel_cov[j]
@@ -467,7 +477,12 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
         out[f"yaw_err_in_roi_{name}_deg"] = float(yaw_err_a[part].mean()) if part.any() else math.nan
     out.update(yaw_confirmed_measure(yaw_err_a, np.array(yaw_sure, float)))
     out.update(yaw_std_measure(yaw_err_a, np.array(yaw_sd, float)))
-    out.update(covariance_measure(np.array(nees), np.array(err95)))
+    nees_a, err95_a, logdet_a, nees_type_a = np.array(nees), np.array(err95), np.array(logdet), np.array(nees_type)
+    out.update(covariance_measure(nees_a, err95_a, logdet=logdet_a))
+    out["pos_cov_by_type"] = {
+        name: covariance_measure(nees_a[nees_type_a == name], err95_a[nees_type_a == name],
+                                 logdet=logdet_a[nees_type_a == name])
+        for name in sorted(set(nees_type))}
     out.update(covariance_measure(np.array(vel_nees), prefix="vel_cov"))
     scored = {k for fm in res.frames for k in fm.track_xy}
     out.update({

@@ -174,12 +174,13 @@ def test_tracked_heading_error_is_full_circle_and_split_by_speed(gt):
 def test_a_tracks_position_covariance_is_scored_against_its_error(gt):
     """Tracks off their vehicle by draws of a known covariance, stating it: about 95 % of the true positions inside
     their 95 % ellipses and a mean squared Mahalanobis distance near 2; stating a covariance four times too small
-    (sigmas halved): far fewer, and 4 times the distance. Tracks without one are not scored; a malformed one is
-    named."""
+    (sigmas halved): far fewer, 4 times the distance and a lower log-likelihood; the same by true type. Tracks
+    without one are not scored; a malformed one is named."""
     rng = np.random.default_rng(1)
     cov = np.array([[0.09, 0.05], [0.05, 0.25]])
     draws = {(v, k): rng.multivariate_normal([0, 0], cov) for v in GT_IDS for k in range(N_FRAMES)}
     rows = make_rows(offset=lambda v, k: draws[(v, k)])
+    loglik = []
     for stated, within in ((cov, (0.9, 1.0)), (cov / 4, (0.3, 0.7))):
         for row in rows:
             for t in row["tracks"]:
@@ -190,6 +191,14 @@ def test_a_tracks_position_covariance_is_scored_against_its_error(gt):
         scale = 1 if stated is cov else 4
         assert r["pos_cov_nees_mean"] == pytest.approx(2 * scale, rel=0.2)
         assert r["pos_cov_err95_median_m"] == pytest.approx(np.sqrt(5.991 * np.linalg.eigvalsh(stated).max()))
+        expected = -0.5 * 2 * scale - 0.5 * math.log(np.linalg.det(stated)) - math.log(2 * math.pi)
+        assert r["pos_cov_loglik"] == pytest.approx(expected, abs=0.2 * scale)
+        loglik.append(r["pos_cov_loglik"])
+        by_type = r["pos_cov_by_type"]
+        assert by_type and sum(t["pos_cov_n"] for t in by_type.values()) == r["pos_cov_n"]
+        assert all(set(t) == {k for k in r if k.startswith("pos_cov_") and k != "pos_cov_by_type"}
+                   for t in by_type.values())
+    assert loglik[0] > loglik[1] + 0.5  # right beats too sure
     assert r["pos_cov_within_1sigma"] < r["pos_cov_within_95"]
     for row in rows:
         for t in row["tracks"]:
