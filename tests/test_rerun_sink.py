@@ -12,7 +12,7 @@ import pytest
 import rerun as rr
 
 from services.rerun_sink import Basemap, TrackSink, live, parse_tracks_message, track_color, tracks_file_to_rrd
-from services.rerun_sink.sink import ellipses_xy, footprint_strips
+from services.rerun_sink.sink import ellipses_xy, footprint_strips, heading_fans
 from shared.geo import GeoFrame
 
 T0_NS = 1_700_000_000_000_000_000
@@ -44,6 +44,7 @@ def _message(k: int, tracker: str = "ft0", ids: tuple[int, ...] = (3, 7)) -> dic
                 "hits": k,
                 "cameras": ["NE"],
                 "xy_cov": [[0.09, 0.01], [0.01, 0.04]],
+                **({"yaw_std": 0.1, "yaw_confirmed": False} if tid == 3 else {}),  # the other track has neither
             }
         )
     return {"site": "s1", "seq": k, "t_ns": T0_NS + k * DT_NS, "tracker": tracker, "tracks": rows}
@@ -93,6 +94,7 @@ def test_tracks_file_to_rrd_counts_bad_lines_and_writes_the_entities(tracks_file
         "/world/tracks/ft0/positions",
         "/world/tracks/ft0/footprints",
         "/world/tracks/ft0/uncertainty",
+        "/world/tracks/ft0/heading",
         "/plots/speed/ft0/3",
         "/plots/speed/ft0/7",
         "/plots/tracks/ft0",
@@ -190,6 +192,23 @@ def test_an_uncertainty_ellipse_is_the_95_percent_contour_of_its_covariance() ->
     d = ring - np.array([[10.0, 2.0], [-5.0, 0.0]])[:, None]
     np.testing.assert_allclose(np.einsum("npi,nij,npj->np", d, np.linalg.inv(cov), d), 5.991)  # on the contour
     assert np.abs(d[1, :, 0]).max() == pytest.approx(np.sqrt(5.991) * 2.0)  # 2 m sigma east: 4.9 m half-axis
+
+
+def test_a_heading_fan_spans_its_95_percent_interval_and_both_ways_when_not_confirmed() -> None:
+    """Two tracks: one heading north with a 5 deg sigma, confirmed: one fan, +-9.8 deg, reaching 3 m; one heading
+    east with a 60 deg sigma, not confirmed: capped at +-90 deg, drawn ahead and behind."""
+    fans, owner = heading_fans(np.array([0.0, 10.0]), np.array([0.0, 5.0]), np.array([math.pi / 2, 0.0]),
+                               np.array([3.0, 4.0]), np.radians([5.0, 60.0]), np.array([False, True]), points=5)
+    assert owner.tolist() == [0, 1, 1] and all(f.shape == (7, 2) for f in fans)
+    for fan, centre in zip(fans, ([0.0, 0.0], [10.0, 5.0], [10.0, 5.0]), strict=True):
+        np.testing.assert_allclose(fan[0], centre)
+        np.testing.assert_allclose(fan[-1], centre)  # closed at the centre
+    arc = fans[0][1:-1]
+    np.testing.assert_allclose(np.hypot(*arc.T), 3.0)
+    bearings = np.degrees(np.arctan2(arc[:, 1], arc[:, 0]))
+    np.testing.assert_allclose(bearings[[0, 2, 4]], [90 - 1.96 * 5, 90, 90 + 1.96 * 5])
+    np.testing.assert_allclose(fans[1][1:-1][[0, 4]], [[10.0, 1.0], [10.0, 9.0]], atol=1e-12)  # +-90 deg, 4 m
+    np.testing.assert_allclose(fans[2][3], [6.0, 5.0])  # behind: its middle points west
 
 
 def test_a_track_whose_heading_is_not_confirmed_is_drawn_without_its_front() -> None:

@@ -15,6 +15,10 @@ View layout (the blueprint `TrackSink.blueprint()` builds):
       counts as confirmed), a segment from the centre to the front
     - `world/tracks/<tracker>/uncertainty` LineStrips3D, per track that carries `xy_cov` the ellipse that holds
       its true position with 95 % probability (docs/wire-format.md, "Position uncertainty")
+    - `world/tracks/<tracker>/heading` LineStrips3D, per track that carries `yaw_std` a fan from its centre over
+      its heading +- 1.96 sigma (the 95 % interval, at most +- 90 deg), reaching `HEADING_REACH_M` beyond its
+      front; where its heading is not confirmed (`yaw_confirmed` false) the fan is drawn behind it too, as the
+      vehicle may face either way
   Every track has its own colour, from a stable hash of (tracker, id), and the label "<id> <type>" on all
   three (shown on the point, on hover for the lines). Each message replaces its tracker's drawings, so a
   track that ended leaves the view at the next message but stays in the recording (scrub back to see it).
@@ -33,7 +37,7 @@ A tracks file is JSON lines, one Tracks message per line, as `Tracks.rows()` giv
 
 x, y: metres, site ENU frame; yaw: radians, counter-clockwise from east; length, width, height: metres;
 vx, vy: m/s; xy_cov (optional): [[a, b], [b, c]] m^2; yaw_confirmed (optional): true or false; yaw_std (optional):
-rad > 0 (read, not drawn). `t_capture_ns` is accepted for `t_ns`. A row without x, y but with lat, lon is placed
+rad > 0. `t_capture_ns` is accepted for `t_ns`. A row without x, y but with lat, lon is placed
 with the site origin, when one is given. Lines that are not such messages (bad JSON, missing keys, NaN or infinite
 numbers, a covariance that is none, another site) are skipped and counted.
 """
@@ -68,6 +72,7 @@ WORLD = "world"
 Z_TRAIL_M = 0.05  # heights above the basemap (z = 0) so the drawings are not hidden in it
 Z_FOOTPRINT_M = 0.10
 Z_POSITION_M = 0.15
+HEADING_REACH_M = 2.0  # how far beyond a track's front its heading fan reaches
 def track_color(tracker: str, track_id: int) -> tuple[int, int, int]:
     """A stable RGB colour for (tracker, id): the same in every run (crc32, not Python's salted hash)."""
     h = zlib.crc32(f"{tracker}/{track_id}".encode())
@@ -95,6 +100,20 @@ def footprint_strips(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, length: np.n
     front = np.flatnonzero(nose)
     noses = np.stack([np.column_stack([x, y])[front], (rect[front, 0] + rect[front, 1]) / 2], axis=1)  # (M, 2, 2)
     return [*rect, *noses], np.concatenate([np.arange(len(x)), front])
+
+
+def heading_fans(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, reach: np.ndarray, yaw_std: np.ndarray,
+                 both: np.ndarray, points: int = 9) -> tuple[list[np.ndarray], np.ndarray]:
+    """The heading fans' line strips (each (points + 2, 2) metres, closed): from each centre out to `reach` (N,)
+    metres over yaw +- 1.96 `yaw_std` (rad; capped at +- 90 deg) and back, and a second fan behind the tracks where
+    `both` (N,) bool is set; and for each strip the index of its track."""
+    half = np.minimum(1.96 * np.asarray(yaw_std, np.float64), math.pi / 2)
+    owner = np.concatenate([np.arange(len(x)), np.flatnonzero(both)])
+    heading = np.concatenate([yaw, np.asarray(yaw)[owner[len(x):]] + math.pi])
+    a = heading[:, None] + half[owner][:, None] * np.linspace(-1.0, 1.0, points)[None, :]  # (M, P)
+    centre = np.column_stack([x, y])[owner]  # (M, 2)
+    arc = centre[:, None, :] + np.asarray(reach)[owner][:, None, None] * np.stack([np.cos(a), np.sin(a)], axis=-1)
+    return [np.vstack([c, r, c]) for c, r in zip(centre, arc, strict=True)], owner
 
 
 def ellipses_xy(x: np.ndarray, y: np.ndarray, cov: np.ndarray, points: int = 32) -> np.ndarray:
@@ -181,6 +200,7 @@ class TrackSink:
         self.jpeg_quality = jpeg_quality
         self._tracks: dict[tuple[str, int], _TrackState] = {}
         self._had_cov: dict[str, bool] = {}  # per tracker: its last message drew uncertainty ellipses
+        self._had_yaw_std: dict[str, bool] = {}  # and heading fans
         self._last_speed_flush_ns: int | None = None
         self._cameras: set[str] = set()
         self._span = _Span()
@@ -246,6 +266,17 @@ class TrackSink:
                 [_at_z(r, Z_FOOTPRINT_M) for r in ring], colors=colors[sure], labels=[labels[i] for i in sure],
                 show_labels=False, radii=rr.Radius.ui_points(1.0)))
             self._had_cov[msg.tracker] = bool(sure)
+        known = [i for i, r in enumerate(msg.rows) if r.yaw_std is not None]
+        if known or self._had_yaw_std.get(msg.tracker):  # as the ellipses
+            fans, owner = heading_fans(
+                x[known], y[known], yaw[known], length[known] / 2 + HEADING_REACH_M,
+                np.array([msg.rows[i].yaw_std for i in known], np.float64),
+                np.array([msg.rows[i].yaw_confirmed is False for i in known], bool))
+            whose = np.array(known, np.int64)[owner]
+            rec.log(f"{base}/heading", rr.LineStrips3D(
+                [_at_z(f, Z_FOOTPRINT_M) for f in fans], colors=colors[whose], labels=[labels[i] for i in whose],
+                show_labels=False, radii=rr.Radius.ui_points(1.0)))
+            self._had_yaw_std[msg.tracker] = bool(known)
         rec.log(f"plots/tracks/{_path_part(msg.tracker)}", rr.Scalars(n))
         self._forget(msg.tracker, msg.t_ns)
         if self._last_speed_flush_ns is None:
