@@ -99,6 +99,18 @@ def ecef_to_geodetic(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> tuple[np.nd
     return np.degrees(lat), np.degrees(np.arctan2(y, x)), _height(lat, p, z)
 
 
+def offset_latlon(lat_deg: np.ndarray, lon_deg: np.ndarray, east_m: np.ndarray,
+                  north_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Latitudes and longitudes (deg) moved by small ground offsets (m, east and north in the tangent plane at each
+    point; a few tens of metres at most) through the ellipsoid's radii of curvature there: within a millimetre of
+    the exact conversion for offsets up to 50 m (the error grows with the offset's square)."""
+    lat = np.radians(np.asarray(lat_deg, np.float64))
+    n = _prime_vertical(lat)
+    m = n * (1 - WGS84_E2) / (1 - WGS84_E2 * np.sin(lat) ** 2)  # the meridian's radius of curvature
+    return (np.asarray(lat_deg, np.float64) + np.degrees(np.asarray(north_m, np.float64) / m),
+            np.asarray(lon_deg, np.float64) + np.degrees(np.asarray(east_m, np.float64) / (n * np.cos(lat))))
+
+
 def _prime_vertical(lat: np.ndarray) -> np.ndarray:
     """The prime vertical radius of curvature N (m) at geodetic latitude `lat` (rad)."""
     return WGS84_A / np.sqrt(1 - WGS84_E2 * np.sin(lat) ** 2)

@@ -24,12 +24,15 @@ values), so a service never loops over Python objects and the codec (shared/code
 
 from __future__ import annotations
 
+import math
 import re
 import time
 from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, field_validator, model_validator
+
+from shared.geo import offset_latlon
 
 SCHEMA_VERSION = 4
 VEHICLE_TYPES = ("car", "suv_van", "truck", "bus", "motorcycle")
@@ -41,6 +44,10 @@ INT64_END = 2**63  # seq and times are int64 downstream (numpy); larger values a
 # capture times are event times that services add ticks and watermarks to: kept below 2**62 ns (the year 2116) so
 # that arithmetic stays within int64; a later one is a broken clock, refused as bad input
 T_CAPTURE_END = 2**62
+# Tracks.predicted: how far (s) tracks may be moved on from their capture time, and the sigma (m/s^2) of the
+# acceleration their velocities leave unknown (docs/wire-format.md, "Where a vehicle is now")
+MAX_PREDICT_S = 2.0
+PREDICT_ACCEL_STD_MPS2 = 1.5
 MAX_STAMPS = 32  # a message passes four stages; a longer list is bad input, not something to copy down the line
 MIN_FRAME_SCALE = 1 / 64  # ingest decodes at 1/2, 1/4 or 1/8 at most; a smaller scale would blow pixels up
 NAME_RE = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")  # site and camera names: one key-expression chunk
@@ -226,6 +233,20 @@ def not_covariances(c: np.ndarray) -> np.ndarray:
     return (c[:, 0, 0] <= 0) | (c[:, 0, 0] * c[:, 1, 1] <= c[:, 0, 1] * c[:, 1, 0]) | (c[:, 0, 1] != c[:, 1, 0])
 
 
+def predict_motion(xy: np.ndarray, velocity: np.ndarray, xy_cov: np.ndarray, velocity_cov: np.ndarray, dt_s: float,
+                   accel_std_mps2: float = PREDICT_ACCEL_STD_MPS2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Tracked positions moved on by `dt_s` seconds at their velocities (m, m/s, (N, 2)), with their covariances
+    grown to match: xy + v dt, xy_cov + dt^2 velocity_cov + (a dt^2 / 2)^2 I and velocity_cov + (a dt)^2 I, a the
+    unknown acceleration's sigma (`accel_std_mps2`: braking, speeding up, the turn of a roundabout). Returns
+    (xy, xy_cov, velocity_cov), float64. Tracks.predicted and docs/wire-format.md ("Where a vehicle is now")."""
+    dt = float(dt_s)
+    eye = np.eye(2)
+    xy = np.asarray(xy, np.float64) + np.asarray(velocity, np.float64) * dt
+    vel_cov = np.asarray(velocity_cov, np.float64)
+    xy_cov = np.asarray(xy_cov, np.float64) + dt * dt * vel_cov + (accel_std_mps2 * dt * dt / 2) ** 2 * eye
+    return xy, xy_cov, vel_cov + (accel_std_mps2 * dt) ** 2 * eye
+
+
 def err95_m(xy_cov: np.ndarray) -> np.ndarray:
     """(..., 2, 2) position covariances (m^2) -> (...) the longest half-axis (m) of each one's 95 % ellipse: the
     true position lies within that ellipse with 95 % probability, and within this distance along its worst axis."""
@@ -294,6 +315,30 @@ class Tracks(Message):
 
     def __len__(self) -> int:
         return len(self.id)
+
+    def predicted(self, t_ns: int, accel_std_mps2: float = PREDICT_ACCEL_STD_MPS2) -> Tracks:
+        """These tracks moved on to `t_ns` (ns, the capture times' clock: the cabinet's, which a vehicle shares
+        through GNSS or PTP; within MAX_PREDICT_S of `t_capture_ns`, either way) at their velocities, their
+        positions' and velocities' covariances grown as `predict_motion` says, latitude and longitude moved with
+        them; `t_capture_ns` becomes `t_ns`, a "predict" stamp is added and the rest is kept (`frames` still
+        says when the images were taken). A message reaches a vehicle tens of milliseconds after its capture, in
+        which a vehicle at 50 km/h moves more than a metre: docs/wire-format.md, "Where a vehicle is now"."""
+        if isinstance(t_ns, bool) or not isinstance(t_ns, int | np.integer):
+            raise ValueError(f"t_ns must be an integer time in ns, got {t_ns!r}")
+        dt = (int(t_ns) - self.t_capture_ns) / 1e9
+        if not abs(dt) <= MAX_PREDICT_S:
+            raise ValueError(f"tracks captured at {self.t_capture_ns} ns cannot be predicted to {int(t_ns)} ns: "
+                             f"{dt:+.3f} s away, more than {MAX_PREDICT_S} s (is the clock the cabinet's?)")
+        if not (isinstance(accel_std_mps2, int | float) and math.isfinite(accel_std_mps2) and accel_std_mps2 >= 0):
+            raise ValueError(f"accel_std_mps2 must be a finite number >= 0, got {accel_std_mps2!r}")
+        xy, xy_cov, vel_cov = predict_motion(self.xy, self.velocity, self.xy_cov, self.velocity_cov, dt,
+                                             accel_std_mps2)
+        lat, lon = offset_latlon(self.latlon[:, 0], self.latlon[:, 1], xy[:, 0] - self.xy[:, 0],
+                                 xy[:, 1] - self.xy[:, 1])
+        return self.model_copy(update={
+            "t_capture_ns": int(t_ns), "stamps": self.stamped("predict"), "xy": xy,
+            "latlon": np.column_stack([lat, lon]), "xy_cov": xy_cov.astype(np.float32),
+            "velocity_cov": vel_cov.astype(np.float32)})  # symmetric as they were: the same sums either side
 
     def rows(self) -> list[dict]:
         """One plain dict per track (JSON-friendly), as the recorder writes and clients print."""
