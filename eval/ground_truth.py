@@ -50,6 +50,9 @@ class TrackingEvalConfig:
     roi_radius_pinhole_m: float = 200.0  # the paper's long-range (thermal) ROI: < 200 m in the field of view
     roi_radius_m: float | None = None  # one ROI radius for every camera (overrides the two above)
     eval_radius_m: float | None = None  # larger evaluation area (out-ROI part); None: the area is the ROI
+    # how far ahead of their capture time tracks are scored moved on (`Tracks.predicted`) and as they were (stale):
+    # where a vehicle that receives them that much later finds them
+    predict_horizons_s: tuple[float, ...] = (0.1, 0.3)
     max_extrapolation_s: float = 0.2  # GT positions beyond the observed span by more than this are undefined
     max_gap_s: float = 0.5  # no interpolation across longer gaps in a vehicle's merged trajectory
     traj_window_s: float = 1.0  # the part of the GT trajectory a tracked position is projected on: tick +- this

@@ -39,6 +39,11 @@ d' C^-1 d is chi-square with 2 degrees of freedom when C is right, so `pos_cov_n
 for each true vehicle type present.
 `vel_cov_*` the same for the velocity (`vx`, `vy` and `velocity_cov`) against the vehicle's true velocity (its speed
 along its heading at its ground-truth sample nearest the tick).
+`ahead_<ms>ms_*` (`prediction_measure`, for each of `predict_horizons_s`): where a vehicle that receives the tracks
+that long after their capture finds them, against where their vehicles are by then, for the tracks matched at
+their tick in the ROI: as sent (`_stale_err_m`, mean distance; `_stale_cov_*` their covariance as it was) and moved
+on at their velocities as `Tracks.predicted` does (`_err_m`; `_cov_*` the grown covariance, with `_cov_loglik`);
+`_moving_*` the same distances for the vehicles at least `moving_mps` fast.
 
 Handoff: each GT object's region at t is its nearest chosen camera on the ground. A crossing is a change of
 region between two consecutive GT-object samples of a vehicle at most `handoff_window_s` apart; it is tracked
@@ -60,7 +65,7 @@ import motmetrics as mm
 import numpy as np
 
 from eval.ground_truth import GroundTruth, TrackingEvalConfig, _ground_truth
-from shared.messages import CHI2_2DOF_95, err95_m
+from shared.messages import CHI2_2DOF_95, err95_m, predict_motion
 from shared.tracks_file import parse_covariance, parse_yaw_confirmed, parse_yaw_std
 from sim.recording import Recording
 
@@ -395,6 +400,56 @@ def covariance_measure(nees: np.ndarray, err95_m: np.ndarray | None = None, pref
     return out
 
 
+def prediction_measure(gt: GroundTruth, res: MatchResult, cfg: TrackingEvalConfig) -> dict:
+    """`ahead_<ms>ms_*` for each of `cfg.predict_horizons_s` (module docstring): the tracks matched at their tick
+    in the ROI, against where their vehicles are that much later, as they were (`_stale_err_m`, and their stated
+    covariance as it was: `_stale_cov_*`) and moved on by `predict_motion` (`_err_m`, `_cov_*`); `_moving_*` the
+    same errors for the vehicles at least `moving_mps` fast. Tracks without a velocity and its covariance are
+    left out."""
+    gap, ahead_max = gt.max_gap_ns(cfg), round(cfg.max_extrapolation_s * 1e9)
+    when, who, xy, cov, vel, vcov, moving = [], [], [], [], [], [], []  # the matched tracks that can be moved on
+    for fm in res.frames:
+        if not fm.matched:
+            continue
+        vids = list(fm.matched)
+        t_xy = np.array([fm.track_xy[fm.matched[v]] for v in vids])
+        for v, p, roi in zip(vids, t_xy, gt.in_roi(t_xy, res.cameras, cfg), strict=True):
+            tr, j = fm.tracks, fm.row[fm.matched[v]]
+            if roi and all(np.isfinite(a[j]).all() for a in (tr.cov, tr.vel, tr.vel_cov)):
+                when.append(fm.t_ns)
+                who.append(v)
+                xy.append(p)
+                cov.append(tr.cov[j])
+                vel.append(tr.vel[j])
+                vcov.append(tr.vel_cov[j])
+                moving.append(gt.trajectories[v].heading_at(fm.t_ns)[1] >= cfg.moving_mps)
+    xy_a, cov_a = np.array(xy, float).reshape(-1, 2), np.array(cov, float).reshape(-1, 2, 2)
+    vel_a, vcov_a = np.array(vel, float).reshape(-1, 2), np.array(vcov, float).reshape(-1, 2, 2)
+    moving_a = np.array(moving, bool)
+    out: dict[str, Any] = {}
+    for horizon in cfg.predict_horizons_s:
+        h_ns = round(horizon * 1e9)
+        later = [gt.trajectories[v].position_at(t + h_ns, ahead_max, gap) for t, v in zip(when, who, strict=True)]
+        known = np.array([p is not None for p in later], bool)
+        truth = np.array([p[:2] for p in later if p is not None], float).reshape(-1, 2)
+        p_xy, p_cov, _ = predict_motion(xy_a[known], vel_a[known], cov_a[known], vcov_a[known], horizon)
+        e_stale, e = truth - xy_a[known], truth - p_xy
+        stale, moved, fast = np.hypot(*e_stale.T), np.hypot(*e.T), moving_a[known]
+        key = f"ahead_{round(horizon * 1000)}ms"
+        out[f"{key}_n"] = len(truth)
+        for name, part in (("", np.ones(len(truth), bool)), ("_moving", fast)):
+            out[f"{key}{name}_stale_err_m"] = float(stale[part].mean()) if part.any() else math.nan
+            out[f"{key}{name}_err_m"] = float(moved[part].mean()) if part.any() else math.nan
+        stale_nees = np.einsum("ni,nij,nj->n", e_stale, np.linalg.inv(cov_a[known]), e_stale) if len(e) else np.zeros(0)
+        nees = np.einsum("ni,nij,nj->n", e, np.linalg.inv(p_cov), e) if len(e) else np.zeros(0)
+        logdet = np.linalg.slogdet(p_cov)[1] if len(e) else np.zeros(0)
+        out.update({k: v for k, v in covariance_measure(stale_nees, prefix=f"{key}_stale_cov").items()
+                    if not k.endswith("_n")})
+        out.update({k: v for k, v in covariance_measure(nees, prefix=f"{key}_cov", logdet=logdet).items()
+                    if not k.endswith("_n")})
+    return out
+
+
 def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows_or_path: str | Path | Iterable,
                     cameras: str | Sequence[str] | None = None, config: TrackingEvalConfig | None = None) -> dict:
     """Tracking accuracy of a tracks file (or rows) on a recording, over the GT objects of `cameras` (all by
@@ -484,6 +539,7 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
                                  logdet=logdet_a[nees_type_a == name])
         for name in sorted(set(nees_type))}
     out.update(covariance_measure(np.array(vel_nees), prefix="vel_cov"))
+    out.update(prediction_measure(gt, res, cfg))
     scored = {k for fm in res.frames for k in fm.track_xy}
     out.update({
         "tracks": len(scored), "tracks_total": len(res.track_identities),

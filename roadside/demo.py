@@ -461,6 +461,11 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
         # (eval.tracking)
         **{k: fused[k] for k in ("pos_cov_n", "pos_cov_nees_mean", "pos_cov_within_1sigma", "pos_cov_within_95",
                                  "pos_cov_err95_median_m", "vel_cov_n", "vel_cov_nees_mean", "vel_cov_within_95")},
+        # where a vehicle finds the tracks 100 and 300 ms after their capture (the cabinet's latency and a radio
+        # hop): as sent and moved on at their velocities (Tracks.predicted), and how often the moved-on 95 % ellipse
+        # holds the vehicle (eval.tracking)
+        **{f"ahead_{h}ms_{k}": fused[f"ahead_{h}ms_{k}"] for h in (100, 300)
+           for k in ("stale_err_m", "err_m", "cov_within_95")},
         # over `handoff_radius_m` around the cameras: region crossings seen tracked on both sides, the fraction that
         # kept their id, and the fraction of vehicles that kept theirs through every crossing (eval.tracking)
         "handoff_radius_m": cfg.handoff_radius_m,
@@ -515,6 +520,10 @@ def summary_table(s: dict) -> str:
                                                    f"{s['pos_cov_within_1sigma']:.3f}; median half-axis "
                                                    f"{s['pos_cov_err95_median_m']:.2f} m); velocity "
                                                    f"{s['vel_cov_within_95']:.3f}"),
+        ("100 / 300 ms after capture: as sent; moved on",
+         f"{s['ahead_100ms_stale_err_m']:.2f} / {s['ahead_300ms_stale_err_m']:.2f} m; {s['ahead_100ms_err_m']:.2f} / "
+         f"{s['ahead_300ms_err_m']:.2f} m (95 % ellipse holds {s['ahead_100ms_cov_within_95']:.3f} / "
+         f"{s['ahead_300ms_cov_within_95']:.3f})"),
         ("frames through the pipeline", f"{s['frames']} of {s['frames_recorded']}"),
         ("region crossings kept", f"{s['handoff_crossing_kept_fraction']:.3f} of {s['handoff_crossings']} "
                                   f"(within {s['handoff_radius_m']:g} m of a camera)"),

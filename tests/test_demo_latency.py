@@ -63,7 +63,9 @@ def test_summary_table_renders_a_summary():
          "handoff_crossings": 33, "handoff_crossing_kept_fraction": 32 / 33, "frames": 2393, "frames_recorded": 2400,
          "handoff_radius_m": 40.0, "latency_ms": lat, "throughput_ratio": 0.8, "pipeline_fps": 60.0,
          "detector_alone": {"passes": [{"fps": 80.0}, {"fps": 75.0}]}, "throughput_ratio_vs_decode_and_detect": 0.8,
-         "cpu_ratio_vs_decode_and_detect": 0.8, "peak_rss_mb": {"detect": 220.0}, "cpu_ms_per_frame": {"detect": 22.0}}
+         "cpu_ratio_vs_decode_and_detect": 0.8, "peak_rss_mb": {"detect": 220.0}, "cpu_ms_per_frame": {"detect": 22.0},
+         "ahead_100ms_stale_err_m": 0.581, "ahead_300ms_stale_err_m": 0.962, "ahead_100ms_err_m": 0.497,
+         "ahead_300ms_err_m": 0.583, "ahead_100ms_cov_within_95": 0.9031, "ahead_300ms_cov_within_95": 0.891}
     table = summary_table(s)
     assert "0.970 of 33 (within 40 m of a camera)" in table
     assert "frames through the pipeline" in table and "2393 of 2400" in table
@@ -73,3 +75,4 @@ def test_summary_table_renders_a_summary():
     assert "0.685; 0.000 of them, 0.072 of the others" in table
     assert "0.930 (1 sigma: 0.450; median half-axis 1.23 m); velocity 0.921" in table
     assert "0.951 (1 sigma: 0.680; median sigma 8.0 deg)" in table
+    assert "0.58 / 0.96 m; 0.50 / 0.58 m (95 % ellipse holds 0.903 / 0.891)" in table

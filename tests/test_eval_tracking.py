@@ -491,3 +491,27 @@ def test_json_documents_for_other_programs_have_no_nan():
     doc = {"a": float("nan"), "b": [np.float32(1.5), np.inf, np.int64(3)], "c": np.array([1.0, np.nan]), "d": "x"}
     assert strict(doc) == {"a": None, "b": [1.5, None, 3], "c": [1.0, None], "d": "x"}
     assert json.loads(dumps(doc)) == strict(doc)
+
+
+def test_tracks_moved_on_are_scored_where_their_vehicles_are_later(gt):
+    """Tracks exactly on their vehicles with their true velocities: moved on 0.3 s they are still on them (the
+    vehicles drive straight at constant speed), as they were they lag by speed x 0.3 s; their grown covariance
+    holds the truth. Tracks without a velocity's covariance are left out."""
+    speed = {1: np.array([10.0, 0.0]), 2: np.array([0.0, 4.0]), 3: np.array([1.5, 2.0]), 5: np.zeros(2)}
+    rows = make_rows()
+    for row in rows:
+        for t in row["tracks"]:
+            t["vx"], t["vy"] = (float(c) for c in speed[t["id"] - 10])
+            t["xy_cov"], t["velocity_cov"] = [[0.04, 0.0], [0.0, 0.04]], [[0.01, 0.0], [0.0, 0.01]]
+    r = evaluate_tracks(gt, rows, config=TrackingEvalConfig(predict_horizons_s=(0.3,)))
+    assert r["ahead_300ms_n"] > 3 * N_FRAMES
+    assert r["ahead_300ms_err_m"] < 0.01 and r["ahead_300ms_cov_within_95"] == 1.0
+    lag = {v: 0.3 * float(np.hypot(*s)) for v, s in speed.items()}
+    assert min(lag.values()) < r["ahead_300ms_stale_err_m"] < max(lag.values())
+    assert r["ahead_300ms_moving_stale_err_m"] > r["ahead_300ms_stale_err_m"]  # the parked one lags by nothing
+    assert r["ahead_300ms_stale_cov_within_95"] < 0.5  # vehicle 1 lags by 3 m against a 0.2 m sigma: out
+    assert "ahead_100ms_n" not in r
+    for row in rows:
+        for t in row["tracks"]:
+            del t["velocity_cov"]
+    assert evaluate_tracks(gt, rows, config=TrackingEvalConfig(predict_horizons_s=(0.3,)))["ahead_300ms_n"] == 0
