@@ -13,6 +13,9 @@ then prints one JSON line per message: `{"site", "seq", "t_capture_ns", "tracker
 holds the vehicle's true position with 95 % probability, from `xy_cov`; `yaw_confirmed` false: the vehicle has not
 been seen travelling, and its `yaw` may point backwards; `yaw_std`: how far off, 1 sigma in rad, the heading's axis
 may be).
+With `--ahead-ms MS` each message is moved on MS milliseconds past its capture time first (`move_on`: where the
+vehicles are by the time a vehicle with that link delay uses them; docs/wire-format.md, "Where a vehicle is now"),
+and says so in `t_ns`.
 A message it cannot read is reported on stderr with the reason and skipped. (Inside the project,
 `shared.client.TrackClient` and `roadside tracks` do the same with the project's own codec.)
 """
@@ -39,6 +42,8 @@ TRACK_COLUMNS = {"id": ("<i8", ()), "xy": ("<f8", (2,)), "latlon": ("<f8", (2,))
                  "age": ("<i4", ()), "hits": ("<i4", ()), "xy_cov": ("<f4", (2, 2)), "velocity_cov": ("<f4", (2, 2)),
                  "yaw_confirmed": ("|b1", ()), "yaw_std": ("<f4", ())}
 CHI2_2DOF_95 = 5.991  # a 2D Gaussian's 95 % ellipse: squared Mahalanobis distance within this
+ACCEL_STD_MPS2 = 1.5  # moving tracks on: the acceleration their velocities leave unknown (docs/wire-format.md)
+WGS84_A, WGS84_E2 = 6378137.0, 0.00669437999014  # the ellipsoid's semi-major axis (m), first eccentricity squared
 
 
 class BadMessage(ValueError):
@@ -109,7 +114,30 @@ def decode_tracks(payload: bytes) -> dict:
             "tracker": msg.get("tracker", ""), "tracks": tracks}
 
 
-def listen(site: str, connect: str, count: int, timeout_s: float, wait_s: float, ca: str | None = None) -> int:
+def move_on(msg: dict, dt_s: float) -> dict:
+    """A decoded message's tracks moved on `dt_s` seconds at their velocities, their uncertainty grown to match
+    and latitude and longitude moved with them (docs/wire-format.md, "Where a vehicle is now"); `t_ns` is the time
+    the moved positions hold for."""
+    grow, grow_v = (ACCEL_STD_MPS2 * dt_s * dt_s / 2) ** 2, (ACCEL_STD_MPS2 * dt_s) ** 2
+    tracks = []
+    for t in msg["tracks"]:
+        east, north = t["vx"] * dt_s, t["vy"] * dt_s
+        sin_lat = math.sin(math.radians(t["lat"]))
+        n = WGS84_A / math.sqrt(1 - WGS84_E2 * sin_lat**2)  # radii of curvature: prime vertical, meridian
+        m = n * (1 - WGS84_E2) / (1 - WGS84_E2 * sin_lat**2)
+        (a, b), (_, c) = t["xy_cov"]
+        (va, vb), (_, vc) = t["velocity_cov"]
+        cov = [[a + dt_s * dt_s * va + grow, b + dt_s * dt_s * vb], [b + dt_s * dt_s * vb, c + dt_s * dt_s * vc + grow]]
+        largest = (cov[0][0] + cov[1][1]) / 2 + math.sqrt(((cov[0][0] - cov[1][1]) / 2) ** 2 + cov[0][1] ** 2)
+        tracks.append({**t, "x": t["x"] + east, "y": t["y"] + north, "lat": t["lat"] + math.degrees(north / m),
+                       "lon": t["lon"] + math.degrees(east / (n * math.cos(math.radians(t["lat"])))), "xy_cov": cov,
+                       "velocity_cov": [[va + grow_v, vb], [vb, vc + grow_v]],
+                       "err95_m": math.sqrt(CHI2_2DOF_95 * largest)})
+    return {**msg, "t_ns": msg["t_capture_ns"] + round(dt_s * 1e9), "tracks": tracks}
+
+
+def listen(site: str, connect: str, count: int, timeout_s: float, wait_s: float, ca: str | None = None,
+           ahead_ms: float = 0.0) -> int:
     """Print the newest tracks, then every new message, as JSON lines; returns how many were printed."""
     import zenoh
 
@@ -132,7 +160,7 @@ def listen(site: str, connect: str, count: int, timeout_s: float, wait_s: float,
         if last is not None and msg["tracker"] == last[0] and msg["seq"] <= last[1]:
             return False  # already printed (the answer to the query may also arrive on the subscription)
         last = (msg["tracker"], msg["seq"])
-        print(json.dumps(msg), flush=True)
+        print(json.dumps(move_on(msg, ahead_ms / 1000) if ahead_ms else msg), flush=True)
         printed += 1
         return True
 
@@ -162,9 +190,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--timeout", type=float, default=math.inf, help="stop after this many seconds without tracks")
     p.add_argument("--wait", type=float, default=10.0, help="seconds to wait for the first connection")
     p.add_argument("--ca", help="with --connect tls/HOST:7448: the cabinet's CA certificate (PEM)")
+    p.add_argument("--ahead-ms", type=float, default=0.0,
+                   help="move each message's tracks on this long past their capture time (your link's delay)")
     args = p.parse_args(argv)
+    if not 0 <= args.ahead_ms <= 2000:
+        p.error(f"--ahead-ms must be from 0 to 2000, got {args.ahead_ms}")
     try:
-        printed = listen(args.site, args.connect, args.count, args.timeout, args.wait, args.ca)
+        printed = listen(args.site, args.connect, args.count, args.timeout, args.wait, args.ca, args.ahead_ms)
     except KeyboardInterrupt:  # Ctrl-C: the way to stop a listener without --count or --timeout
         return 0
     except Exception as exc:  # no router in reach, a malformed endpoint: one line, not a traceback

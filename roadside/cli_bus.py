@@ -18,7 +18,7 @@ from roadside.argtypes import (
     site_path,
 )
 from shared.jsonio import dumps
-from shared.messages import SERVICES
+from shared.messages import MAX_PREDICT_S, SERVICES
 
 
 def add_bus_jobs(sub) -> dict:
@@ -62,6 +62,23 @@ def _add_tracks(sub) -> None:
     p.add_argument("--wait", type=non_negative_float, default=10.0, metavar="SECONDS",
                    help="how long to wait for the first connection (0: until the cabinet answers); a link that "
                    "drops later is reconnected by itself")
+    ahead = p.add_mutually_exclusive_group()
+    ahead.add_argument("--ahead-ms", type=_ahead_ms, metavar="MS",
+                       help="print each message moved on this long after its capture time, at the tracks' "
+                       f"velocities, their error ellipses grown to match (Tracks.predicted; at most "
+                       f"{MAX_PREDICT_S * 1000:.0f}): where the vehicles are when a vehicle that knows its delay gets "
+                       "them")
+    ahead.add_argument("--now", action="store_true",
+                       help="print each message moved on to this machine's clock (Tracks.predicted): for a live "
+                       "cabinet whose clock this machine shares (GNSS, PTP); a recorded minute played back carries "
+                       "its own capture times and is refused")
+
+
+def _ahead_ms(text: str) -> float:
+    v = non_negative_float(text)
+    if v > MAX_PREDICT_S * 1000:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_PREDICT_S * 1000:.0f} ms, got {text}")
+    return v
 
 
 def _run_tracks(args) -> int:
@@ -71,6 +88,10 @@ def _run_tracks(args) -> int:
     n = 0
     with TrackClient(args.site, args.connect or None, _bus(args), wait_s=args.wait or None) as client:
         for tracks in client.stream(timeout_s=args.timeout):
+            if args.now:
+                tracks = tracks.predicted(time.time_ns())
+            elif args.ahead_ms:
+                tracks = tracks.predicted(tracks.t_capture_ns + round(args.ahead_ms * 1e6))
             rows = tracks.rows()
             if args.json:
                 print(dumps({"t_ns": tracks.t_capture_ns, "seq": tracks.seq, "tracks": rows}), flush=True)

@@ -10,6 +10,11 @@
             worst = err95_m(tracks.xy_cov)      # (N,) m: each position's 95 % error ellipse, longest half-axis
             axis_only = ~tracks.yaw_confirmed   # (N,) bool: not seen travelling, the heading may point backwards
             heading_sd = tracks.yaw_std         # (N,) rad: 1 sigma of the heading's error on its axis
+            now = tracks.predicted(time.time_ns())  # moved on from the capture to now (a clock the cabinet shares)
+
+Positions are where the vehicles were when the images were taken; by the time a vehicle uses them they have moved
+on (a metre in 70 ms at 50 km/h): `Tracks.predicted(t_ns)` moves them to t_ns at their velocities and grows their
+uncertainty to match (docs/wire-format.md, "Where a vehicle is now").
 
 A client that joins late gets the current tracks at once: `stream()` first asks fuse_track's
 queryable (`roadside/<site>/tracks/latest`) for the newest message, then follows the live ones.

@@ -26,6 +26,8 @@ EXAMPLE_SITE = ROOT / "deploy" / "sites" / "example" / "site.yaml"
     (["tracks", "--timeout", "0"], "argument --timeout: must be a finite number > 0"),
     (["tracks", "--port-base", "80"], "argument --port-base: must be a port from 1024 to 65000, got 80"),
     (["tracks", "--wait", "-1"], "argument --wait: must be a finite number >= 0"),
+    (["tracks", "--ahead-ms", "2500"], "argument --ahead-ms: must be at most 2000 ms, got 2500"),
+    (["tracks", "--ahead-ms", "100", "--now"], "argument --now: not allowed with argument --ahead-ms"),
     (["health", "--site", str(EXAMPLE_SITE), "--service", "detect", "--timeout", "-1"], "argument --timeout"),
     (["viz", "--live", "--site", str(EXAMPLE_SITE), "--out", "x.rrd", "--connect", "garbage"], "not a Zenoh endpoint"),
     (["train", "--steps", "0", "--out", "x"], "argument --steps: must be a whole number >= 1, got 0"),

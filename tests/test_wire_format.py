@@ -25,7 +25,7 @@ from services.fuse_track.tracker import TrackState
 from shared.codec import ALLOWED_DTYPES, encode
 from shared.geo import GeoFrame
 from shared.keys import latest_tracks_key, tracks_key
-from shared.messages import VEHICLE_TYPES, Tracks, err95_m
+from shared.messages import PREDICT_ACCEL_STD_MPS2, VEHICLE_TYPES, Tracks, err95_m
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "wire-format.md"
@@ -150,6 +150,22 @@ def test_the_listener_reads_a_real_payload_as_the_projects_codec_does() -> None:
     assert got["tracks"][0]["type"] == "bus" and got["tracks"][1]["cameras"] == []
 
 
+def test_the_listener_moves_tracks_on_as_the_contract_does() -> None:
+    """The standalone listener's `move_on` (the document's formulas in plain Python) and `Tracks.predicted` agree:
+    positions, latitude and longitude, grown covariances, the 95 % half-axis, and the accelerations' sigma."""
+    msg = example_message()
+    assert listener.ACCEL_STD_MPS2 == PREDICT_ACCEL_STD_MPS2
+    moved = listener.move_on(listener.decode_tracks(encode(msg)), 0.4)
+    want = msg.predicted(msg.t_capture_ns + 400_000_000)
+    assert moved["t_ns"] == want.t_capture_ns and moved["t_capture_ns"] == msg.t_capture_ns
+    for row, w in zip(moved["tracks"], want.rows(), strict=True):
+        assert (row["x"], row["y"]) == pytest.approx((w["x"], w["y"]), abs=1e-6)
+        assert (row["lat"], row["lon"]) == pytest.approx((w["lat"], w["lon"]), abs=1e-10)
+        np.testing.assert_allclose(row["xy_cov"], w["xy_cov"], rtol=1e-6)
+        np.testing.assert_allclose(row["velocity_cov"], w["velocity_cov"], rtol=1e-6)
+        assert row["err95_m"] == pytest.approx(np.sqrt(5.991 * np.linalg.eigvalsh(w["xy_cov"]).max()), rel=1e-6)
+
+
 def test_the_listener_reads_an_empty_tick() -> None:
     got = listener.decode_tracks(encode(example_message(n=0)))
     assert got["tracks"] == [] and got["seq"] == 42
@@ -237,6 +253,23 @@ def test_roadside_tracks_prints_each_vehicle_with_its_95_percent_error() -> None
     assert f"+-{want[1]:4.1f} m" in lines[2] and " car " in lines[2]
     assert "yaw -1.57? speed" in lines[2]  # the car was not seen travelling: its heading may be reversed
     assert "heading +- 4 deg" in lines[1] and "heading +-14 deg" in lines[2]  # yaw_std 0.0625 and 0.25 rad
+
+
+@pytest.mark.slow
+def test_roadside_tracks_moves_the_tracks_on_when_asked_and_refuses_a_clock_that_is_not_the_cabinets() -> None:
+    done = run_against_a_cabinet([sys.executable, "-m", "roadside", "tracks", "--site", SITE, "--connect",
+                                  "{endpoint}", "--count", "1", "--timeout", "10", "--json", "--ahead-ms", "500"],
+                                 cwd=str(ROOT))
+    assert done.returncode == 0, done.stderr
+    msg, sent = json.loads(done.stdout), example_message(seq=5)
+    assert msg["t_ns"] == sent.t_capture_ns + 500_000_000
+    bus = msg["tracks"][0]
+    assert (bus["x"], bus["y"]) == pytest.approx((12.25 + 0.5 * 4.5, -3.5 + 0.5 * 1.25))
+    assert bus["xy_cov"][0][0] > sent.xy_cov[0, 0, 0] + 0.25 * sent.velocity_cov[0, 0, 0] - 1e-6
+    done = run_against_a_cabinet([sys.executable, "-m", "roadside", "tracks", "--site", SITE, "--connect",
+                                  "{endpoint}", "--count", "1", "--timeout", "10", "--now"], cwd=str(ROOT))
+    assert done.returncode == 2 and "is the clock the cabinet's?" in done.stderr  # the example is a year old
+    assert len(done.stderr.strip().splitlines()) == 1
 
 
 def test_the_listener_says_in_one_line_when_no_cabinet_answers() -> None:
