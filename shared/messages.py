@@ -335,10 +335,10 @@ class Tracks(Message):
                                              accel_std_mps2)
         lat, lon = offset_latlon(self.latlon[:, 0], self.latlon[:, 1], xy[:, 0] - self.xy[:, 0],
                                  xy[:, 1] - self.xy[:, 1])
-        return self.model_copy(update={
-            "t_capture_ns": int(t_ns), "stamps": self.stamped("predict"), "xy": xy,
-            "latlon": np.column_stack([lat, lon]), "xy_cov": xy_cov.astype(np.float32),
-            "velocity_cov": vel_cov.astype(np.float32)})  # symmetric as they were: the same sums either side
+        fields = {name: getattr(self, name) for name in type(self).model_fields}
+        return Tracks(**{**fields, "t_capture_ns": int(t_ns), "stamps": self.stamped("predict"), "xy": xy,
+                         "latlon": np.column_stack([lat, lon]).reshape(-1, 2), "xy_cov": xy_cov.astype(np.float32),
+                         "velocity_cov": vel_cov.astype(np.float32)})  # symmetric as they were: the same sums
 
     def rows(self) -> list[dict]:
         """One plain dict per track (JSON-friendly), as the recorder writes and clients print."""
