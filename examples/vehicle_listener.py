@@ -3,6 +3,7 @@
     pip install eclipse-zenoh msgpack
     python vehicle_listener.py --site state_ellsworth --connect tcp/192.168.1.10:7447
     python vehicle_listener.py --site state_ellsworth --connect tls/cabinet.example:7448 --ca cabinet-ca.pem
+    python vehicle_listener.py ... --ca cabinet-ca.pem --cert vehicle.pem --key vehicle.key   # mutual TLS
 
 It reads the cabinet's tracks as docs/wire-format.md specifies them, and is that document's worked example in
 code: a vehicle written in another language (C++, Rust, ...) does the same steps with its own Zenoh and msgpack
@@ -137,7 +138,7 @@ def move_on(msg: dict, dt_s: float) -> dict:
 
 
 def listen(site: str, connect: str, count: int, timeout_s: float, wait_s: float, ca: str | None = None,
-           ahead_ms: float = 0.0) -> int:
+           ahead_ms: float = 0.0, cert: str | None = None, key: str | None = None) -> int:
     """Print the newest tracks, then every new message, as JSON lines; returns how many were printed."""
     import zenoh
 
@@ -148,6 +149,10 @@ def listen(site: str, connect: str, count: int, timeout_s: float, wait_s: float,
     conf.insert_json5("scouting/multicast/enabled", "false")
     if ca:  # a tls/ endpoint: the cabinet's certificate must chain to this CA
         conf.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(ca))
+    if cert:  # a cabinet that lets only enrolled vehicles in (mutual TLS): this vehicle's certificate and key
+        conf.insert_json5("transport/link/tls/enable_mtls", "true")
+        conf.insert_json5("transport/link/tls/connect_certificate", json.dumps(cert))
+        conf.insert_json5("transport/link/tls/connect_private_key", json.dumps(key))
     printed, last = 0, None  # last: (tracker, seq) of the newest message printed
 
     def show(payload: bytes) -> bool:
@@ -192,11 +197,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ca", help="with --connect tls/HOST:7448: the cabinet's CA certificate (PEM)")
     p.add_argument("--ahead-ms", type=float, default=0.0,
                    help="move each message's tracks on this long past their capture time (your link's delay)")
+    p.add_argument("--cert", help="with --key, for a cabinet that lets only enrolled vehicles in (mutual TLS): "
+                   "this vehicle's certificate (PEM)")
+    p.add_argument("--key", help="the private key of --cert (PEM)")
     args = p.parse_args(argv)
     if not 0 <= args.ahead_ms <= 2000:
         p.error(f"--ahead-ms must be from 0 to 2000, got {args.ahead_ms}")
+    if (args.cert is None) != (args.key is None):
+        p.error("--cert and --key go together")
     try:
-        printed = listen(args.site, args.connect, args.count, args.timeout, args.wait, args.ca, args.ahead_ms)
+        printed = listen(args.site, args.connect, args.count, args.timeout, args.wait, args.ca, args.ahead_ms,
+                         args.cert, args.key)
     except KeyboardInterrupt:  # Ctrl-C: the way to stop a listener without --count or --timeout
         return 0
     except Exception as exc:  # no router in reach, a malformed endpoint: one line, not a traceback

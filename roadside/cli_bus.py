@@ -38,15 +38,20 @@ def _add_endpoint_flags(p: argparse.ArgumentParser, default_to: str) -> None:
     p.add_argument("--ca", type=Path, metavar="PEM",
                    help="with a tls/HOST:PORT endpoint: the cabinet's CA certificate, which its certificate must "
                    "chain to (deploy/sites/README.md)")
+    p.add_argument("--cert", type=Path, metavar="PEM",
+                   help="with --key, for a cabinet that lets only enrolled vehicles in (mutual TLS): this "
+                   "vehicle's certificate, signed by the operator's CA")
+    p.add_argument("--key", type=Path, metavar="PEM", help="the private key of --cert")
 
 
 def _bus(args):
     """The bus settings of the endpoint flags: client mode to --connect, else the embedded default's ports."""
     from shared.settings import BusSettings
 
+    tls = {"tls_root_ca": args.ca, "tls_certificate": args.cert, "tls_private_key": args.key}
     if args.connect:
-        return BusSettings(mode="client", connect=args.connect, tls_root_ca=args.ca)
-    return BusSettings(port_base=args.port_base, tls_root_ca=args.ca)
+        return BusSettings(mode="client", connect=args.connect, **tls)
+    return BusSettings(port_base=args.port_base, **tls)
 
 
 def _add_tracks(sub) -> None:

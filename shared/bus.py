@@ -57,18 +57,26 @@ def zenoh_config(bus: BusSettings, service: str | None = None, client_index: int
         connect = list(bus.connect)
     conf.insert_json5("connect/endpoints", json.dumps(connect))
     conf.insert_json5("listen/endpoints", json.dumps(listen))
-    set_tls_root_ca(conf, bus.tls_root_ca)
+    set_tls(conf, bus)
     return conf
 
 
-def set_tls_root_ca(conf, path) -> None:
-    """Check the certificate of a tls/ endpoint against this CA (`bus.tls_root_ca`; None: Zenoh's default, the
-    system's roots); ValueError naming the file when it is missing."""
-    if path is None:
-        return
-    if not Path(path).is_file():
-        raise ValueError(f"bus.tls_root_ca: CA certificate not found: {path}")
-    conf.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(path)))
+def set_tls(conf, bus: BusSettings) -> None:
+    """TLS for tls/ endpoints: check the router's certificate against `bus.tls_root_ca` (None: Zenoh's default, the
+    system's roots), and with `bus.tls_certificate` and `tls_private_key` present this process's own to a router
+    that asks for one (mutual TLS). ValueError naming the setting and the file when one is missing."""
+    files = (("tls_root_ca", "CA certificate", "root_ca_certificate"),
+             ("tls_certificate", "certificate", "connect_certificate"),
+             ("tls_private_key", "private key", "connect_private_key"))
+    for name, what, key in files:
+        path = getattr(bus, name)
+        if path is None:
+            continue
+        if not Path(path).is_file():
+            raise ValueError(f"bus.{name}: {what} not found: {path}")
+        conf.insert_json5(f"transport/link/tls/{key}", json.dumps(str(path)))
+    if bus.tls_certificate is not None:
+        conf.insert_json5("transport/link/tls/enable_mtls", "true")
 
 
 def set_shared_memory(conf, enabled: bool) -> None:

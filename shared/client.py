@@ -20,7 +20,8 @@ A client that joins late gets the current tracks at once: `stream()` first asks 
 queryable (`roadside/<site>/tracks/latest`) for the newest message, then follows the live ones.
 `connect` is the cabinet's Zenoh router (or, on the embedded default, any service's loopback port); over TLS
 (`tls/HOST:7448`) give the cabinet's CA certificate as `bus=BusSettings(tls_root_ca=...)`, and the client refuses a
-router whose certificate does not chain to it.
+router whose certificate does not chain to it; a cabinet that lets only enrolled vehicles in (mutual TLS) also
+wants the vehicle's own certificate and key, `BusSettings(tls_certificate=..., tls_private_key=...)`.
 Bad messages are counted in `client.bad` and skipped. A vehicle written in another language reads the same
 messages with its own Zenoh and msgpack libraries: docs/wire-format.md (and examples/vehicle_listener.py).
 
@@ -40,7 +41,7 @@ from collections.abc import Iterator
 
 import zenoh
 
-from shared.bus import BadInput, Receiver, set_tls_root_ca
+from shared.bus import BadInput, Receiver, set_tls
 from shared.codec import DecodeError, decode
 from shared.keys import latest_tracks_key, tracks_key
 from shared.messages import Tracks
@@ -65,7 +66,7 @@ class TrackClient:
         conf.insert_json5("connect/timeout_ms", json.dumps(-1 if wait_s is None else max(1, round(wait_s * 1000))))
         conf.insert_json5("connect/retry", json.dumps(RECONNECT))
         conf.insert_json5("scouting/multicast/enabled", "false")
-        set_tls_root_ca(conf, bus.tls_root_ca)
+        set_tls(conf, bus)
         self.site = site
         self.bad = BadInput("tracks-client")
         try:

@@ -77,11 +77,23 @@ class BusSettings(Strict):
     # vehicle reaching the cabinet over TLS knows it is the cabinet (deploy/sites/README.md); used as given, not
     # relative to the site folder
     tls_root_ca: Path | None = None
+    # this process's own certificate and its private key (PEM), for a router that lets only the operator's enrolled
+    # vehicles in (mutual TLS, deploy/sites/README.md); both or neither, used as given
+    tls_certificate: Path | None = None
+    tls_private_key: Path | None = None
 
     @field_validator("connect", "listen")
     @classmethod
     def _endpoints(cls, v: list[str]) -> list[str]:
         return [check_endpoint(e) for e in v]
+
+    @model_validator(mode="after")
+    def _certificate_and_key(self) -> BusSettings:
+        if (self.tls_certificate is None) != (self.tls_private_key is None):
+            given, missing = (("tls_certificate", "tls_private_key") if self.tls_private_key is None
+                              else ("tls_private_key", "tls_certificate"))
+            raise ValueError(f"bus.{given} is given without bus.{missing}: mutual TLS needs both")
+        return self
 
     def service_endpoint(self, service: str) -> str:
         return f"tcp/{self.host}:{self.port_base + SERVICES.index(service)}"

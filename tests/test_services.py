@@ -269,10 +269,11 @@ def test_chain_plays_two_frames_through_all_four_services(site, site_name, small
     assert "stopped: 2 messages localized, 0 bad" in localize.log()
 
 
-def open_router(port: int, socket: Path, tls: tuple[int, Path, Path] | None = None):
+def open_router(port: int, socket: Path, tls: tuple[int, Path, Path] | None = None, enrolled_by: Path | None = None):
     """A Zenoh router on deploy/zenoh/router.json5, as compose.yaml's (its access control included), listening on
     this test's port (the network's way in) and Unix socket (the cabinet services' way in); with `tls` (port,
-    certificate, key) also on tls/localhost:port, as deploy/sites/README.md tells a cabinet to add it."""
+    certificate, key) also on tls/localhost:port, as deploy/sites/README.md tells a cabinet to add it, and with
+    `enrolled_by` (a CA certificate) that listener lets in only clients with a certificate it signed (mutual TLS)."""
     import zenoh
 
     conf = zenoh.Config.from_file(str(REPO / "deploy" / "zenoh" / "router.json5"))
@@ -283,6 +284,9 @@ def open_router(port: int, socket: Path, tls: tuple[int, Path, Path] | None = No
         endpoints.append(f"tls/localhost:{tls[0]}")
         conf.insert_json5("transport/link/tls/listen_certificate", json.dumps(str(tls[1])))
         conf.insert_json5("transport/link/tls/listen_private_key", json.dumps(str(tls[2])))
+    if enrolled_by is not None:
+        conf.insert_json5("transport/link/tls/enable_mtls", "true")
+        conf.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(enrolled_by)))
     conf.insert_json5("listen/endpoints", json.dumps(endpoints))
     return zenoh.open(conf)
 
@@ -300,6 +304,73 @@ def cabinet_certificates(folder: Path) -> tuple[Path, Path, Path]:
                  "30", "-extfile", folder / "san.cnf"]):
         subprocess.run(["openssl", *map(str, cmd)], check=True, capture_output=True)
     return ca, cert, key
+
+
+def enrolled_vehicle(folder: Path, name: str) -> tuple[Path, Path]:
+    """A vehicle's certificate signed by the CA that `cabinet_certificates` made in `folder`, with its key (openssl,
+    as deploy/sites/README.md enrolls one): (vehicle.pem, vehicle.key)."""
+    cert, key, csr, ext = (folder / f"{name}{e}" for e in (".pem", ".key", ".csr", ".cnf"))
+    ext.write_text(f"subjectAltName=DNS:{name}\nextendedKeyUsage=clientAuth\n")  # an X.509 v3 client certificate
+    for cmd in (["req", "-newkey", "rsa:2048", "-nodes", "-keyout", key, "-out", csr, "-subj", f"/CN={name}"],
+                ["x509", "-req", "-in", csr, "-CA", folder / "ca.pem", "-CAkey", folder / "ca.key", "-CAcreateserial",
+                 "-out", cert, "-days", "30", "-extfile", ext]):
+        subprocess.run(["openssl", *map(str, cmd)], check=True, capture_output=True)
+    return cert, key
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="no openssl to make the test's certificates")
+def test_a_cabinet_with_mutual_tls_lets_only_its_enrolled_vehicles_in(tmp_path, capsys):
+    """The router's TLS listener asks for a client certificate signed by the operator's CA: an enrolled vehicle
+    (`bus.tls_certificate` and `tls_private_key`, `roadside tracks --cert --key`, the standalone listener's) reads
+    the tracks; one without a certificate, or with one another CA signed, is refused; a certificate without its
+    key, or a key file that is not there, is named."""
+    import zenoh
+
+    from shared.bus import zenoh_config
+    from shared.client import TrackClient
+    from shared.keys import latest_tracks_key
+    from shared.settings import BusSettings
+
+    ca, cert, key = cabinet_certificates(tmp_path / "cabinet")
+    vehicle = enrolled_vehicle(tmp_path / "cabinet", "vehicle-17")
+    cabinet_certificates(tmp_path / "other")
+    stranger = enrolled_vehicle(tmp_path / "other", "vehicle-99")
+    port = free_port_base(span=2)
+    socket = tmp_path / "cabinet.sock"
+    router = open_router(port, socket, (port + 1, cert, key), enrolled_by=ca)
+    endpoint = f"tls/localhost:{port + 1}"
+    service = zenoh.open(zenoh_config(BusSettings(mode="client", connect=[f"unixsock-stream/{socket}"])))
+    try:
+        from test_contract import make_tracks
+        payload = encode(make_tracks(2, site="s", seq=7))
+        queryable = service.declare_queryable(latest_tracks_key("s"),
+                                              lambda q: q.reply(latest_tracks_key("s"), payload))
+        enrolled = BusSettings(tls_root_ca=ca, tls_certificate=vehicle[0], tls_private_key=vehicle[1])
+        with TrackClient("s", connect=[endpoint], bus=enrolled, wait_s=WAIT_S) as client:
+            latest = client.latest(timeout_s=5)
+            assert latest is not None and latest.seq == 7
+        for bus in (BusSettings(tls_root_ca=ca),
+                    BusSettings(tls_root_ca=ca, tls_certificate=stranger[0], tls_private_key=stranger[1])):
+            with pytest.raises(ConnectionError, match=endpoint):
+                TrackClient("s", connect=[endpoint], bus=bus, wait_s=2.0)
+        with pytest.raises(ValueError, match=r"bus\.tls_certificate is given without bus\.tls_private_key"):
+            BusSettings(tls_certificate=vehicle[0])
+        with pytest.raises(ValueError, match=r"bus\.tls_private_key: private key not found: .*nowhere\.key"):
+            TrackClient("s", connect=[endpoint], wait_s=2.0, bus=BusSettings(
+                tls_root_ca=ca, tls_certificate=vehicle[0], tls_private_key=tmp_path / "nowhere.key"))
+        from roadside.cli import main
+        assert main(["tracks", "--site", "s", "--connect", endpoint, "--ca", str(ca), "--cert", str(vehicle[0]),
+                     "--key", str(vehicle[1]), "--count", "1", "--json", "--wait", "10"]) == 0
+        assert json.loads(capsys.readouterr().out)["seq"] == 7
+        done = subprocess.run([sys.executable, str(REPO / "examples" / "vehicle_listener.py"), "--site", "s",
+                               "--connect", endpoint, "--ca", str(ca), "--cert", str(vehicle[0]), "--key",
+                               str(vehicle[1]), "--count", "1", "--timeout", "5"],
+                              capture_output=True, text=True, timeout=60, cwd="/")
+        assert done.returncode == 0 and json.loads(done.stdout)["seq"] == 7, done.stderr
+        del queryable
+    finally:
+        service.close()
+        router.close()
 
 
 @pytest.mark.skipif(shutil.which("openssl") is None, reason="no openssl to make the test's certificates")
