@@ -19,7 +19,10 @@ away at a time:
   image dropped, and each bus and truck the camera sees given as a `truth` object (below); every other object as
   run (what the long vehicles cost: the detector places a 12 m bus's peak at one end);
 - `truth`: every vehicle each camera sees (bottom centre in the image, `min_visible_fraction` visible, as the
-  evaluation's rule) at its true pixel, lifted through the masks (fusion, tracking and calibration alone).
+  evaluation's rule) at its true pixel, lifted through the masks (fusion, tracking and calibration alone);
+- `without_<camera>` (one per camera of the site, asked for by name): that camera's objects dropped, as when it
+  fails at the cabinet; scored as the others, over every camera's ROI, and in `lost_camera_roi` over the lost
+  camera's own ROI alone, beside the same for the objects as run (what the other cameras' far views keep of it).
 
 A camera "sees" a vehicle as in eval/tracking.py. Objects scoring below the site's `detect.score_thr` are left out
 first, so a run detected at a lower threshold can be replayed at any higher one (environment overrides such as
@@ -51,6 +54,7 @@ FOOTPRINT_MARGIN_M = 0.5  # an object this close to a long vehicle's footprint i
 SCORES = ("mota", "idf1", "id_switches", "precision", "recall", "traj_err_in_roi_m", "yaw_err_in_roi_deg",
           "yaw_err_in_roi_median_deg", "yaw_std_within_95", "yaw_std_loglik", "pos_cov_within_95", "pos_cov_loglik",
           "pos_cov_within_95_truck", "pos_cov_loglik_truck", "pos_cov_within_95_bus", "pos_cov_loglik_bus")
+LOST_CAMERA_SCORES = ("mota", "idf1", "recall", "precision", "traj_err_in_roi_m")  # `without_<camera>`, its ROI
 OBJECT_KEYS = ("camera", "seq", "t_ns", "xy", "yaw", "size_lwh", "vtype", "score")
 TRUTH_SCORE = 0.9  # the score of a `truth` object: above any threshold a site uses
 
@@ -94,7 +98,7 @@ def replay(rows: Sequence[dict], settings) -> list[dict]:
         ticks.add(r["camera"], int(r["t_ns"]), batch, 0.0)
     out = []
     for seq, tick in enumerate(ticks.flush()):
-        state = fuse_and_track(fusion, tracker, tick.items(), tick.t_ref_ns)
+        state = fuse_and_track(fusion, tracker, tick.items(), tick.t_ref_ns, tick.batches.keys())
         msg = tracks_message(settings.site, state, tick.t_ref_ns, seq, geo, [], [])
         out.append({"site": settings.site, "seq": seq, "t_ns": tick.t_ref_ns, "tracker": tracker.id,
                     "tracks": msg.rows()})
@@ -238,10 +242,12 @@ def budget(demo_dir: str | Path, scenarios: Sequence[str] = SCENARIOS, gate_m: f
     from sim.recording import Recording
 
     demo = Path(demo_dir)
-    unknown = [s for s in scenarios if s not in SCENARIOS]
-    if unknown:
-        raise ValueError(f"unknown scenario(s) {', '.join(unknown)}; choose from {', '.join(SCENARIOS)}")
     settings = load_settings(demo / "site" / "site.yaml")
+    cams = [c.name for c in settings.cameras]
+    lost = {f"without_{c}": c for c in cams}
+    unknown = [s for s in scenarios if s not in SCENARIOS and s not in lost]
+    if unknown:
+        raise ValueError(f"unknown scenario(s) {', '.join(unknown)}; choose from {', '.join((*SCENARIOS, *lost))}")
     summary = demo / "summary.json"
     rec_dir = demo / "recording"
     if summary.is_file():
@@ -260,7 +266,6 @@ def budget(demo_dir: str | Path, scenarios: Sequence[str] = SCENARIOS, gate_m: f
                              f"in {demo / 'site' / 'site.yaml'} with this environment (is "
                              "ROADSIDE_LOCALIZE__FOOTPRINT_OVERLAP=0 still set?): there is no rule to apply")
         rows = with_localize_rule(rows, settings.localize)
-    cams = [c.name for c in settings.cameras]
     seen = seen_vehicles(recording, TrackingEvalConfig().min_visible_fraction)
     in_image = seen_vehicles(recording, 0.0)  # what an object may be of: any vehicle in its camera's image
     masks = {}
@@ -277,20 +282,29 @@ def budget(demo_dir: str | Path, scenarios: Sequence[str] = SCENARIOS, gate_m: f
         "true_positions_no_false_alarms": lambda: with_truth(rows, in_image, gate_m, move=True, drop=True),
         "true_long_vehicles": lambda: true_types(rows, in_image, seen, masks),
         "truth": lambda: truth_objects(rows, seen, masks),
+        **{name: (lambda c=c: [r for r in rows if r["camera"] != c]) for name, c in lost.items()},
     }
     out = {"demo": str(demo), "recording": str(rec_dir), "gate_m": gate_m,
            "score_thr": settings.detect.score_thr, "high_score": settings.fuse_track.high_score,
            "localize_rule": {"footprint_overlap": settings.localize.footprint_overlap,
                              "footprint_merge": settings.localize.footprint_merge} if localize_rule else None,
            "scenarios": {}}
+    replayed: dict[str, list[dict]] = {}  # each scenario's tracks, as_run's kept for the lost cameras' ROIs
     for name in scenarios:
-        tracks = replay(variants[name](), settings)
+        tracks = replayed[name] = replay(variants[name](), settings)
         s = evaluate_many(recording, {"fused": tracks}, cameras=cams)["sources"]["fused"]
         for vtype in ("truck", "bus"):  # the long vehicles, whose positions are least sure (docs/pipeline.md)
             of_type = s["pos_cov_by_type"].get(vtype, {})
             for stat in ("within_95", "loglik"):
                 s[f"pos_cov_{stat}_{vtype}"] = of_type.get(f"pos_cov_{stat}", math.nan)
         out["scenarios"][name] = {k: round(s[k], 4) if isinstance(s[k], float) else s[k] for k in SCORES}
+        if name in lost:
+            if "as_run" not in replayed:
+                replayed["as_run"] = replay(rows, settings)
+            out["scenarios"][name]["lost_camera_roi"] = {
+                key: {k: round(v[k], 4) if isinstance(v[k], float) else v[k] for k in LOST_CAMERA_SCORES}
+                for key, v in ((key, evaluate_many(recording, {"fused": replayed[run]}, cameras=[lost[name]])[
+                    "sources"]["fused"]) for key, run in (("as_run", "as_run"), ("without", name)))}
         if log:
             log(f"{name}: " + ", ".join(f"{k} {out['scenarios'][name][k]}" for k in SCORES))
     return out

@@ -221,7 +221,8 @@ def _add_eval(sub) -> None:
                         "out/demo); repeatable: each run's budget and the mean over them")
     p.add_argument("--scenario", action="append",
                    help="budget: score only this scenario (repeatable; default all: as_run, exact_lift, "
-                        "true_positions, no_false_alarms, true_positions_no_false_alarms, true_long_vehicles, truth)")
+                        "true_positions, no_false_alarms, true_positions_no_false_alarms, true_long_vehicles, truth; "
+                        "and without_CAMERA for any camera of the site, by name: that camera lost)")
     p.add_argument("--localize-rule", action="store_true",
                    help="budget: apply localize's footprint rule (localize.footprint_overlap, footprint_merge) to the "
                         "objects left at the replay's threshold, for a run recorded without it "

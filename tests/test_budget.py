@@ -195,6 +195,20 @@ def test_budget_finds_the_recording_of_a_demo_folder_run_from_elsewhere(demo: Pa
 def test_budget_rejects_an_unknown_scenario(demo: Path):
     with pytest.raises(ValueError, match="unknown scenario"):
         budget(demo, ["as_run", "perfect"])
+    with pytest.raises(ValueError, match=f"unknown scenario.s. without_XX; choose from .*without_{CAMERA}"):
+        budget(demo, ["without_XX"])
+
+
+def test_a_lost_camera_is_scored_over_every_roi_and_its_own(demo: Path):
+    """`without_<camera>`: that camera's objects dropped (here the site's only camera: nothing is tracked), scored as
+    the other scenarios and, in `lost_camera_roi`, over its own ROI beside the run as it was."""
+    out = budget(demo, ["as_run", f"without_{CAMERA}"])["scenarios"]
+    lost = out[f"without_{CAMERA}"]
+    assert lost["recall"] == 0.0 and lost["lost_camera_roi"]["without"]["recall"] == 0.0
+    keys = ("mota", "idf1", "recall", "precision", "traj_err_in_roi_m")
+    assert tuple(lost["lost_camera_roi"]["as_run"]) == keys
+    # its ROI is the site's: the same figures as the run's own (compared as JSON: NaN where nothing is tracked)
+    assert json.dumps(lost["lost_camera_roi"]["as_run"]) == json.dumps({k: out["as_run"][k] for k in keys})
 
 
 def test_budget_replays_at_the_sites_detect_threshold(demo: Path, monkeypatch):
