@@ -257,6 +257,11 @@ class FuseTrackSettings(Strict):
     # vehicle's distance from that camera: a detector's are the worse the farther (docs/pipeline.md, "Far headings and
     # sizes"). 0: off
     yaw_size_range_m: float = Field(20.0, ge=0)
+    # a camera that delivered no frame for this long (event time, s) is down: the ground its region held goes to the
+    # nearest camera that is up, whose objects there scoring at least handover_min_score start tracks, until it
+    # delivers again (fusion.py, 5; chosen on the validation recordings: docs/pipeline.md, "A camera down"). 0: never
+    handover_s: float = Field(1.0, ge=0)
+    handover_min_score: float = Field(0.6, ge=0, le=1)
     gate_m: float = Field(3.0, gt=0)  # largest track-to-measurement distance
     max_age_ticks: int = Field(3, ge=1)
     min_hits: int = Field(3, ge=1)

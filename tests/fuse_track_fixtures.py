@@ -41,7 +41,7 @@ def pipeline(frames: list[tuple[float, str, int, ObjectBatch]], cameras: dict[st
     def run(ticks):
         for tick in ticks:
             objects = ObjectBatch.concat(tick.items())
-            fused = fusion.fuse(objects, tick.t_ref_ns, tracker.velocity_hints(objects))
+            fused = fusion.fuse(objects, tick.t_ref_ns, tracker.velocity_hints(objects), tick.batches.keys())
             if fusion_log is not None:
                 fusion_log.append((tick, fused))
             out.append(tracker.update(fused, tick.t_ref_ns))

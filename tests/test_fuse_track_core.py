@@ -86,6 +86,28 @@ def test_vehicle_keeps_its_id_from_one_camera_region_to_the_next():
     assert all(len(fused) <= 1 for _, fused in log)
 
 
+def test_a_vehicle_in_a_dead_cameras_region_is_tracked_from_its_neighbours_view():
+    """Two cameras 40 m apart; east stops delivering after 2 s, and then a vehicle drives through its region, 25-45 m
+    from west, which sees it: a second after east's last frame its region is west's, and the vehicle is tracked; with
+    the handover off (`handover_s` 0), west's view of it never starts a track."""
+    cams = {"west": (-20.0, 0.0), "east": (20.0, 0.0)}
+
+    def truth(t):
+        return np.array([[5.0 + 4.0 * (t - 4.0), 3.0]])
+
+    frames = []
+    for k in range(80):
+        t = 0.1 * k
+        t_ns = round(t * 1e9)
+        xy = truth(t) if t >= 4.0 else np.zeros((0, 2))
+        frames.append((t + 0.02, "west", t_ns, frame("west", t_ns, xy)))
+        if t < 2.0:
+            frames.append((t + 0.03, "east", t_ns + 30 * MS, frame("east", t_ns + 30 * MS, np.zeros((0, 2)))))
+    tracked = ids_by_truth(pipeline(frames, cams, fusion_config=FusionConfig(handover_s=1.0)), truth)
+    assert tracked.get(0) and len(tracked[0]) == 1
+    assert not ids_by_truth(pipeline(frames, cams, fusion_config=FusionConfig(handover_s=0.0)), truth).get(0)
+
+
 def test_low_score_objects_extend_confirmed_tracks_but_never_start_one():
     """ByteTrack's second round (high_score): a vehicle whose score dips below high_score for a few ticks keeps
     its track and id (one round drops the track and starts a new id); a low-score object alone, with no track

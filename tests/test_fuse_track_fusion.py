@@ -278,3 +278,49 @@ def test_select_and_concat_keep_every_column_and_the_sources():
     ae = ObjectBatch.concat([a, e])
     assert ae.extend_mask().tolist() == [False, False, True]
     assert ae.select(np.array([2, 0])).extend_mask().tolist() == [True, False]
+
+
+def test_a_camera_down_hands_its_region_to_the_nearest_camera_up():
+    """Three cameras in a row; A goes silent. While it delivered (and for handover_s after), B's view of a vehicle in
+    A's region is extend-only; once A is down, A's ground is B's (its nearest camera up), where B's objects start
+    groups as in its own region; C's region is unchanged. A's next frame takes its region back. A camera never
+    heard from counts as down from handover_s after the first tick; without `delivered`, or with handover_s 0, every
+    camera is up."""
+    regions = [CameraRegion("A", (-40.0, 0.0)), CameraRegion("B", (0.0, 0.0)), CameraRegion("C", (40.0, 0.0))]
+    fusion = Fusion(regions, FusionConfig(extend_range_m=50.0, handover_s=1.0))
+    def in_a(t_ns: int) -> ObjectBatch:
+        return frame("B", t_ns, [[-30.0, 1.0]])  # B's object 30 m west, in A's region
+
+    s = 1_000_000_000
+    assert fusion.fuse(in_a(0), 0, delivered=["A", "B", "C"]).extend_mask().tolist() == [True]
+    assert fusion.fuse(in_a(s), s, delivered=["B", "C"]).extend_mask().tolist() == [True]  # 1 s: not yet
+    assert fusion.down == frozenset()
+    t = s + 100 * MS
+    assert fusion.fuse(in_a(t), t, delivered=["B", "C"]).extend_mask().tolist() == [False]
+    assert fusion.down == {"A"}
+    owners = fusion.contains(np.array([[-30.0, 1.0], [-25.0, 0.0], [30.0, 0.0]]), np.array([True, False, False]))
+    assert owners.tolist() == [[False, True, False], [False, True, False], [False, False, True]]
+    t = s + 200 * MS
+    assert fusion.fuse(in_a(t), t, delivered=["A", "B", "C"]).extend_mask().tolist() == [True]  # A is back
+    assert fusion.down == frozenset()
+    fresh = Fusion(regions, FusionConfig(extend_range_m=50.0, handover_s=1.0))  # A never heard from
+    assert fresh.fuse(in_a(0), 0, delivered=["B", "C"]).extend_mask().tolist() == [True] and fresh.down == set()
+    assert fresh.fuse(in_a(t), t, delivered=["B", "C"]).extend_mask().tolist() == [False] and fresh.down == {"A"}
+    assert fresh.fuse(in_a(t), t).extend_mask().tolist() == [True]  # without `delivered`: all up
+    off = Fusion(regions, FusionConfig(extend_range_m=50.0, handover_s=0.0))
+    assert off.fuse(in_a(0), 0, delivered=["B"]).extend_mask().tolist() == [True]
+    with pytest.raises(ValueError, match="handover_s must be >= 0"):
+        FusionConfig(handover_s=-1.0)
+
+
+def test_the_cameras_watch_starts_again_when_the_clocks_go_back():
+    """A recording played again from its start (capture times back by a minute): a camera that delivered a minute
+    "later" is not taken to be up until then; the watch starts again, every camera given handover_s."""
+    regions = [CameraRegion("A", (-40.0, 0.0)), CameraRegion("B", (0.0, 0.0))]
+    fusion = Fusion(regions, FusionConfig(extend_range_m=50.0, handover_s=1.0))
+    s = 1_000_000_000
+    fusion.fuse(frame("B", 60 * s, [[-30.0, 1.0]]), 60 * s, delivered=["A", "B"])
+    assert fusion.fuse(frame("B", 0, [[-30.0, 1.0]]), 0, delivered=["B"]).extend_mask().tolist() == [True]
+    late = 2 * s
+    assert fusion.fuse(frame("B", late, [[-30.0, 1.0]]), late, delivered=["B"]).extend_mask().tolist() == [False]
+    assert fusion.down == {"A"}

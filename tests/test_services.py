@@ -237,6 +237,7 @@ def test_chain_plays_two_frames_through_all_four_services(site, site_name, small
     assert loc_status.counts == {"detections_in": 2, "objects_out": 2} and loc_status.bad == {}, loc_status
     fuse_status = status_report(peer, site_name, "fuse_track", lambda r: r.counts.get("objects_in") == 2)
     assert fuse_status.counts["tracks_out"] >= 1 and fuse_status.gauges["not_recorded"] == 0, fuse_status
+    assert fuse_status.gauges["cameras_down"] == 0, fuse_status  # its one camera delivers
     for proc in (detect, localize, fuse):  # fuse_track last: it flushes and records what is still open
         assert_clean_exit(proc, proc.terminate())
     peer.poll()

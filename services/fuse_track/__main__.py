@@ -18,6 +18,7 @@ import json
 import logging
 import time
 import zipfile
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -120,7 +121,8 @@ def fusion_config(cfg: FuseTrackSettings) -> FusionConfig:
     return FusionConfig(merge_gate_m=cfg.merge_gate_m, out_of_region_weight=cfg.out_of_region_weight,
                         position_sigma=cfg.position_sigma, crowded_sigma_factor=cfg.crowded_sigma_factor,
                         occlusion_fallback=cfg.occlusion_fallback, extend_range_m=cfg.extend_range_m,
-                        split_score=cfg.high_score, yaw_size_range_m=cfg.yaw_size_range_m)
+                        split_score=cfg.high_score, yaw_size_range_m=cfg.yaw_size_range_m,
+                        handover_s=cfg.handover_s, handover_min_score=cfg.handover_min_score)
 
 
 def tracker_config(cfg: FuseTrackSettings) -> TrackerConfig:
@@ -147,10 +149,12 @@ def capped(batches: list[ObjectBatch], limit: int = MAX_ROWS) -> tuple[list[Obje
     return [objs.select(np.sort(np.argsort(-objs.score, kind="stable")[:limit]))], n - limit
 
 
-def fuse_and_track(fusion: Fusion, tracker: Tracker, batches: list[ObjectBatch], t_ref_ns: int) -> TrackState:
-    """One closed tick: its cameras' objects fused, then the tracker's update at the tick's reference time."""
+def fuse_and_track(fusion: Fusion, tracker: Tracker, batches: list[ObjectBatch], t_ref_ns: int,
+                   delivered: Iterable[str] | None = None) -> TrackState:
+    """One closed tick: its cameras' objects fused, then the tracker's update at the tick's reference time;
+    `delivered`: the cameras that delivered a frame to the tick (the fusion hands a down camera's region over)."""
     objs = ObjectBatch.concat(batches) if batches else ObjectBatch.empty()
-    return tracker.update(fusion.fuse(objs, t_ref_ns, tracker.velocity_hints(objs)), t_ref_ns)
+    return tracker.update(fusion.fuse(objs, t_ref_ns, tracker.velocity_hints(objs), delivered), t_ref_ns)
 
 
 def main(settings: Settings, stopper: Stopper) -> int:
@@ -194,7 +198,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
                     bad(f"tick at {tick.t_ref_ns}: {dropped} objects over the {MAX_ROWS} one tick may hold dropped "
                         "(the lowest scores)", "tick")
                 try:
-                    state = fuse_and_track(fusion, tracker, batches, tick.t_ref_ns)
+                    state = fuse_and_track(fusion, tracker, batches, tick.t_ref_ns, tick.batches.keys())
                     msg = tracks_message(settings.site, state, tick.t_ref_ns, seq, geo,
                                          [("tick_closed", t_closed), ("fuse_track", time.time_ns())], tick_frames(tick))
                 except ValueError as exc:  # what validation let through and fusion, the tracker or Tracks cannot take
@@ -206,6 +210,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
                 recorder.write(msg)
                 status.count("tracks_out", output=True)
                 status.gauge("tracks", len(msg))
+                status.gauge("cameras_down", len(fusion.down))  # regions handed to their neighbours (fusion.py, 5)
                 status.gauge("not_recorded", recorder.failed)
                 status.gauge("rotations_failed", recorder.rotation_failed)
                 seq += 1

@@ -32,7 +32,15 @@ default), optionally cut at `max_range_m`. Then, for the objects of one tick:
    of a vehicle are the worse the farther it is: the shipped fisheye detector's heading is off by 9-11 deg rms within
    20 m, 22-27 deg at 20-45 m and 39 deg at 45-70 m; docs/pipeline.md, "Far headings and sizes"), type the weighted
    vote, score the maximum; `sources` lists its cameras; with `position_sigma`, `xy_cov` is the covariance of its
-   position's error that its members' error model implies (the tracker turns it into each track's, to report).
+   position's error that its members' error model implies (the tracker turns it into each track's, to report);
+5. a camera that has delivered no frame for `handover_s` of event time (dead, unplugged, its stream stalled) is down:
+   the ground its region held goes to the nearest camera that is up (`contains(xy, down)`), whose objects there
+   scoring at least `handover_min_score` then seed groups and start tracks as in their own region (a far view's
+   weaker objects are more often false), until it delivers again. Without it the other cameras' far
+   views of a dead camera's ground were extend-only, so no vehicle that entered it was tracked (the demo's recording
+   with NE's objects dropped: 0.08 of the vehicles in NE's ROI; docs/pipeline.md, "A camera down"). A camera not
+   heard from since the start counts as down from handover_s after the first tick; `fuse` learns which cameras
+   delivered from its `delivered` argument.
 
 A fused object is stated at its members' weighted mean capture time `t_ns` (each member shifted
 there with its hint), not at the tick time: the tracker does the last shift with its own velocity,
@@ -41,7 +49,8 @@ so an object without a hint is never claimed to be at a time it was not seen.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import logging
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,6 +58,8 @@ from scipy.optimize import linear_sum_assignment
 
 from shared.messages import not_covariances
 from shared.position_error import POSITION_SIGMA, check_position_sigma, position_information
+
+log = logging.getLogger(__name__)
 
 NS_PER_S = 1_000_000_000
 MAX_VTYPE = 127  # vtype travels as int8
@@ -308,7 +319,11 @@ class FusionConfig:
     (for the tracker's two rounds, `TrackerConfig.high_score`: a low-score object inside its camera's region
     would otherwise let a high-score one from outside it join its group and start a track; 0 = one pool);
     yaw_size_range_m: a member's weight in its group's heading and size falls with its distance r from its camera as
-    yaw_size_range_m^2 / (yaw_size_range_m^2 + r^2) (module doc, 4; 0 = the same weight as in its position)."""
+    yaw_size_range_m^2 / (yaw_size_range_m^2 + r^2) (module doc, 4; 0 = the same weight as in its position);
+    handover_s: a camera that delivered no frame for this long (event time, s; `Fusion.fuse`'s `delivered`) is down,
+    and the ground its region held goes to the nearest camera that is up (module doc, 5; 0 = never);
+    handover_min_score: there, only that camera's objects scoring at least this count as in its region (the others
+    as outside it: extend-only within extend_range_m)."""
 
     merge_gate_m: float = 3.0
     out_of_region_weight: float = 0.5
@@ -324,6 +339,10 @@ class FusionConfig:
     # 20 m: the far end of a plateau over 5-20 m of the validation recordings' median heading errors, a mean 2.9 deg
     # lower than without, and as good as 10 m for the sizes (docs/pipeline.md, "Far headings and sizes")
     yaw_size_range_m: float = 20.0
+    # 1 s: ten of a 10 Hz camera's frames, three of a 5 Hz real one's gaps at its worst (docs/pipeline.md, "A camera
+    # down"); 0.6: the top of a plateau over 0.5-0.6 of the validation recordings' MOTA with each camera down in turn
+    handover_s: float = 1.0
+    handover_min_score: float = 0.6
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.merge_gate_m) and self.merge_gate_m > 0):
@@ -340,10 +359,10 @@ class FusionConfig:
         object.__setattr__(self, "crowd_ahead_m", (float(ahead[0]), float(ahead[1])))
         if not (np.isfinite(self.crowd_across_m) and self.crowd_across_m > 0):
             raise ValueError(f"crowd_across_m must be > 0, got {self.crowd_across_m}")
-        for name in ("extend_range_m", "yaw_size_range_m"):
+        for name in ("extend_range_m", "yaw_size_range_m", "handover_s"):
             if not (np.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
-        for name in ("min_score", "split_score"):
+        for name in ("min_score", "split_score", "handover_min_score"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ValueError(f"{name} must be within [0, 1], got {getattr(self, name)}")
 
@@ -399,13 +418,20 @@ class Fusion:
         self._range = np.array([np.inf if r.max_range_m is None else r.max_range_m for r in self.regions])
         sigma = self.config.position_sigma
         self._sigma = None if sigma is None else np.asarray(sigma, np.float64)
+        self._delivered_ns = np.zeros(len(self.regions), np.int64)  # each camera's last tick with a frame
+        self._heard = np.zeros(len(self.regions), bool)  # and whether it has delivered at all
+        self._first_ns: int | None = None  # the first tick any camera delivered to
+        self._last_ns = 0  # the last tick watched
+        self.down: frozenset[str] = frozenset()  # the cameras whose regions the last tick handed over
 
     @property
     def cameras(self) -> list[str]:
         return list(self._index)
 
-    def contains(self, xy: np.ndarray) -> np.ndarray:
-        """xy (N, 2) m site frame -> (N, C) bool: point n lies in the region of camera c (`cameras` order)."""
+    def contains(self, xy: np.ndarray, down: np.ndarray | None = None) -> np.ndarray:
+        """xy (N, 2) m site frame -> (N, C) bool: point n lies in the region of camera c (`cameras` order). With
+        `down` ((C,) bool, cameras that are down) a point whose regions are all down cameras' lies in the region of
+        the nearest camera that is up (and whose `max_range_m` reaches it)."""
         xy = np.asarray(xy, np.float64).reshape(-1, 2)
         d = np.linalg.norm(xy[:, None, :] - self._pos[None], axis=2)  # (N, C)
         inside = d <= self._range
@@ -415,13 +441,51 @@ class Fusion:
             inside[:, vor] &= nearest[:, None] == vor[None]
         for c in np.flatnonzero(~self._voronoi):
             inside[:, c] &= points_in_polygon(xy, self.regions[c].polygon_xy)
+        if down is not None and down.any() and not down.all():
+            orphan = np.flatnonzero(inside[:, down].any(axis=1) & ~inside[:, ~down].any(axis=1))
+            inside[:, down] = False
+            reach = np.where(down[None, :] | (d[orphan] > self._range), np.inf, d[orphan])
+            heir = np.argmin(reach, axis=1)
+            ok = np.isfinite(reach[np.arange(len(orphan)), heir])
+            inside[orphan[ok], heir[ok]] = True
         return inside
 
-    def fuse(self, objects: ObjectBatch, t_ref_ns: int, velocity: np.ndarray | None = None) -> ObjectBatch:
+    def _watch(self, delivered: Iterable[str] | None, t_ref_ns: int) -> np.ndarray | None:
+        """(C,) bool, the cameras down at t_ref_ns (module doc, 5), after noting those that `delivered` a frame to
+        this tick; None without `delivered` or with handover off."""
+        if delivered is None or self.config.handover_s <= 0:
+            return None
+        if self._first_ns is not None and int(t_ref_ns) < self._last_ns:  # the clocks went back: start again
+            self._heard[:], self._first_ns = False, None
+        self._last_ns = int(t_ref_ns)
+        for name in delivered:
+            if name in self._index:
+                self._delivered_ns[self._index[name]] = int(t_ref_ns)
+                self._heard[self._index[name]] = True
+                if self._first_ns is None:
+                    self._first_ns = int(t_ref_ns)
+        if self._first_ns is None:
+            return None
+        # a camera never heard from is given handover_s from the first tick, as if it had delivered to it
+        since = np.where(self._heard, self._delivered_ns, self._first_ns)
+        down = (int(t_ref_ns) - since) > round(self.config.handover_s * NS_PER_S)
+        now = frozenset(self.regions[c].name for c in np.flatnonzero(down))
+        if now - self.down:
+            log.warning("cameras down (no frame for %g s of capture time): %s; their regions go to the nearest "
+                        "cameras up", self.config.handover_s, ", ".join(sorted(now - self.down)))
+        if self.down - now:
+            log.warning("cameras up again: %s", ", ".join(sorted(self.down - now)))
+        self.down = now
+        return down
+
+    def fuse(self, objects: ObjectBatch, t_ref_ns: int, velocity: np.ndarray | None = None,
+             delivered: Iterable[str] | None = None) -> ObjectBatch:
         """One tick's objects (any cameras, any capture times) -> fused objects, one per vehicle.
 
         velocity: optional (N, 2) float m/s (east, north) per object, used to bring each object to
         `t_ref_ns` before gating and averaging; zeros (no shift) where unknown.
+        delivered: the cameras that delivered a frame to this tick, with or without objects (module doc, 5); the
+        fusion remembers them from tick to tick (call it with ticks in order). None: every camera counts as up.
         Returns an ObjectBatch whose `sources` lists the cameras merged into each row and whose
         `t_ns` is the members' weighted mean capture time (xy is the position at that time).
         """
@@ -430,6 +494,7 @@ class Fusion:
         if vel.shape != (n, 2):
             raise ValueError(f"fuse.velocity must have shape (N, 2) = ({n}, 2) like the objects, got {vel.shape}")
         check_columns("fuse", {"velocity": (vel, (2,))})
+        down = self._watch(delivered, t_ref_ns)
         keep = np.flatnonzero(objects.score >= self.config.min_score)
         if len(keep) < n:
             objects, vel = objects.select(keep), vel[keep]
@@ -439,15 +504,19 @@ class Fusion:
         # two pools (split_score): fused in one pass, never with each other, as if each were fused alone, the
         # high-scoring pool's objects first
         pool = (objects.score < self.config.split_score).astype(np.int64)
-        return self._fuse(objects, t_ref_ns, vel, pool)
+        return self._fuse(objects, t_ref_ns, vel, pool, down)
 
-    def _fuse(self, objects: ObjectBatch, t_ref_ns: int, vel: np.ndarray, pool: np.ndarray) -> ObjectBatch:
+    def _fuse(self, objects: ObjectBatch, t_ref_ns: int, vel: np.ndarray, pool: np.ndarray,
+              down: np.ndarray | None = None) -> ObjectBatch:
         n = len(objects)
         dt_s = (int(t_ref_ns) - objects.t_ns) / NS_PER_S
         p_ref = objects.xy + vel * dt_s[:, None]  # positions at the reference time
         cam_idx = np.array([self._index.get(c, -1) for c in objects.camera.tolist()])
-        owners = self.contains(p_ref)  # (N, C)
+        owners = self.contains(p_ref, down)  # (N, C)
         in_region = (cam_idx >= 0) & owners[np.arange(n), np.maximum(cam_idx, 0)]
+        if down is not None and down.any() and self.config.handover_min_score > 0:
+            own = self.contains(p_ref)[np.arange(n), np.maximum(cam_idx, 0)]
+            in_region &= own | (objects.score >= self.config.handover_min_score)
         weight = np.maximum(objects.score, 1e-6) * np.where(in_region, 1.0, self.config.out_of_region_weight)
         source = frame_labels(objects.camera, objects.t_ns)  # the frame each object comes from
         labels, extend = self._group(objects, p_ref, in_region, weight, cam_idx, owners, source, pool)
