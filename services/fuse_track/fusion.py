@@ -432,6 +432,10 @@ class Fusion:
         """xy (N, 2) m site frame -> (N, C) bool: point n lies in the region of camera c (`cameras` order). With
         `down` ((C,) bool, cameras that are down) a point whose regions are all down cameras' lies in the region of
         the nearest camera that is up (and whose `max_range_m` reaches it)."""
+        return self._regions(xy, down)[0]
+
+    def _regions(self, xy: np.ndarray, down: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """`contains`, and (N, C) bool: the (point, camera) pairs a down camera handed over."""
         xy = np.asarray(xy, np.float64).reshape(-1, 2)
         d = np.linalg.norm(xy[:, None, :] - self._pos[None], axis=2)  # (N, C)
         inside = d <= self._range
@@ -441,14 +445,16 @@ class Fusion:
             inside[:, vor] &= nearest[:, None] == vor[None]
         for c in np.flatnonzero(~self._voronoi):
             inside[:, c] &= points_in_polygon(xy, self.regions[c].polygon_xy)
+        inherited = np.zeros_like(inside)
         if down is not None and down.any() and not down.all():
             orphan = np.flatnonzero(inside[:, down].any(axis=1) & ~inside[:, ~down].any(axis=1))
             inside[:, down] = False
             reach = np.where(down[None, :] | (d[orphan] > self._range), np.inf, d[orphan])
             heir = np.argmin(reach, axis=1)
             ok = np.isfinite(reach[np.arange(len(orphan)), heir])
-            inside[orphan[ok], heir[ok]] = True
-        return inside
+            inherited[orphan[ok], heir[ok]] = True
+            inside |= inherited
+        return inside, inherited
 
     def _watch(self, delivered: Iterable[str] | None, t_ref_ns: int) -> np.ndarray | None:
         """(C,) bool, the cameras down at t_ref_ns (module doc, 5), after noting those that `delivered` a frame to
@@ -512,11 +518,11 @@ class Fusion:
         dt_s = (int(t_ref_ns) - objects.t_ns) / NS_PER_S
         p_ref = objects.xy + vel * dt_s[:, None]  # positions at the reference time
         cam_idx = np.array([self._index.get(c, -1) for c in objects.camera.tolist()])
-        owners = self.contains(p_ref, down)  # (N, C)
-        in_region = (cam_idx >= 0) & owners[np.arange(n), np.maximum(cam_idx, 0)]
-        if down is not None and down.any() and self.config.handover_min_score > 0:
-            own = self.contains(p_ref)[np.arange(n), np.maximum(cam_idx, 0)]
-            in_region &= own | (objects.score >= self.config.handover_min_score)
+        owners, inherited = self._regions(p_ref, down)  # (N, C) each
+        rows, own = np.arange(n), np.maximum(cam_idx, 0)
+        # on ground handed over (module doc, 5) only the heir's objects scoring handover_min_score count as its own
+        in_region = (cam_idx >= 0) & owners[rows, own] & (
+            ~inherited[rows, own] | (objects.score >= self.config.handover_min_score))
         weight = np.maximum(objects.score, 1e-6) * np.where(in_region, 1.0, self.config.out_of_region_weight)
         source = frame_labels(objects.camera, objects.t_ns)  # the frame each object comes from
         labels, extend = self._group(objects, p_ref, in_region, weight, cam_idx, owners, source, pool)
