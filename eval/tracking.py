@@ -400,29 +400,14 @@ def covariance_measure(nees: np.ndarray, err95_m: np.ndarray | None = None, pref
     return out
 
 
-def prediction_measure(gt: GroundTruth, res: MatchResult, cfg: TrackingEvalConfig) -> dict:
-    """`ahead_<ms>ms_*` for each of `cfg.predict_horizons_s` (module docstring): the tracks matched at their tick
-    in the ROI, against where their vehicles are that much later, as they were (`_stale_err_m`, and their stated
-    covariance as it was: `_stale_cov_*`) and moved on by `predict_motion` (`_err_m`, `_cov_*`); `_moving_*` the
-    same errors for the vehicles at least `moving_mps` fast. Tracks without a velocity and its covariance are
-    left out."""
+def prediction_measure(gt: GroundTruth, cfg: TrackingEvalConfig, matched: Sequence[tuple]) -> dict:
+    """`ahead_<ms>ms_*` for each of `cfg.predict_horizons_s` (module docstring) of the tracks matched at their tick
+    in the ROI, `matched`: (tick ns, vehicle id, xy, xy_cov, velocity, velocity_cov, whether the vehicle moves at
+    least `moving_mps`), each track with a finite velocity and covariances. Against where their vehicles are that
+    much later, as they were (`_stale_err_m`, and their stated covariance as it was: `_stale_cov_*`) and moved on by
+    `predict_motion` (`_err_m`, `_cov_*`); `_moving_*` the same errors for the moving vehicles."""
     gap, ahead_max = gt.max_gap_ns(cfg), round(cfg.max_extrapolation_s * 1e9)
-    when, who, xy, cov, vel, vcov, moving = [], [], [], [], [], [], []  # the matched tracks that can be moved on
-    for fm in res.frames:
-        if not fm.matched:
-            continue
-        vids = list(fm.matched)
-        t_xy = np.array([fm.track_xy[fm.matched[v]] for v in vids])
-        for v, p, roi in zip(vids, t_xy, gt.in_roi(t_xy, res.cameras, cfg), strict=True):
-            tr, j = fm.tracks, fm.row[fm.matched[v]]
-            if roi and all(np.isfinite(a[j]).all() for a in (tr.cov, tr.vel, tr.vel_cov)):
-                when.append(fm.t_ns)
-                who.append(v)
-                xy.append(p)
-                cov.append(tr.cov[j])
-                vel.append(tr.vel[j])
-                vcov.append(tr.vel_cov[j])
-                moving.append(gt.trajectories[v].heading_at(fm.t_ns)[1] >= cfg.moving_mps)
+    when, who, xy, cov, vel, vcov, moving = zip(*matched, strict=True) if matched else ((),) * 7
     xy_a, cov_a = np.array(xy, float).reshape(-1, 2), np.array(cov, float).reshape(-1, 2, 2)
     vel_a, vcov_a = np.array(vel, float).reshape(-1, 2), np.array(vcov, float).reshape(-1, 2, 2)
     moving_a = np.array(moving, bool)
@@ -489,7 +474,7 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
     gap = gt.max_gap_ns(cfg)
     err_in, err_out, pos_err = [], [], []
     yaw_err, yaw_moving, yaw_sure, yaw_sd = [], [], [], []
-    nees, err95, logdet, nees_type, vel_nees = [], [], [], [], []
+    nees, err95, logdet, nees_type, vel_nees, ahead = [], [], [], [], [], []
     for fm in res.frames:
         if not fm.matched:
             continue
@@ -511,6 +496,8 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
             tracked = float(tr.yaw[j])
             true, speed = gt.trajectories[v].heading_at(fm.t_ns)
             vel, vcov = tr.vel[j], tr.vel_cov[j]
+            if roi and np.isfinite(cov).all() and np.isfinite(vel).all() and np.isfinite(vcov).all():
+                ahead.append((fm.t_ns, v, xy, cov, vel, vcov, speed >= cfg.moving_mps))  # prediction_measure's
             if (roi and np.isfinite(vel).all() and np.isfinite(vcov).all() and math.isfinite(true)
                     and math.isfinite(speed)):
                 e = vel - speed * np.array([math.cos(true), math.sin(true)])
@@ -539,7 +526,7 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
                                  logdet=logdet_a[nees_type_a == name])
         for name in sorted(set(nees_type))}
     out.update(covariance_measure(np.array(vel_nees), prefix="vel_cov"))
-    out.update(prediction_measure(gt, res, cfg))
+    out.update(prediction_measure(gt, cfg, ahead))
     scored = {k for fm in res.frames for k in fm.track_xy}
     out.update({
         "tracks": len(scored), "tracks_total": len(res.track_identities),
