@@ -356,3 +356,13 @@ def test_viz_logs_camera_frames_with_detections_when_asked(tracks_file: Path, sm
     no_model = ["viz", str(tracks_file), "--out", str(out), "--site", str(site), "--frames", str(small_recording)]
     assert main(no_model) == 2
     assert "viz --frames needs --site (camera names) and --model" in capsys.readouterr().err
+
+
+def test_an_optional_layer_is_drawn_while_rows_carry_it_and_cleared_once_after() -> None:
+    """The uncertainty ellipses and heading fans are logged when some rows carry their field, once more (empty) by
+    the next message whose rows carry none, so the last drawing does not linger, and then no more."""
+    rec = rr.RecordingStream("test-layers")
+    sink = TrackSink(rec, "s1")
+    path = "world/tracks/t1/heading"
+    assert [sink._draws(path, rows) for rows in ([0, 1], [], [], [2], [])] == [True, True, False, True, True]
+    assert not sink._draws("world/tracks/t2/heading", [])  # another tracker's layer is its own

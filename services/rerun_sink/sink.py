@@ -199,8 +199,7 @@ class TrackSink:
         self.speed_flush_ns = int(speed_flush_s * 1e9)
         self.jpeg_quality = jpeg_quality
         self._tracks: dict[tuple[str, int], _TrackState] = {}
-        self._had_cov: dict[str, bool] = {}  # per tracker: its last message drew uncertainty ellipses
-        self._had_yaw_std: dict[str, bool] = {}  # and heading fans
+        self._drew: set[str] = set()  # the optional layers (entity paths) the last message of their tracker drew
         self._last_speed_flush_ns: int | None = None
         self._cameras: set[str] = set()
         self._span = _Span()
@@ -259,15 +258,14 @@ class TrackSink:
             ),
         )
         sure = [i for i, r in enumerate(msg.rows) if r.xy_cov is not None]
-        if sure or self._had_cov.get(msg.tracker):  # an empty batch clears the last message's ellipses
+        if self._draws(f"{base}/uncertainty", sure):
             cov = np.array([msg.rows[i].xy_cov for i in sure], np.float64).reshape(-1, 2, 2)
             ring = ellipses_xy(x[sure], y[sure], cov)
             rec.log(f"{base}/uncertainty", rr.LineStrips3D(
                 [_at_z(r, Z_FOOTPRINT_M) for r in ring], colors=colors[sure], labels=[labels[i] for i in sure],
                 show_labels=False, radii=rr.Radius.ui_points(1.0)))
-            self._had_cov[msg.tracker] = bool(sure)
         known = [i for i, r in enumerate(msg.rows) if r.yaw_std is not None]
-        if known or self._had_yaw_std.get(msg.tracker):  # as the ellipses
+        if self._draws(f"{base}/heading", known):
             fans, owner = heading_fans(
                 x[known], y[known], yaw[known], length[known] / 2 + HEADING_REACH_M,
                 np.array([msg.rows[i].yaw_std for i in known], np.float64),
@@ -276,7 +274,6 @@ class TrackSink:
             rec.log(f"{base}/heading", rr.LineStrips3D(
                 [_at_z(f, Z_FOOTPRINT_M) for f in fans], colors=colors[whose], labels=[labels[i] for i in whose],
                 show_labels=False, radii=rr.Radius.ui_points(1.0)))
-            self._had_yaw_std[msg.tracker] = bool(known)
         rec.log(f"plots/tracks/{_path_part(msg.tracker)}", rr.Scalars(n))
         self._forget(msg.tracker, msg.t_ns)
         if self._last_speed_flush_ns is None:
@@ -288,6 +285,16 @@ class TrackSink:
         self.rows += n
         self._span.add(msg.t_ns, x, y)
         return n
+
+    def _draws(self, path: str, rows: list[int]) -> bool:
+        """Whether to log the optional layer `path` for these rows (those that carry its field): when some do, or
+        when the tracker's last message drew it (an empty batch then clears it); notes which."""
+        drew = path in self._drew
+        if rows:
+            self._drew.add(path)
+        else:
+            self._drew.discard(path)
+        return bool(rows) or drew
 
     def flush(self) -> None:
         """Send the buffered per-track speeds (`plots/speed/<tracker>/<id>`). Call it when done."""
