@@ -877,6 +877,109 @@ def test_missing_model_masks_or_source_stop_the_service_with_one_error_line(site
         assert err[0].startswith(f"{proc.service}: error: ") and str(path) in err[0], err[0]
 
 
+# --- c2. a camera that stops delivering: its ground goes to its neighbour, and comes back ------------------------
+
+
+@pytest.fixture(scope="module")
+def two_camera_site(small_recording: Path, tmp_path_factory) -> Path:
+    """site.yaml of both cameras of the small recording (NE, T_SW) with exact lookup masks: fuse_track's regions."""
+    folder = tmp_path_factory.mktemp("site2")
+    config = site_config(small_recording)
+    meta = json.loads((small_recording / "recording.json").read_text())
+    sw = next(c for c in meta["cameras"] if c["name"] == "T_SW")
+    write_exact_masks(small_recording, CAMERA, folder / "masks" / f"{CAMERA}.npz")
+    write_exact_masks(small_recording, "T_SW", folder / "masks" / "T_SW.npz")
+    config["cameras"].append({"name": "T_SW", "kind": sw["kind"], "width": sw["width"], "height": sw["height"],
+                              "masks": "masks/T_SW.npz"})
+    return write_site(folder, config)
+
+
+def cars(site: str, camera: str, seq: int, xy: list[tuple[float, float]], score: float = 0.9) -> Objects:
+    """Cars at the given ground positions (m) seen by `camera` at T0 + seq ticks (none: an empty frame)."""
+    f4, n = np.float32, len(xy)
+    return Objects(site=site, camera=camera, seq=seq, t_capture_ns=T0 + seq * TICK_NS, infer_ms=5.0,
+                   stamps=[("ingest", T0), ("detect", T0 + 1), ("localize", T0 + 2)],
+                   xy=np.array(xy, float).reshape(n, 2), latlon=np.tile([42.2294, -83.739], (n, 1)),
+                   yaw=np.zeros(n, f4), size_lwh=np.tile(np.array([4.5, 1.8, 1.5], f4), (n, 1)),
+                   vtype=np.zeros(n, np.int8), score=np.full(n, score, f4), uv=np.zeros((n, 2), f4))
+
+
+def test_a_silent_camera_hands_its_ground_to_its_neighbour_until_it_delivers_again(two_camera_site, port_base, peer,
+                                                                                  launch):
+    """NE stops delivering for 3 s of capture time, T_SW going on: after fuse_track.handover_s (1 s) NE is down and
+    a car that enters NE's region seen by T_SW alone is tracked (without the handover T_SW's far view of it could
+    only extend a track, never start one); when NE delivers again it is up, and the car keeps its track."""
+    from services.fuse_track.__main__ import camera_positions
+    from shared.settings import load_settings
+
+    settings = load_settings(two_camera_site)
+    site_name = settings.site
+    positions, _ = camera_positions(settings)
+    ne, sw = (np.array(positions[c]) for c in (CAMERA, "T_SW"))
+    along = (sw - ne) / np.linalg.norm(sw - ne)
+    across = np.array([-along[1], along[0]])
+    first = ne + 0.2 * (sw - ne)  # both in NE's region (its Voronoi cell): nearer NE than T_SW
+    second = first + 8.0 * across
+
+    def at(start: np.ndarray, seq: int) -> tuple[float, float]:  # 1 m/s along the line between the poles
+        return tuple(start + 0.1 * seq * along)
+
+    peer.subscribe("tracks", tracks_key(site_name), Tracks)
+    fuse = launch("fuse_track", two_camera_site, *bus_sets(port_base), "fuse_track.min_hits=1", STATUS_EVERY)
+    assert peer.wait_alive(f"roadside/{site_name}/alive/fuse_track/*", 1, WAIT_S), fuse.log()
+    keys = {c: camera_key(site_name, c, "objects") for c in (CAMERA, "T_SW")}
+
+    def deliver(seq: int, ne_sees: list | None, sw_sees: list) -> None:
+        peer.put(keys["T_SW"], encode(cars(site_name, "T_SW", seq, sw_sees)))
+        if ne_sees is not None:
+            peer.put(keys[CAMERA], encode(cars(site_name, CAMERA, seq, ne_sees)))
+        peer.wait_for(lambda: False, 0.05)
+
+    def down(report: Status) -> float | None:
+        return report.gauges.get("cameras_down")
+
+    # both deliver: NE sees the first car, T_SW nothing (its empty frames count as delivered)
+    warm_up(peer, keys[CAMERA], lambda i: encode(cars(site_name, CAMERA, i, [at(first, i)])),
+            lambda: peer.got["tracks"], "good objects")
+    start = 60  # past the warm-up's tries
+    for seq in range(start, start + 10):
+        deliver(seq, [at(first, seq)], [])
+    status_report(peer, site_name, "fuse_track", lambda r: down(r) == 0)
+
+    # NE falls silent; T_SW sees a second car in NE's region (as a far view: it may not start a track there)
+    silent = seq + 1
+    for seq in range(silent, silent + 30):
+        deliver(seq, None, [at(second, seq)])
+
+    def handed_over() -> list[tuple[Tracks, int]]:
+        return [(t, i) for t in peer.got["tracks"] for i, cams in enumerate(t.cameras) if cams == ["T_SW"]
+                and np.linalg.norm(t.xy[i] - at(second, (t.t_capture_ns - T0) / TICK_NS)) < 1.5]
+
+    assert peer.wait_for(handed_over, WAIT_S), f"no track of T_SW's car in NE's region:\n{fuse.log()}"
+    status_report(peer, site_name, "fuse_track", lambda r: down(r) == 1)
+    assert re.search(r"cameras down .*: NE; their regions go to the nearest cameras up", fuse.log()), fuse.log()
+    car = handed_over()[-1]
+    car_id = int(car[0].id[car[1]])
+
+    # NE delivers again, seeing the second car too: it is up, and the car keeps its id
+    back = seq + 1
+    for seq in range(back, back + 10):
+        deliver(seq, [at(second, seq)], [at(second, seq)])
+    last = seq
+
+    def newest_of_last() -> list[Tracks]:
+        return [t for t in peer.got["tracks"] if (CAMERA, last) in {(c, s) for c, s, _, _ in t.frames}]
+
+    assert peer.wait_for(newest_of_last, WAIT_S), fuse.log()
+    status_report(peer, site_name, "fuse_track", lambda r: down(r) == 0)
+    assert "cameras up again: NE" in fuse.log()
+    final = newest_of_last()[0]
+    rows = final.rows()
+    near = [r for r in rows if np.hypot(r["x"] - at(second, last)[0], r["y"] - at(second, last)[1]) < 1.5]
+    assert len(near) == 1 and near[0]["id"] == car_id and sorted(near[0]["cameras"]) == [CAMERA, "T_SW"], rows
+    assert_clean_exit(fuse, fuse.terminate())
+
+
 # --- d. a vehicle that joins late gets the current tracks at once ---------------------------------------------------
 
 
