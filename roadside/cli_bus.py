@@ -30,11 +30,19 @@ def add_bus_jobs(sub) -> dict:
     return {"tracks": _run_tracks, "status": _run_status, "health": _run_health, "metrics": _run_metrics}
 
 
+DEFAULT_SITE = "state_ellsworth"
+DEFAULT_PORT_BASE = 7451  # BusSettings' own
+
+
 def _add_endpoint_flags(p: argparse.ArgumentParser, default_to: str) -> None:
-    p.add_argument("--site", default="state_ellsworth", help="site name")
+    p.add_argument("--site", default=DEFAULT_SITE,
+                   help="site name; or a site folder or its site.yaml: the site's name and bus as the services "
+                   "take them, ROADSIDE_BUS__* environment overrides included (a cabinet's compose service, "
+                   f"`roadside demo`'s out/demo/site) (default: {DEFAULT_SITE})")
     p.add_argument("--connect", action="append", default=[], type=endpoint,
                    help=f"Zenoh endpoint: the cabinet's router tcp/HOST:7447 (default: {default_to})")
-    p.add_argument("--port-base", type=port_base, default=7451, help="embedded default's first service port")
+    p.add_argument("--port-base", type=port_base,
+                   help=f"embedded default's first service port (default: {DEFAULT_PORT_BASE}, or the --site file's)")
     p.add_argument("--ca", type=Path, metavar="PEM",
                    help="with a tls/HOST:PORT endpoint: the cabinet's CA certificate, which its certificate must "
                    "chain to (deploy/sites/README.md)")
@@ -44,14 +52,32 @@ def _add_endpoint_flags(p: argparse.ArgumentParser, default_to: str) -> None:
     p.add_argument("--key", type=Path, metavar="PEM", help="the private key of --cert")
 
 
+def _site(args) -> None:
+    """--site as given: a name stays one; an existing site folder or site.yaml gives its name to `args.site` and its bus
+    settings (listening nowhere: this process only asks) to `args.site_bus`. ValueError for a site file that does not
+    load (named by load_settings)."""
+    from shared.messages import check_name
+    from shared.settings import load_settings
+
+    args.site_bus = None
+    if Path(args.site).exists():
+        settings = load_settings(site_path(Path(args.site)))
+        args.site, args.site_bus = settings.site, settings.bus.model_copy(update={"listen": []})
+    check_name("site", args.site)
+
+
 def _bus(args):
-    """The bus settings of the endpoint flags: client mode to --connect, else the embedded default's ports."""
+    """The bus settings of the endpoint flags: client mode to --connect, else --port-base's embedded ports, else the
+    --site file's bus, else the embedded default's ports; --ca, --cert and --key over any of them."""
     from shared.settings import BusSettings
 
-    tls = {"tls_root_ca": args.ca, "tls_certificate": args.cert, "tls_private_key": args.key}
+    tls = {k: v for k, v in (("tls_root_ca", args.ca), ("tls_certificate", args.cert), ("tls_private_key", args.key))
+           if v is not None}
     if args.connect:
         return BusSettings(mode="client", connect=args.connect, **tls)
-    return BusSettings(port_base=args.port_base, **tls)
+    if args.port_base is None and getattr(args, "site_bus", None) is not None:
+        return BusSettings.model_validate({**args.site_bus.model_dump(), **tls})
+    return BusSettings(port_base=args.port_base or DEFAULT_PORT_BASE, **tls)
 
 
 def _add_tracks(sub) -> None:
@@ -90,8 +116,10 @@ def _run_tracks(args) -> int:
     from shared.client import TrackClient
     from shared.messages import err95_m
 
+    _site(args)
+    bus = _bus(args)
     n = 0
-    with TrackClient(args.site, args.connect or None, _bus(args), wait_s=args.wait or None) as client:
+    with TrackClient(args.site, bus.connect if bus.mode == "client" else None, bus, wait_s=args.wait or None) as client:
         for tracks in client.stream(timeout_s=args.timeout):
             if args.now:
                 tracks = tracks.predicted(time.time_ns())
@@ -126,13 +154,13 @@ def _add_status(sub) -> None:
 
 
 def _watcher_session(args):
-    """A Zenoh session that asks the site's services (`--site`, `--connect` or `--port-base`), listening nowhere."""
+    """A Zenoh session that asks the site's services (`--site`, `--connect` or `--port-base`, `_bus`), listening
+    nowhere."""
     import zenoh
 
     from shared.bus import zenoh_config
-    from shared.messages import check_name
 
-    check_name("site", args.site)
+    _site(args)
     return zenoh.open(zenoh_config(_bus(args), None, 0))
 
 

@@ -28,6 +28,8 @@ ROUTER = "zenoh"
 ROUTER_PORT = 7447
 SERVICE_ENDPOINT = "unixsock-stream//run/zenoh/cabinet.sock"  # the services' way in: a socket on a shared volume
 SITE_FILE = "/site/site.yaml"
+METRICS = "metrics"  # the services' Prometheus metrics (`roadside metrics`)
+METRICS_PORT = 9464
 
 
 # --- helpers -------------------------------------------------------------------------------------
@@ -178,8 +180,8 @@ def test_compose_file_matches_the_compose_specification():
 # --- compose.yaml --------------------------------------------------------------------------------
 
 
-def test_compose_has_the_router_and_the_four_services():
-    assert set(_compose()["services"]) == {ROUTER, *SERVICES}
+def test_compose_has_the_router_the_four_services_and_their_metrics():
+    assert set(_compose()["services"]) == {ROUTER, *SERVICES, METRICS}
 
 
 @pytest.mark.parametrize("name", SERVICES)
@@ -205,8 +207,9 @@ def test_every_service_restarts_and_has_a_healthcheck():
         assert hc and hc.get("test") and not hc.get("disable"), f"{name} has no healthcheck"
         for key in ("interval", "timeout", "retries"):
             assert key in hc, f"{name} healthcheck has no {key}"
-    for name, svc in _app_services(doc).items():
-        assert svc["healthcheck"]["test"] == ["CMD", "roadside", "health", "--site", SITE_FILE, "--service", name]
+    for name in SERVICES:
+        assert doc["services"][name]["healthcheck"]["test"] == [
+            "CMD", "roadside", "health", "--site", SITE_FILE, "--service", name]
     router_test = " ".join(doc["services"][ROUTER]["healthcheck"]["test"])
     assert str(ROUTER_PORT) in router_test
 
@@ -224,8 +227,8 @@ def test_every_service_has_a_memory_limit_well_above_its_budget():
     doc = _compose()
     for name, svc in doc["services"].items():
         assert "mem_limit" in svc, f"{name} has no mem_limit"
-    for name, svc in _app_services(doc).items():
-        assert _bytes(svc["mem_limit"]) >= 2 * (600 if name == "detect" else 150) * 2**20, name
+    for name in SERVICES:
+        assert _bytes(doc["services"][name]["mem_limit"]) >= 2 * (600 if name == "detect" else 150) * 2**20, name
     assert _bytes("512m") == 512 * 2**20 and _bytes(1024) == 1024
 
 
@@ -322,7 +325,36 @@ def test_common_parts_come_from_an_extension_anchor():
     doc = _compose()
     anchors = [k for k in doc if k.startswith("x-")]
     assert anchors, "no x- extension field"
-    assert len(re.findall(r"<<: \*roadside-service", text)) == len(SERVICES)
+    assert len(re.findall(r"<<: \*roadside-service", text)) == len(SERVICES) + 1  # and the metrics
+
+
+def test_the_metrics_serve_the_sites_services_through_the_router_on_a_published_port(monkeypatch):
+    """The metrics service asks the site of the mounted site.yaml through the router's socket (its compose
+    environment, as the four services'), serves every interface inside its container on the published port, and its
+    healthcheck scrapes that port."""
+    import argparse
+
+    from roadside.cli_bus import _bus, _site, add_bus_jobs
+
+    svc = _compose()["services"][METRICS]
+    command = svc["command"]
+    assert command[:2] == ["roadside", "metrics"]
+    for key in [k for k in os.environ if k.startswith("ROADSIDE_")]:
+        monkeypatch.delenv(key)
+    for key, value in _service_env(svc).items():
+        monkeypatch.setenv(key, value)
+    parser = argparse.ArgumentParser()
+    add_bus_jobs(parser.add_subparsers(dest="job"))
+    args = parser.parse_args([str(EXAMPLE_SITE) if a == SITE_FILE else a for a in command[1:]])
+    assert (args.host, args.port) == ("0.0.0.0", METRICS_PORT)
+    _site(args)
+    bus = _bus(args)
+    assert args.site == load_settings(EXAMPLE_SITE).site
+    assert bus.mode == "client" and bus.connect == [SERVICE_ENDPOINT] and bus.listen == []
+    published = [_interpolate(str(p)) for p in svc["ports"]]
+    assert published == [f"{METRICS_PORT}:{METRICS_PORT}"]
+    assert _interpolate(str(svc["ports"][0]), {"METRICS_PORT": "127.0.0.1:9999"}) == f"127.0.0.1:9999:{METRICS_PORT}"
+    assert f"http://127.0.0.1:{METRICS_PORT}/metrics" in " ".join(svc["healthcheck"]["test"])
 
 
 @pytest.mark.parametrize("name", SERVICES)
@@ -361,11 +393,11 @@ def _targets(doc: dict) -> dict[str, str]:
 def test_dockerfile_has_the_stages_compose_targets():
     stages = _dockerfile_stages()
     targets = _targets(_compose())
-    assert set(targets) == set(SERVICES)
+    assert set(targets) == {*SERVICES, METRICS}
     missing = {name: t for name, t in targets.items() if t not in stages}
     assert not missing, f"stages not in deploy/Dockerfile: {missing}"
     assert targets["detect"] != targets["ingest"], "detect should use the GPU stage"
-    assert len({targets[s] for s in SERVICES if s != "detect"}) == 1, "the CPU services should share one stage"
+    assert len({targets[s] for s in (*SERVICES, METRICS) if s != "detect"}) == 1, "the CPU services share one stage"
 
 
 def test_runtime_images_never_install_torch_or_the_train_extra():

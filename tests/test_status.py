@@ -140,6 +140,43 @@ def test_roadside_status_asks_the_services_on_the_bus(capsys):
         session.close()
 
 
+def test_roadside_status_takes_a_site_file_for_its_name_and_bus(tmp_path, monkeypatch, capsys):
+    """`--site` as a site folder or its site.yaml: the site's name and its bus (environment overrides included), as a
+    cabinet's compose metrics service asks; a file that does not load is named."""
+    import zenoh
+
+    from roadside.cli import main
+    from shared.bus import zenoh_config
+    from shared.settings import BusSettings
+
+    port_base = free_port_base()
+    folder = Path(__file__).resolve().parent.parent / "deploy" / "sites" / "example"
+    name = yaml.safe_load((folder / "site.yaml").read_text())["site"]
+    assert name != "state_ellsworth"  # not the default name: the file's name is the one asked for
+    monkeypatch.setenv("ROADSIDE_BUS__PORT_BASE", str(port_base))
+    session = zenoh.open(zenoh_config(BusSettings(port_base=port_base), "localize"))  # where localize listens
+    rep = StatusReporter(session, name, "localize", BadInput("localize"), 0.1, instance="main")
+    try:
+        rep.count("objects_out", 3, output=True)
+        for site in (folder, folder / "site.yaml"):
+            def answered(site=site) -> bool:
+                rc = main(["status", "--site", str(site), "--timeout", "1", "--json", "--require", "localize"])
+                doc = json.loads(capsys.readouterr().out.splitlines()[-1])
+                return rc == 0 and [(r["site"], r["counts"]) for r in doc["services"]] == [(name, {"objects_out": 3})]
+
+            assert wait_until(answered, 20.0, 0.2), site
+        # --port-base over the file's bus: nothing listens there
+        assert main(["status", "--site", str(folder), "--port-base", str(free_port_base()), "--timeout", "0.5"]) == 1
+        assert f"no service of site {name} answered" in capsys.readouterr().out
+    finally:
+        rep.close()
+        session.close()
+    bad = tmp_path / "site.yaml"
+    bad.write_text("site: x\ncameras: 3\n")
+    assert main(["status", "--site", str(bad)]) == 2
+    assert str(bad) in capsys.readouterr().err
+
+
 # --- health: alive and working ------------------------------------------------------------------------------------
 
 NOW = 10**18  # ns
