@@ -27,7 +27,9 @@ def add_bus_jobs(sub) -> dict:
     _add_status(sub)
     _add_health(sub)
     _add_metrics(sub)
-    return {"tracks": _run_tracks, "status": _run_status, "health": _run_health, "metrics": _run_metrics}
+    _add_play(sub)
+    return {"tracks": _run_tracks, "status": _run_status, "health": _run_health, "metrics": _run_metrics,
+            "play": _run_play}
 
 
 DEFAULT_SITE = "state_ellsworth"
@@ -262,3 +264,60 @@ def _run_health(args) -> int:
     state = "not working" if reasons else "working" if checked else "alive"
     print(f"{args.service}: {state} ({n} tokens)")
     return 1 if reasons else 0
+
+
+def _pace(text: str) -> float | None:
+    if text == "max":
+        return None
+    v = positive_float(text)
+    if v > 1000:
+        raise argparse.ArgumentTypeError(f"must be at most 1000 (x real time) or max, got {text}")
+    return v
+
+
+def _add_play(sub) -> None:
+    p = sub.add_parser("play", help="publish a tracks recording on the bus as fuse_track would (a vehicle's "
+                       "subscriber run against a recorded session, without the pipeline)",
+                       description="Publish the Tracks messages of fuse_track's recording (JSON lines; rotated files "
+                       "in order) on roadside/<site>/tracks at their capture times' pace, answering the latest-tracks "
+                       "query as fuse_track does (services/fuse_track/player.py). Bad lines are counted and skipped.")
+    p.add_argument("files", nargs="+", type=Path, help="tracks files (fuse_track.record), oldest first")
+    p.add_argument("--pace", type=_pace, default=1.0, help="1 (real time, the default), N (N x real time) or max")
+    p.add_argument("--loop", action="store_true", help="start again at the end, times and seq going on (Ctrl-C stops)")
+    p.add_argument("--connect", action="append", default=[], type=endpoint,
+                   help="Zenoh endpoint of a router to publish through (default: listen where the embedded "
+                   "default's fuse_track would, --port-base + 3)")
+    p.add_argument("--port-base", type=port_base, default=DEFAULT_PORT_BASE,
+                   help="embedded default's first service port")
+
+
+def _run_play(args) -> int:
+    import zenoh
+
+    from services.fuse_track.player import TracksPublisher, play
+    from shared.bus import BadInput, Stopper, zenoh_config
+    from shared.settings import BusSettings
+
+    missing = [str(f) for f in args.files if not f.is_file()]
+    if missing:
+        raise ValueError(f"tracks file not found: {', '.join(missing)}")
+    bus = BusSettings(mode="client", connect=args.connect) if args.connect else BusSettings(port_base=args.port_base)
+    where = ", ".join(args.connect) if args.connect else bus.service_endpoint("fuse_track")
+    try:
+        session = zenoh.open(zenoh_config(bus, None if args.connect else "fuse_track"))
+    except zenoh.ZError as exc:
+        raise ValueError(f"cannot open the bus at {where} (is fuse_track, or another player, running there?): "
+                         f"{exc}") from None
+    stopper, bad = Stopper(), BadInput("play")
+    publish = TracksPublisher(session, block=args.pace is None)
+    pace = "as fast as it goes" if args.pace is None else f"{args.pace:g} x real time"
+    print(f"playing {len(args.files)} file(s) on {where}, {pace}{', looping' if args.loop else ''}", flush=True)
+    try:
+        done = play(args.files, publish, args.pace, args.loop, stopper.wait, bad)
+    finally:
+        publish.close()
+        session.close()
+    span = (done.last_ns - done.first_ns) / 1e9 if done.published else 0.0
+    print(f"done: {done.published} messages of site {done.site} ({span:.1f} s of capture time, {done.passes} passes), "
+          f"{done.bad} bad lines", flush=True)
+    return 0

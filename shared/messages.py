@@ -27,6 +27,7 @@ from __future__ import annotations
 import math
 import re
 import time
+from collections.abc import Mapping
 from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
@@ -37,6 +38,9 @@ from shared.geo import offset_latlon
 SCHEMA_VERSION = 4
 VEHICLE_TYPES = ("car", "suv_van", "truck", "bus", "motorcycle")
 SERVICES = ("ingest", "detect", "localize", "fuse_track")
+# the keys of one track in a tracks-file line (Tracks.rows, fuse_track's recorder; Tracks.from_record reads them back)
+RECORD_KEYS = ("id", "x", "y", "lat", "lon", "vx", "vy", "yaw", "length", "width", "height", "type", "score", "age",
+               "hits", "cameras", "xy_cov", "velocity_cov", "yaw_confirmed", "yaw_std")
 CAMERA_KINDS = ("pinhole", "fisheye")
 MAX_FRAME_BYTES = 32 * 1024 * 1024  # larger frames are refused (an oversized frame is bad input)
 MAX_ROWS = 4096  # detections, objects or tracks per message: more is bad input (fusion is quadratic)
@@ -339,6 +343,56 @@ class Tracks(Message):
         return Tracks(**{**fields, "t_capture_ns": int(t_ns), "stamps": self.stamped("predict"), "xy": xy,
                          "latlon": np.column_stack([lat, lon]).reshape(-1, 2), "xy_cov": xy_cov.astype(np.float32),
                          "velocity_cov": vel_cov.astype(np.float32)})  # symmetric as they were: the same sums
+
+    @classmethod
+    def from_record(cls, line: Mapping) -> Tracks:
+        """The message a tracks-file line holds (fuse_track's recorder: site, seq, t_ns, tracker and `rows()`), with a
+        "playback" stamp; ValueError naming the first problem (a key missing, a value of the wrong kind, a row off
+        the contract, a file recorded before a field it needs: xy_cov, velocity_cov, yaw_confirmed and yaw_std
+        came with schema version 3)."""
+        if not isinstance(line, Mapping):
+            raise ValueError(f"a tracks record must be a JSON object, got {type(line).__name__}")
+        missing = [k for k in ("site", "seq", "t_ns", "tracker", "tracks") if k not in line]
+        if missing:
+            raise ValueError(f"tracks record without {', '.join(missing)}")
+        rows = line["tracks"]
+        if not isinstance(rows, list) or not all(isinstance(r, Mapping) for r in rows):
+            raise ValueError("tracks record: 'tracks' must be a list of objects")
+        for i, r in enumerate(rows):
+            gone = [k for k in RECORD_KEYS if k not in r]
+            if gone:
+                raise ValueError(f"tracks record: track {i} has no {', '.join(gone)} (a file from before schema "
+                                 f"version {SCHEMA_VERSION}?)")
+            if r["type"] not in VEHICLE_TYPES:
+                raise ValueError(f"tracks record: track {i} has type {r['type']!r}, not one of {VEHICLE_TYPES}")
+
+        def column(keys: tuple[str, ...], dtype) -> np.ndarray:
+            try:
+                return np.array([[r[k] for k in keys] for r in rows], dtype).reshape(len(rows), len(keys))
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"tracks record: {'/'.join(keys)} must be numbers ({exc})") from None
+
+        def matrices(key: str) -> np.ndarray:
+            try:
+                return np.array([r[key] for r in rows], np.float32).reshape(len(rows), 2, 2)
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"tracks record: {key} must be 2x2 matrices ({exc})") from None
+
+        if not all(isinstance(r["cameras"], list) and all(isinstance(c, str) for c in r["cameras"]) for r in rows):
+            raise ValueError("tracks record: cameras must be lists of names")
+        if not all(isinstance(r["yaw_confirmed"], bool) for r in rows):
+            raise ValueError("tracks record: yaw_confirmed must be true or false")
+        return cls(site=line["site"], seq=line["seq"], t_capture_ns=line["t_ns"], tracker=line["tracker"],
+                   stamps=[("playback", time.time_ns())], id=column(("id",), np.int64)[:, 0],
+                   xy=column(("x", "y"), np.float64), latlon=column(("lat", "lon"), np.float64),
+                   velocity=column(("vx", "vy"), np.float32), yaw=column(("yaw",), np.float32)[:, 0],
+                   size_lwh=column(("length", "width", "height"), np.float32),
+                   vtype=np.array([VEHICLE_TYPES.index(r["type"]) for r in rows], np.int8),
+                   score=column(("score",), np.float32)[:, 0], age=column(("age",), np.int32)[:, 0],
+                   hits=column(("hits",), np.int32)[:, 0], cameras=[list(r["cameras"]) for r in rows],
+                   xy_cov=matrices("xy_cov"), velocity_cov=matrices("velocity_cov"),
+                   yaw_confirmed=np.array([r["yaw_confirmed"] for r in rows], bool),
+                   yaw_std=column(("yaw_std",), np.float32)[:, 0])
 
     def rows(self) -> list[dict]:
         """One plain dict per track (JSON-friendly), as the recorder writes and clients print."""

@@ -1,0 +1,160 @@
+"""A tracks recording played back onto the bus (`roadside play`): fuse_track's output without the pipeline.
+
+A vehicle developer, or a researcher with a recorded session, needs the cabinet's tracks on the bus to run a
+subscriber against, and not the four services, their models and the cameras' footage. `play` reads the JSON lines
+fuse_track's recorder wrote (one Tracks message per line: `Tracks.from_record`; rotated files one after the other)
+and publishes each message on `roadside/<site>/tracks` at its recorded pace (its capture times, 1 = real time, N
+times as fast, or `max`), answering `roadside/<site>/tracks/latest` with the newest one published and holding a
+liveliness token `roadside/<site>/alive/fuse_track/playback`, as fuse_track does: every subscriber (`roadside
+tracks`, `shared.client.TrackClient`, the standalone listener of docs/wire-format.md, `roadside viz --live`) reads
+it as it reads a cabinet. The site is the first record's; in the
+embedded default the player listens where fuse_track would (`bus.port_base` + 3), so it stands in for it.
+
+A line that does not parse, or breaks the contract, or names another site, is counted, logged once per reason with
+its file and line, and skipped. With `loop` the files start again when they end, each pass's capture times moved
+on by the recording's span plus one message interval and its sequence numbers by the largest plus one, so a
+subscriber sees time and `seq` go on increasing. A capture time that goes back within a recording (fuse_track
+restarted with a new tracker after a clock step) is published at once and the pace counts from it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from shared.bus import BadInput, declare_alive
+from shared.codec import encode
+from shared.keys import latest_tracks_key, tracks_key
+from shared.messages import Tracks
+
+log = logging.getLogger("roadside.play")
+DEFAULT_GAP_NS = 100_000_000  # a loop's step from the last message to the first of the next pass, if one message
+TOKEN = "playback"  # the liveliness token's instance: roadside/<site>/alive/fuse_track/playback
+MAX_LINE_BYTES = 64 * 1024 * 1024  # a longer line is not a Tracks message (4096 tracks of ~500 bytes is 2 MB)
+
+
+def records(paths: Iterable[Path], bad: BadInput) -> Iterator[Tracks]:
+    """The Tracks messages of the files, in order; each bad line counted in `bad` with its file and line number.
+    ValueError for a file that cannot be opened."""
+    for path in paths:
+        try:
+            handle = open(path, encoding="utf-8", errors="replace")  # closed by the with below: lines are streamed
+        except OSError as exc:
+            raise ValueError(f"tracks file {path}: {exc.strerror or exc}") from None
+        with handle:
+            for n, line in enumerate(handle, 1):
+                if not line.strip():
+                    continue
+                where = f"{path}:{n}"
+                if len(line) > MAX_LINE_BYTES:
+                    bad(f"a line of {len(line)} characters, more than a Tracks message holds", where)
+                    continue
+                try:
+                    yield Tracks.from_record(json.loads(line))
+                except json.JSONDecodeError as exc:
+                    bad(f"not JSON ({exc.msg})", where)
+                except ValueError as exc:  # pydantic's ValidationError is one
+                    bad(" ".join(str(exc).split())[:300], where)
+
+
+@dataclass
+class Played:
+    """What a playback did: messages published, passes over the files, bad lines, the site and trackers seen."""
+
+    published: int = 0
+    passes: int = 0
+    bad: int = 0
+    site: str | None = None
+    first_ns: int | None = None
+    last_ns: int | None = None
+
+
+def play(paths: list[Path], publish: Callable[[Tracks], None], speed: float | None, loop: bool,
+         stopped: Callable[[float], bool], bad: BadInput) -> Played:
+    """Publish the files' messages at `speed` x their capture times' pace (None: as fast as `publish` takes them),
+    over again with `loop`, until they end or `stopped(wait_s)` (waits up to wait_s, True once asked to stop).
+    ValueError when a pass publishes nothing (no file holds a good line)."""
+    out = Played()
+    shift_ns = shift_seq = 0
+    clock: tuple[int, float] | None = None  # (capture time, monotonic time) that the pace counts from
+    while True:
+        first = last = None
+        max_seq, gap_ns = -1, 0
+        for msg in records(paths, bad):
+            if out.site is None:
+                out.site = msg.site
+            elif msg.site != out.site:
+                bad(f"site {msg.site!r}, not the recording's {out.site!r}", "a record")
+                continue
+            msg.t_capture_ns += shift_ns
+            msg.seq += shift_seq
+            if last is not None and msg.t_capture_ns > last:
+                gap_ns = msg.t_capture_ns - last
+            if clock is None or msg.t_capture_ns < clock[0] or speed is None:
+                clock = (msg.t_capture_ns, time.monotonic())
+            else:
+                wait_s = clock[1] + (msg.t_capture_ns - clock[0]) / 1e9 / speed - time.monotonic()
+                if wait_s > 0 and stopped(wait_s):
+                    return _done(out, bad)
+            if stopped(0):
+                return _done(out, bad)
+            publish(msg)
+            out.published += 1
+            out.first_ns = msg.t_capture_ns if out.first_ns is None else out.first_ns
+            out.last_ns = msg.t_capture_ns
+            first = msg.t_capture_ns if first is None else first
+            last = msg.t_capture_ns
+            max_seq = max(max_seq, msg.seq)
+        if first is None:
+            raise ValueError(f"no tracks message in {', '.join(map(str, paths))} ({bad.total} bad lines)")
+        out.passes += 1
+        if not loop:
+            return _done(out, bad)
+        shift_ns += last - first + (gap_ns or DEFAULT_GAP_NS)  # the recording's span plus one interval
+        shift_seq = max_seq + 1
+
+
+def _done(out: Played, bad: BadInput) -> Played:
+    out.bad = bad.total
+    return out
+
+
+class TracksPublisher:
+    """fuse_track's side of the bus: each message on its site's tracks key, and the newest one for subscribers that
+    join late (declared for the first message's site, on its arrival). `block`: wait for a slow subscriber rather
+    than drop (as fast as the player can go, nothing is lost)."""
+
+    def __init__(self, session, block: bool = False) -> None:
+        self.session, self.block = session, block
+        self.latest: list[bytes] = []
+        self.pub = self.queryable = None
+        self.tokens: list = []
+
+    def _declare(self, site: str) -> None:
+        import zenoh
+
+        congestion = zenoh.CongestionControl.BLOCK if self.block else zenoh.CongestionControl.DROP
+        self.pub = self.session.declare_publisher(tracks_key(site), congestion_control=congestion)
+
+        def answer(query) -> None:  # Zenoh's thread: bytes already encoded
+            if self.latest:
+                query.reply(latest_tracks_key(site), self.latest[-1])
+
+        self.queryable = self.session.declare_queryable(latest_tracks_key(site), answer)
+        self.tokens = declare_alive(self.session, site, "fuse_track", [TOKEN])
+
+    def __call__(self, msg: Tracks) -> None:
+        if self.pub is None:
+            self._declare(msg.site)
+        payload = encode(msg)
+        self.latest[:] = [payload]
+        self.pub.put(payload)
+
+    def close(self) -> None:
+        for entity in (*self.tokens, self.queryable, self.pub):
+            if entity is not None:
+                entity.undeclare()

@@ -1,0 +1,205 @@
+"""`roadside play` (services/fuse_track/player.py): a tracks recording published on the bus as fuse_track would."""
+
+from __future__ import annotations
+
+import json
+import re
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pipeline_fixtures import REPO, free_port_base, service_env, wait_until
+
+from services.fuse_track.player import play
+from services.fuse_track.recorder import Recorder
+from shared.bus import BadInput
+from shared.messages import Tracks
+
+T0 = 1_703_001_600_050_000_000
+STEP_NS = 100_000_000
+
+
+def message(seq: int, site: str = "se", tracker: str = "tracker-a", n: int = 2) -> Tracks:
+    """n tracks at tick seq, moving east 1 m per tick."""
+    f4 = np.float32
+    return Tracks(site=site, seq=seq, t_capture_ns=T0 + seq * STEP_NS, tracker=tracker,
+                  id=np.arange(1, n + 1, dtype=np.int64), xy=np.column_stack([np.arange(n) * 5.0 + seq, np.ones(n)]),
+                  latlon=np.tile([42.2294, -83.739], (n, 1)), velocity=np.tile(np.array([10.0, 0.0], f4), (n, 1)),
+                  yaw=np.zeros(n, f4), size_lwh=np.tile(np.array([4.5, 1.8, 1.5], f4), (n, 1)),
+                  vtype=np.arange(n, dtype=np.int8) % 5, score=np.full(n, 0.8, f4), age=np.full(n, seq, np.int32),
+                  hits=np.full(n, seq, np.int32), cameras=[["NE", "SE"][: 1 + i % 2] for i in range(n)],
+                  xy_cov=np.tile(np.array([[0.09, 0.02], [0.02, 0.16]], f4), (n, 1, 1)),
+                  velocity_cov=np.tile(np.array([[0.25, 0.0], [0.0, 0.25]], f4), (n, 1, 1)),
+                  yaw_confirmed=np.arange(n) % 2 == 0, yaw_std=np.full(n, 0.125, f4))
+
+
+def recording(path: Path, seqs: range, **kw) -> Path:
+    """A tracks file as fuse_track's recorder writes it."""
+    rec = Recorder(path)
+    for s in seqs:
+        rec.write(message(s, **kw))
+    rec.close()
+    return path
+
+
+def record_of(msg: Tracks) -> dict:
+    return {"site": msg.site, "seq": msg.seq, "t_ns": msg.t_capture_ns, "tracker": msg.tracker, "tracks": msg.rows()}
+
+
+# --- a tracks-file line back to its message ---------------------------------------------------------------------------
+
+
+def test_a_recorded_line_gives_back_the_message_that_was_recorded(tmp_path):
+    path = recording(tmp_path / "tracks.jsonl", range(3), n=3)
+    for s, line in enumerate(path.read_text().splitlines()):
+        back = Tracks.from_record(json.loads(line))
+        sent = message(s, n=3)
+        assert (back.site, back.seq, back.t_capture_ns, back.tracker) == (sent.site, s, sent.t_capture_ns, sent.tracker)
+        assert back.rows() == sent.rows() and [name for name, _ in back.stamps] == ["playback"]
+        assert back.vtype.tolist() == sent.vtype.tolist() and back.cameras == sent.cameras
+    assert len(Tracks.from_record({**record_of(message(0)), "tracks": []})) == 0
+
+
+@pytest.mark.parametrize(("change", "named"), [
+    (lambda r: r.pop("t_ns"), "tracks record without t_ns"),
+    (lambda r: r.update(tracks={"id": 1}), "'tracks' must be a list of objects"),
+    (lambda r: r["tracks"][1].pop("xy_cov"), "track 1 has no xy_cov (a file from before schema version"),
+    (lambda r: r["tracks"][0].update(type="tram"), "track 0 has type 'tram'"),
+    (lambda r: r["tracks"][0].update(x="east"), "x/y must be numbers"),
+    (lambda r: r["tracks"][0].update(xy_cov=[1.0, 2.0]), "xy_cov must be 2x2 matrices"),
+    (lambda r: r["tracks"][0].update(xy_cov=[[1.0, 2.0], [2.0, 1.0]]), "xy_cov[0] is not a symmetric positive"),
+    (lambda r: r["tracks"][0].update(yaw_std=0.0), "yaw_std[0] is not > 0"),
+    (lambda r: r["tracks"][0].update(cameras="NE"), "cameras must be lists of names"),
+    (lambda r: r["tracks"][0].update(yaw_confirmed=1), "yaw_confirmed must be true or false"),
+    (lambda r: r["tracks"][0].update(vx=float("nan")), "contains NaN"),
+    (lambda r: r.update(seq=-1), "seq"),
+])
+def test_a_broken_record_is_named(change, named):
+    record = record_of(message(4))
+    change(record)
+    with pytest.raises(ValueError, match=re.escape(named)):
+        Tracks.from_record(record)
+    with pytest.raises(ValueError, match="must be a JSON object, got list"):
+        Tracks.from_record([record])
+
+
+# --- the playback ------------------------------------------------------------------------------------------------
+
+
+class Clock:
+    """The waits play asks for, without waiting; stops once `stop_after` messages were published."""
+
+    def __init__(self, got: list, stop_after: int | None = None) -> None:
+        self.waits: list[float] = []
+        self.got, self.stop_after = got, stop_after
+
+    def __call__(self, wait_s: float) -> bool:
+        if wait_s > 0:
+            self.waits.append(wait_s)
+        return self.stop_after is not None and len(self.got) >= self.stop_after
+
+
+def test_play_publishes_every_message_in_order_at_the_recorded_pace(tmp_path):
+    path = recording(tmp_path / "tracks.jsonl", range(11))
+    got: list[Tracks] = []
+    clock = Clock(got)
+    done = play([path], got.append, 2.0, False, clock, BadInput("play"))
+    assert [m.seq for m in got] == list(range(11)) and [m.rows() for m in got] == [message(s).rows() for s in range(11)]
+    assert (done.published, done.passes, done.bad, done.site) == (11, 1, 0, "se")
+    # 1 s of capture time at 2 x real time, the clock not moving on (the waits are not taken): the k-th message is
+    # 0.05 k s after the first, less what the publishing took
+    steps = np.diff([0.0, *clock.waits])
+    assert len(clock.waits) == 10 and 0.4 < clock.waits[-1] <= 0.5 and np.all((steps > 0.03) & (steps <= 0.05)), steps
+    got.clear()
+    clock = Clock(got)
+    assert play([path], got.append, None, False, clock, BadInput("play")).published == 11 and clock.waits == []
+
+
+def test_rotated_files_play_in_order_and_a_loop_keeps_time_and_seq_going_on(tmp_path):
+    files = [recording(tmp_path / "tracks.1.jsonl", range(0, 4)), recording(tmp_path / "tracks.jsonl", range(4, 6))]
+    got: list[Tracks] = []
+    done = play(files, got.append, None, True, Clock(got, stop_after=15), BadInput("play"))
+    assert done.published == 15 and done.passes == 2
+    seqs, times = [m.seq for m in got], [m.t_capture_ns for m in got]
+    assert seqs == list(range(15))  # the second pass from 6: the largest seq plus one
+    assert times == [T0 + s * STEP_NS for s in range(15)]  # the span (5 steps) plus one step: no gap, no overlap
+    assert got[6].rows() == got[0].rows() and got[6].tracker == got[0].tracker
+
+
+def test_bad_lines_and_other_sites_are_counted_and_skipped(tmp_path, caplog):
+    path = recording(tmp_path / "tracks.jsonl", range(3))
+    good = path.read_text().splitlines()
+    other = json.dumps(record_of(message(3, site="elsewhere")))
+    path.write_text("\n".join([good[0], "{not json", good[1], '{"site": "se"}', other, "", good[2]]) + "\n")
+    got: list[Tracks] = []
+    done = play([path], got.append, None, False, Clock(got), BadInput("play"))
+    assert [m.seq for m in got] == [0, 1, 2] and done.bad == 3
+    log = caplog.text
+    assert f"{path}:2" in log and "not JSON" in log
+    assert f"{path}:4" in log and "tracks record without seq, t_ns, tracker, tracks" in log
+    assert "site 'elsewhere', not the recording's 'se'" in log
+
+
+def test_a_recording_without_a_good_line_is_refused_naming_it(tmp_path):
+    path = tmp_path / "tracks.jsonl"
+    path.write_text("half a li")
+    with pytest.raises(ValueError, match=f"no tracks message in {re.escape(str(path))} \\(1 bad lines\\)"):
+        play([path], lambda m: None, None, True, lambda s: False, BadInput("play"))
+    with pytest.raises(ValueError, match=r"tracks file .*missing\.jsonl"):
+        play([tmp_path / "missing.jsonl"], lambda m: None, None, False, lambda s: False, BadInput("play"))
+
+
+def test_roadside_play_refuses_missing_files_and_a_bad_pace(tmp_path, capsys):
+    from roadside.cli import main
+
+    assert main(["play", str(tmp_path / "none.jsonl")]) == 2
+    assert "tracks file not found" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["play", str(tmp_path / "none.jsonl"), "--pace", "0"])
+    assert "--pace" in capsys.readouterr().err
+
+
+# --- on the bus --------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_a_vehicle_reads_a_played_recording_as_it_reads_a_cabinet(tmp_path):
+    """`roadside play --loop` as its own process in fuse_track's place: a TrackClient gets the newest message at once
+    and then the recorded ones, as recorded; SIGTERM stops the player, which says what it published."""
+    from shared.bus import wait_for_peers
+    from shared.client import TrackClient
+
+    path = recording(tmp_path / "tracks.jsonl", range(20))
+    port_base = free_port_base()
+    proc = subprocess.Popen([sys.executable, "-m", "roadside", "play", str(path), "--pace", "4", "--loop",
+                             "--port-base", str(port_base)], cwd=REPO, env=service_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    try:
+        with TrackClient("se", bus=_bus(port_base), wait_s=30.0) as client:
+            answers: list[Tracks] = []  # fuse_track's query for a vehicle that joins late, once the player has begun
+            assert wait_until(lambda: answers.append(client.latest(timeout_s=1.0)) or answers[-1] is not None, 30)
+            assert answers[-1].rows() == message(answers[-1].seq % 20).rows()
+            assert wait_for_peers(client.session, "roadside/se/alive/fuse_track/*", 1, 10.0) == 1
+            stream = client.stream(timeout_s=30.0)
+            got = [next(stream) for _ in range(25)]
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0, out
+    assert "playing 1 file(s) on tcp/127.0.0.1:" in out and "looping" in out
+    assert "messages of site se" in out and "0 bad lines" in out
+    seqs = [m.seq for m in got]
+    assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs), seqs
+    for m in got:
+        original = message(m.seq % 20)
+        assert m.rows() == original.rows() and m.tracker == original.tracker
+        assert m.t_capture_ns == T0 + m.seq * STEP_NS  # a loop's times go on
+
+
+def _bus(port_base: int):
+    from shared.settings import BusSettings
+
+    return BusSettings(port_base=port_base)
