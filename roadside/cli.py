@@ -182,10 +182,12 @@ BENCHMARKS = {"sim": "bench.sim_render", "calibration": "bench.calibration", "de
 
 def _add_eval(sub) -> None:
     p = sub.add_parser("eval", help="score the detector: on a simulator recording, or on hand-labelled real frames")
-    p.add_argument("what", choices=["detector", "real", "handoff", "budget"],
+    p.add_argument("what", choices=["detector", "real", "handoff", "budget", "movements"],
                    help="detector: against a recording's ground truth; real: against hand labels (eval/real.py); "
                         "handoff: camera-region crossings kept under one id in a tracks file (no ground truth); "
-                        "budget: where a simulated run's tracking accuracy goes (eval/budget.py, --demo)")
+                        "budget: where a simulated run's tracking accuracy goes (eval/budget.py, --demo); "
+                        "movements: a simulated run's turning-movement counts against the truth (eval/movements.py, "
+                        "--demo)")
     p.add_argument("--model", type=Path, help="exported ONNX detector (detector, real)")
     p.add_argument("--tracks", type=Path, help="tracks file written by fuse_track (handoff; real: score the tracks "
                    "of the footage played through the pipeline instead of a model's detections)")
@@ -217,8 +219,8 @@ def _add_eval(sub) -> None:
                    help="detector, real: the 2D boxes and sizes as the heads give them, without the model's box and "
                         "size calibrations")
     p.add_argument("--demo", type=Path, action="append",
-                   help="budget: a roadside demo output folder (objects.jsonl, site/, the recording; default "
-                        "out/demo); repeatable: each run's budget and the mean over them")
+                   help="budget, movements: a roadside demo output folder (objects.jsonl or tracks.jsonl, site/, "
+                        "the recording; default out/demo); repeatable: each run's scores and the mean over them")
     p.add_argument("--scenario", action="append",
                    help="budget: score only this scenario (repeatable; default all: as_run, exact_lift, "
                         "true_positions, no_false_alarms, true_positions_no_false_alarms, true_long_vehicles, truth; "
@@ -244,6 +246,17 @@ def _run_eval(args) -> int:
             result = budget(demos[0], args.scenario or SCENARIOS, log=log, localize_rule=args.localize_rule)
         else:
             result = budget_many(demos, args.scenario or SCENARIOS, log=log, localize_rule=args.localize_rule)
+        print(dumps(result, indent=1))
+        return 0
+    if args.what == "movements":
+        from eval.movements import as_table, evaluate_demo_movements
+
+        runs = [evaluate_demo_movements(d) for d in args.demo or [Path("out/demo")]]
+        keys = ("count_error", "entering_error", "leaving_error", "movement_recall", "movement_precision")
+        result = {"runs": runs, "mean": {k: round(sum(r[k] for r in runs) / len(runs), 4) for k in keys}}
+        if not args.json:
+            for r in runs:
+                print(f"{r['demo']}:\n{as_table(r)}", file=sys.stderr)
         print(dumps(result, indent=1))
         return 0
     if args.what == "handoff":
@@ -365,6 +378,60 @@ def _run_up(args) -> int:
                          "machine (`roadside status` shows it)? Stop it, or give this one its own bus.port_base")
     return Launcher(UpConfig(site=site, sets=sets, restart=not args.no_restart, log_dir=args.log_dir)).run(
         log=lambda s: print(s, file=sys.stderr))
+
+
+def _add_counts(sub) -> None:
+    p = sub.add_parser("counts", help="turning-movement counts from tracks files: the vehicles from each leg of the "
+                       "junction to each, per time bin (shared/movements.py; the site file's movements:)")
+    p.add_argument("tracks", nargs="+", type=Path, help="tracks files (fuse_track.record; rotated ones too)")
+    p.add_argument("--site", type=Path, required=True, help="site folder or site.yaml with a movements: section")
+    p.add_argument("--bin-s", type=positive_float, default=900.0,
+                   help="bin length in seconds, bins aligned to the clock (default 900: 15 minutes)")
+    p.add_argument("--json", action="store_true", help="one JSON document")
+
+
+def _run_counts(args) -> int:
+    from datetime import UTC, datetime
+
+    from shared.movements import binned, movements, read_tracks
+    from shared.settings import load_settings
+
+    site = site_path(args.site)
+    settings = load_settings(site)
+    if settings.movements is None:
+        raise ValueError(f"{site}: the site file has no movements: section (the junction's centre, legs and radii; "
+                         "deploy/sites/README.md)")
+    junction = settings.movements.junction()
+    read = read_tracks(args.tracks)
+    found = movements(read.positions, junction)
+    bins = binned(found, args.bin_s)
+    legs = junction.names
+
+    def when(t_ns: int) -> str:
+        return datetime.fromtimestamp(t_ns / 1e9, UTC).isoformat(timespec="seconds").replace("+00:00", "Z")
+
+    doc = {"site": settings.site, "legs": legs, "bin_s": args.bin_s, "lines": read.lines, "bad_lines": read.bad_lines,
+           "bad": read.bad, "movements": len(found),
+           "bins": [{"start": when(b.start_ns), "end": when(b.end_ns), **b.to_json(legs)} for b in bins]}
+    if args.json:
+        print(dumps(doc, indent=1))
+        return 0
+    width = max(6, *(len(leg) for leg in legs)) + 1
+    for b in doc["bins"]:
+        print(f"{b['start']} - {b['end']}: {b['complete_total']} vehicles through the junction, seen entering and "
+              "leaving")
+        print("from \\ to".ljust(width) + "".join(leg.rjust(width) for leg in legs) + "entering".rjust(width + 3))
+        for i, leg in enumerate(legs):
+            print(leg.ljust(width) + "".join(str(c).rjust(width) for c in b["complete"][i])
+                  + str(b["entering"][leg]).rjust(width + 3))
+        print("leaving".ljust(width) + "".join(str(b["leaving"][leg]).rjust(width) for leg in legs))
+        print(f"  seen entering only {sum(b['entered_only'].values())}, leaving only "
+              f"{sum(b['exited_only'].values())} (counted in entering / leaving)")
+    for line in read.bad:
+        print(f"skipped: {line}", file=sys.stderr)
+    if not doc["bins"]:
+        print("no vehicle went through the junction in these tracks", file=sys.stderr)
+    return 0
 
 
 def _add_viz(sub) -> None:
@@ -535,9 +602,11 @@ def main(argv: list[str] | None = None) -> int:
     _add_up(sub)
     bus_runners = add_bus_jobs(sub)  # tracks, status, health: what a running pipeline says
     _add_viz(sub)
+    _add_counts(sub)
     args = parser.parse_args(argv)
     runners = {"sim": _run_sim, "demo": _run_demo, "calibrate": _run_calibrate, "bench": _run_bench,
-               "eval": _run_eval, "up": _run_up, "viz": _run_viz, **model_runners, **site_runners, **bus_runners}
+               "eval": _run_eval, "up": _run_up, "viz": _run_viz, "counts": _run_counts, **model_runners,
+               **site_runners, **bus_runners}
     try:
         return runners[args.job](args)
     except (ValueError, FileNotFoundError, RuntimeError) as exc:

@@ -103,6 +103,7 @@ def make_site(cfg: DemoConfig, rec_dir: Path, log) -> tuple[Path, dict]:
     """Calibrate each camera from its landmarks; write <out>/site/site.yaml. Returns (path, reports)."""
     from calibration.run import CalibrateJob, run_calibration
     from sim.recording import Recording
+    from sim.site import SiteSpec
 
     rec = Recording(rec_dir)
     site_dir = cfg.out / "site"
@@ -139,6 +140,7 @@ def make_site(cfg: DemoConfig, rec_dir: Path, log) -> tuple[Path, dict]:
         "detect": {"model": str(Path(cfg.model).resolve()), "model_gpu": None, "score_thr": cfg.score_thr},
         "fuse_track": {"tick_ms": 1000.0 / cfg.hz, "high_score": cfg.high_score,
                        "record": str((cfg.out / "tracks.jsonl").resolve())},
+        "movements": SiteSpec.model_validate(rec.meta["site_spec"]).movements(),  # `roadside counts`
     }
     path = site_dir / "site.yaml"
     path.write_text(yaml.safe_dump(site, sort_keys=False))
@@ -379,6 +381,7 @@ def track_single_camera(objects: list[Objects], camera: str, tracker_config, geo
 
 
 def run_demo(cfg: DemoConfig, log=print) -> dict:
+    from eval.movements import evaluate_movements
     from eval.tracking import GroundTruth, TrackingEvalConfig, evaluate_many, evaluate_tracks
     from roadside.launcher import Launcher, UpConfig
     from services.fuse_track.__main__ import tracker_config
@@ -431,6 +434,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
     # best single camera above is the easiest ROI, not the same ground as the fused figure
     fused_in = {c: evaluate_tracks(gt, tracks_path, [c])["traj_err_in_roi_m"] for c in cams}
 
+    mv = evaluate_movements(gt, tracks_path, settings.movements.junction(), cams)
     log("writing the Rerun recording")
     origin = settings.origin
     viz = tracks_file_to_rrd(tracks_path, cfg.out / "demo.rrd", site_origin=origin, basemap=site_basemap(rec_dir))
@@ -472,6 +476,10 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
         "handoff_crossings": wide["handoff_crossings"],
         "handoff_crossing_kept_fraction": wide["handoff_crossing_kept_fraction"],
         "handoff_kept_fraction": wide["handoff_kept_fraction"],
+        # turning movements counted from the tracks (`roadside counts`, the site's junction) against the vehicles'
+        # (eval/movements.py): the count board's error, and per vehicle the movements counted right
+        "movements": {k: mv[k] for k in ("complete_true", "complete_counted", "count_error", "entering_error",
+                                         "leaving_error", "movement_recall", "movement_precision")},
         "single_camera": {c: {**{k: scores["sources"][c][k] for k in ("mota", "idf1", "traj_err_in_roi_m")},
                               "fused_traj_err_in_roi_m": fused_in[c]} for c in cams},
         "latency_ms": lat,
@@ -500,7 +508,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
 
 
 def summary_table(s: dict) -> str:
-    lat = s["latency_ms"]
+    lat, mv = s["latency_ms"], s["movements"]
     rows = [
         ("MOTA / IDF1 / id switches", f"{s['mota']:.3f} / {s['idf1']:.3f} / {s['id_switches']}"),
         ("trajectory error in ROI (fused)", f"{s['traj_err_in_roi_m']:.3f} m"),
@@ -524,6 +532,10 @@ def summary_table(s: dict) -> str:
          f"{s['ahead_100ms_stale_err_m']:.2f} / {s['ahead_300ms_stale_err_m']:.2f} m; {s['ahead_100ms_err_m']:.2f} / "
          f"{s['ahead_300ms_err_m']:.2f} m (95 % ellipse holds {s['ahead_100ms_cov_within_95']:.3f} / "
          f"{s['ahead_300ms_cov_within_95']:.3f})"),
+        ("turning movements counted (true)", f"{mv['complete_counted']} ({mv['complete_true']}): count error "
+                                             f"{mv['count_error']:.3f}, entering {mv['entering_error']:.3f}; per "
+                                             f"vehicle recall {mv['movement_recall']:.3f}, precision "
+                                             f"{mv['movement_precision']:.3f}"),
         ("frames through the pipeline", f"{s['frames']} of {s['frames_recorded']}"),
         ("region crossings kept", f"{s['handoff_crossing_kept_fraction']:.3f} of {s['handoff_crossings']} "
                                   f"(within {s['handoff_radius_m']:g} m of a camera)"),

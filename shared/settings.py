@@ -302,6 +302,36 @@ class FuseTrackSettings(Strict):
         return None if v is None else check_position_sigma(v)
 
 
+class LegSettings(Strict):
+    name: str = Field(min_length=1, max_length=64)
+    bearing_deg: float = Field(ge=-360, le=360)  # from the junction's centre along the leg, from north, clockwise
+
+
+class MovementSettings(Strict):
+    """The junction whose turning movements `roadside counts` counts (shared/movements.py): its centre, its legs
+    and the radii between which a vehicle is on a leg (inside inner_radius_m it is in the junction)."""
+
+    center: dict[str, float]  # {lat_deg, lon_deg}
+    legs: list[LegSettings] = Field(min_length=2, max_length=16)
+    inner_radius_m: float = Field(gt=0, le=500)
+    outer_radius_m: float = Field(gt=0, le=2000)
+    half_width_deg: float = Field(35.0, gt=0, le=90)
+
+    @model_validator(mode="after")
+    def _junction(self) -> MovementSettings:
+        if set(self.center) != {"lat_deg", "lon_deg"}:
+            raise ValueError(f"movements.center needs lat_deg and lon_deg, got {sorted(self.center)}")
+        self.junction()  # names what is wrong: radii, overlapping or duplicate legs, the centre
+        return self
+
+    def junction(self):
+        from shared.movements import Junction
+
+        return Junction(self.center["lat_deg"], self.center["lon_deg"],
+                        tuple((leg.name, leg.bearing_deg) for leg in self.legs), self.inner_radius_m,
+                        self.outer_radius_m, self.half_width_deg)
+
+
 class Settings(BaseSettings):
     """Everything a process needs; build with `load_settings(path)`."""
 
@@ -317,6 +347,7 @@ class Settings(BaseSettings):
     detect: DetectSettings = DetectSettings()
     localize: LocalizeSettings = LocalizeSettings()
     fuse_track: FuseTrackSettings = FuseTrackSettings()
+    movements: MovementSettings | None = None  # the junction's legs, for turning-movement counts
     log_level: str = "INFO"
 
     @field_validator("origin")

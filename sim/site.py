@@ -208,6 +208,18 @@ class SiteSpec(_Model):
     def build_cameras(self) -> list[Camera]:
         return [c.build() for c in self.cameras]
 
+    def movements(self, outer_radius_m: float = 70.0) -> dict:
+        """The junction as a site.yaml's `movements:` section (shared/movements.py): its centre is the site's origin
+        and its legs the approaches; a vehicle is in the junction within a metre of the ring's outer edge (a car
+        waiting at the yield line, its centre ~2.5 m behind the edge, is still on its leg). Roundabouts only: an
+        intersection's box is the site file's to give."""
+        if self.roundabout is None:
+            raise ValueError(f"site {self.name}: the junction of a {self.layout} is not derived; give `movements:` "
+                             "in the site file")
+        return {"center": {"lat_deg": self.origin.lat_deg, "lon_deg": self.origin.lon_deg},
+                "legs": [{"name": a.name, "bearing_deg": a.bearing_deg} for a in self.approaches],
+                "inner_radius_m": round(self.roundabout.outer_radius_m + 1.0, 2), "outer_radius_m": outer_radius_m}
+
     def camera_spec(self, name: str) -> CameraSpec:
         for c in self.cameras:
             if c.name == name:

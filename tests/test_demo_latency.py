@@ -65,8 +65,11 @@ def test_summary_table_renders_a_summary():
          "detector_alone": {"passes": [{"fps": 80.0}, {"fps": 75.0}]}, "throughput_ratio_vs_decode_and_detect": 0.8,
          "cpu_ratio_vs_decode_and_detect": 0.8, "peak_rss_mb": {"detect": 220.0}, "cpu_ms_per_frame": {"detect": 22.0},
          "ahead_100ms_stale_err_m": 0.581, "ahead_300ms_stale_err_m": 0.962, "ahead_100ms_err_m": 0.497,
-         "ahead_300ms_err_m": 0.583, "ahead_100ms_cov_within_95": 0.9031, "ahead_300ms_cov_within_95": 0.891}
+         "ahead_300ms_err_m": 0.583, "ahead_100ms_cov_within_95": 0.9031, "ahead_300ms_cov_within_95": 0.891,
+         "movements": {"complete_true": 23, "complete_counted": 17, "count_error": 0.2609, "entering_error": 0.0357,
+                       "leaving_error": 0.0345, "movement_recall": 0.7391, "movement_precision": 1.0}}
     table = summary_table(s)
+    assert "17 (23): count error 0.261, entering 0.036; per vehicle recall 0.739, precision 1.000" in table
     assert "0.970 of 33 (within 40 m of a camera)" in table
     assert "frames through the pipeline" in table and "2393 of 2400" in table
     assert "80.0 / 75.0 frames/s" in table

@@ -1,0 +1,220 @@
+"""Turning-movement counts from tracks (`roadside counts`): how many vehicles went from which leg of the junction
+to which, per time bin, as a traffic engineer counts them.
+
+A site's junction (`movements:` in site.yaml, `MovementSettings`) is its centre (latitude, longitude), the compass
+bearing of each leg from the centre, and two radii: inside `inner_radius_m` a vehicle is in the junction (the
+roundabout's ring or the intersection's box); between it and `outer_radius_m` it is on the leg whose bearing is
+nearest, within `half_width_deg` (else on none). Each track (its id within its tracker: fuse_track keeps the id of
+a vehicle it lost and found again, `relink_s`) is a sequence of positions; its movement is
+
+- entry: the leg it was last on before it first entered the junction; exit: the leg it was first on after it last
+  left it; its time: when it first entered;
+- complete when both are known; a vehicle first seen inside the junction has no entry, one last seen there (or
+  still there when the recording ends) no exit, and each of those counts in its leg's `entered_only` or
+  `exited_only`; a track that never enters the junction (a parked car, a vehicle that turned off before it, a
+  false track) is no movement.
+
+The legs before its first entry and after its last exit are what count, so a track that grazes a leg's mouth while
+in the ring, or whose position jitters across the inner radius, is counted once. Positions come from the tracks'
+latitude and longitude, so a tracks file counts the same whatever site frame its tracker had.
+Counts are binned by the movement's time in `bin_s` bins aligned to the clock (UTC: 900 s, the traffic
+engineer's 15 minutes, starts at :00, :15, :30, :45).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from shared.geo import GeoFrame
+
+INSIDE = -2  # zone codes beside the legs' indices
+NOWHERE = -1
+
+
+@dataclass(frozen=True)
+class Junction:
+    """The junction's centre (degrees), its legs (name, bearing in degrees from north, clockwise), and its radii (m)
+    and legs' half-width (degrees); see the module doc."""
+
+    lat_deg: float
+    lon_deg: float
+    legs: tuple[tuple[str, float], ...]
+    inner_radius_m: float
+    outer_radius_m: float
+    half_width_deg: float = 35.0
+
+    def __post_init__(self) -> None:
+        GeoFrame(self.lat_deg, self.lon_deg)  # checks the centre
+        if not 0 < self.inner_radius_m < self.outer_radius_m or not math.isfinite(self.outer_radius_m):
+            raise ValueError(f"junction radii must be 0 < inner < outer, got {self.inner_radius_m} and "
+                             f"{self.outer_radius_m} m")
+        if not 0 < self.half_width_deg <= 90:
+            raise ValueError(f"half_width_deg must be in (0, 90], got {self.half_width_deg}")
+        if len(self.legs) < 2:
+            raise ValueError(f"a junction needs at least two legs, got {len(self.legs)}")
+        names = [n for n, _ in self.legs]
+        if len(set(names)) != len(names):
+            raise ValueError(f"duplicate leg names in {names}")
+        for i, (a, ba) in enumerate(self.legs):
+            if not math.isfinite(ba):
+                raise ValueError(f"leg {a}: bearing must be finite, got {ba}")
+            for b, bb in self.legs[i + 1:]:
+                gap = abs((ba - bb + 180.0) % 360.0 - 180.0)
+                if gap < 2 * self.half_width_deg:
+                    raise ValueError(f"legs {a} and {b} are {gap:g} deg apart, less than twice half_width_deg "
+                                     f"({self.half_width_deg:g}): a position between them would be on both")
+
+    @property
+    def names(self) -> list[str]:
+        return [n for n, _ in self.legs]
+
+    def zones(self, lat_deg: np.ndarray, lon_deg: np.ndarray) -> np.ndarray:
+        """(N,) int: the leg index of each position, INSIDE the junction, or NOWHERE."""
+        en = GeoFrame(self.lat_deg, self.lon_deg).to_enu(np.asarray(lat_deg, float), np.asarray(lon_deg, float))
+        r = np.hypot(en[:, 0], en[:, 1])
+        bearing = np.degrees(np.arctan2(en[:, 0], en[:, 1]))  # from north, clockwise
+        legs = np.array([b for _, b in self.legs], float)
+        off = np.abs((bearing[:, None] - legs[None, :] + 180.0) % 360.0 - 180.0)
+        nearest = np.argmin(off, axis=1) if len(r) else np.zeros(0, int)
+        on_leg = (r >= self.inner_radius_m) & (r <= self.outer_radius_m) & (off[np.arange(len(r)), nearest]
+                                                                            <= self.half_width_deg)
+        return np.where(r < self.inner_radius_m, INSIDE, np.where(on_leg, nearest, NOWHERE))
+
+
+@dataclass(frozen=True)
+class Movement:
+    """One vehicle's passage: its track, entry and exit leg (None: not seen), when it entered (ns)."""
+
+    key: tuple[str, int]
+    entry: str | None
+    exit: str | None
+    t_ns: int
+
+
+def movement(key: tuple[str, int], t_ns: np.ndarray, zones: np.ndarray, names: Sequence[str]) -> Movement | None:
+    """The movement of one trajectory (times in order, its zones; module doc), None if it never enters."""
+    inside = np.flatnonzero(zones == INSIDE)
+    if not inside.size:
+        return None
+    before, after = zones[: inside[0]], zones[inside[-1] + 1:]
+    before, after = before[before >= 0], after[after >= 0]
+    return Movement(key, names[before[-1]] if before.size else None, names[after[0]] if after.size else None,
+                    int(t_ns[inside[0]]))
+
+
+def movements(tracks: Iterable[tuple[tuple[str, int], int, float, float]], junction: Junction) -> list[Movement]:
+    """The movements of tracks given as (key, t_ns, lat, lon) positions, in any order."""
+    by_key: dict[tuple[str, int], list[tuple[int, float, float]]] = {}
+    for key, t, lat, lon in tracks:
+        by_key.setdefault(key, []).append((t, lat, lon))
+    out = []
+    for key, rows in by_key.items():
+        a = np.array(sorted(rows), float).reshape(-1, 3)
+        m = movement(key, a[:, 0].astype(np.int64), junction.zones(a[:, 1], a[:, 2]), junction.names)
+        if m is not None:
+            out.append(m)
+    return sorted(out, key=lambda m: (m.t_ns, m.key))
+
+
+@dataclass
+class Counts:
+    """Movements counted per bin: `complete[(entry, exit)]`, `entered_only[entry]`, `exited_only[exit]`."""
+
+    start_ns: int
+    end_ns: int
+    complete: dict[tuple[str, str], int] = field(default_factory=dict)
+    entered_only: dict[str, int] = field(default_factory=dict)
+    exited_only: dict[str, int] = field(default_factory=dict)
+
+    def add(self, m: Movement) -> None:
+        if m.entry is not None and m.exit is not None:
+            self.complete[(m.entry, m.exit)] = self.complete.get((m.entry, m.exit), 0) + 1
+        elif m.entry is not None:
+            self.entered_only[m.entry] = self.entered_only.get(m.entry, 0) + 1
+        elif m.exit is not None:
+            self.exited_only[m.exit] = self.exited_only.get(m.exit, 0) + 1
+
+    def to_json(self, legs: Sequence[str]) -> dict:
+        """The bin as JSON: its times, the entry x exit matrix (rows entries, columns exits, the legs' order) and
+        the approach volumes (entering each leg: complete and entered-only; leaving it: complete and exited-only)."""
+        matrix = [[self.complete.get((a, b), 0) for b in legs] for a in legs]
+        return {"start_ns": self.start_ns, "end_ns": self.end_ns, "legs": list(legs), "complete": matrix,
+                "complete_total": sum(self.complete.values()),
+                "entered_only": {leg: self.entered_only.get(leg, 0) for leg in legs},
+                "exited_only": {leg: self.exited_only.get(leg, 0) for leg in legs},
+                "entering": {leg: sum(matrix[i]) + self.entered_only.get(leg, 0) for i, leg in enumerate(legs)},
+                "leaving": {leg: sum(row[j] for row in matrix) + self.exited_only.get(leg, 0)
+                            for j, leg in enumerate(legs)}}
+
+
+def binned(found: Sequence[Movement], bin_s: float) -> list[Counts]:
+    """The movements counted in clock-aligned bins of `bin_s` seconds (the bins that hold any, in order)."""
+    if not (bin_s > 0 and math.isfinite(bin_s)):
+        raise ValueError(f"bin_s must be a finite number of seconds > 0, got {bin_s}")
+    width = round(bin_s * 1e9)
+    bins: dict[int, Counts] = {}
+    for m in found:
+        start = m.t_ns // width * width
+        bins.setdefault(start, Counts(start, start + width)).add(m)
+    return [bins[k] for k in sorted(bins)]
+
+
+@dataclass
+class TrackPositions:
+    """What `read_tracks` found: every track position (key, t_ns, lat, lon), the lines read and the bad ones."""
+
+    positions: list[tuple[tuple[str, int], int, float, float]] = field(default_factory=list)
+    lines: int = 0
+    bad: list[str] = field(default_factory=list)  # "file:line: reason", the first 20
+    bad_lines: int = 0
+
+
+def read_tracks(paths: Sequence[Path]) -> TrackPositions:
+    """The positions of tracks files (fuse_track's recording; rotated files in any order: positions are sorted by
+    time per track). A line that is not a tracks line (half written, not JSON, a row without a finite id, lat
+    or lon) is counted and skipped. ValueError for a file that cannot be read."""
+    out = TrackPositions()
+    for path in paths:
+        for where, line in _lines(Path(path)):
+            out.lines += 1
+            try:
+                out.positions += list(_positions(json.loads(line)))
+            except (json.JSONDecodeError, ValueError, TypeError, KeyError) as exc:
+                out.bad_lines += 1
+                if len(out.bad) < 20:
+                    out.bad.append(f"{where}: {type(exc).__name__}: {exc}"[:300])
+    return out
+
+
+def _lines(path: Path) -> Iterator[tuple[str, str]]:
+    try:
+        handle = open(path, encoding="utf-8", errors="replace")  # closed by the with below: lines are streamed
+    except OSError as exc:
+        raise ValueError(f"tracks file {path}: {exc.strerror or exc}") from None
+    with handle:
+        for n, line in enumerate(handle, 1):
+            if line.strip():
+                yield f"{path}:{n}", line
+
+
+def _positions(obj: dict) -> Iterator[tuple[tuple[str, int], int, float, float]]:
+    t, tracker = obj["t_ns"], obj["tracker"]
+    if not isinstance(t, int) or isinstance(t, bool) or not isinstance(tracker, str):
+        raise ValueError("t_ns must be an integer and tracker a string")
+    rows = obj["tracks"]
+    if not isinstance(rows, list):
+        raise ValueError("tracks must be a list")
+    found = []
+    for r in rows:
+        i, lat, lon = r["id"], r["lat"], r["lon"]
+        if not isinstance(i, int) or isinstance(i, bool) or not all(
+                isinstance(v, int | float) and math.isfinite(v) for v in (lat, lon)):
+            raise ValueError(f"track {i!r}: id must be an integer, lat and lon finite numbers")
+        found.append(((tracker, i), t, float(lat), float(lon)))
+    return iter(found)

@@ -1,0 +1,271 @@
+"""Turning-movement counts (shared/movements.py, `roadside counts`, `roadside eval movements`)."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import yaml
+
+from shared.geo import GeoFrame
+from shared.movements import INSIDE, NOWHERE, Junction, Movement, binned, movement, movements, read_tracks
+
+CENTER = (42.22939632, -83.73899854)
+LEGS = (("north", -3.0), ("east", 90.0), ("south", 166.0), ("west", 272.0))
+GEO = GeoFrame(*CENTER)
+T0 = 1_703_001_600_000_000_000  # 2023-12-19T16:00:00Z
+S = 1_000_000_000
+
+
+def junction(**kw) -> Junction:
+    return Junction(*CENTER, **{"legs": LEGS, "inner_radius_m": 24.4, "outer_radius_m": 70.0, **kw})
+
+
+def at(bearing_deg: float, r_m: float) -> np.ndarray:
+    b = math.radians(bearing_deg)
+    return np.array([r_m * math.sin(b), r_m * math.cos(b)])
+
+
+def latlon(en: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    ll = GEO.to_geodetic(np.column_stack([en, np.zeros(len(en))]))
+    return ll[:, 0], ll[:, 1]
+
+
+def path(*points: np.ndarray, step_m: float = 1.0) -> np.ndarray:
+    """A polyline through the points, sampled every step_m."""
+    out = []
+    for a, b in itertools.pairwise(points):
+        n = max(int(np.linalg.norm(b - a) / step_m), 1)
+        out += [a + (b - a) * k / n for k in range(n)]
+    return np.array([*out, points[-1]])
+
+
+def through(entry_deg: float, exit_deg: float, r_in: float = 60.0, r_out: float = 60.0) -> np.ndarray:
+    """In along a leg at entry_deg, round the ring counter-clockwise (right-hand traffic: the bearing falls), out
+    along exit_deg (the same leg: once round, a U-turn)."""
+    ring = 19.0
+    sweep = (entry_deg - exit_deg) % 360 or 360
+    arc = [at(b, ring) for b in entry_deg - np.linspace(0, sweep, 12)]
+    return path(at(entry_deg, r_in), *arc, at(exit_deg, r_out))
+
+
+def positions(key, en: np.ndarray, t0_ns: int = T0, step_ns: int = S // 10) -> list:
+    lat, lon = latlon(en)
+    return [(key, t0_ns + k * step_ns, la, lo) for k, (la, lo) in enumerate(zip(lat, lon, strict=True))]
+
+
+# --- the junction --------------------------------------------------------------------------------------------------
+
+
+def test_positions_fall_on_the_leg_of_nearest_bearing_inside_or_nowhere():
+    j = junction()
+    en = np.array([at(0, 40), at(88, 30), at(170, 69), at(270, 25), at(0, 10), at(45, 40), at(0, 80), [0.0, 0.0]])
+    assert j.zones(*latlon(en)).tolist() == [0, 1, 2, 3, INSIDE, NOWHERE, NOWHERE, INSIDE]
+
+
+@pytest.mark.parametrize(("kw", "named"), [
+    ({"inner_radius_m": 30.0, "outer_radius_m": 20.0}, "0 < inner < outer"),
+    ({"legs": (("north", 0.0), ("east", 60.0))}, "legs north and east are 60 deg apart"),
+    ({"legs": (("north", 0.0), ("north", 180.0))}, "duplicate leg names"),
+    ({"legs": (("north", 0.0),)}, "at least two legs"),
+    ({"half_width_deg": 0.0}, "half_width_deg must be in"),
+    ({"legs": (("north", 0.0), ("east", math.nan))}, "leg east: bearing must be finite"),
+])
+def test_a_junction_that_cannot_be_counted_is_named(kw, named):
+    with pytest.raises(ValueError, match=named):
+        junction(**kw)
+    with pytest.raises(ValueError, match="lat0_deg"):
+        Junction(95.0, 0.0, LEGS, 20.0, 60.0)
+
+
+# --- movements -------------------------------------------------------------------------------------------------------
+
+
+def movement_of(en: np.ndarray, j: Junction | None = None) -> Movement | None:
+    j = j or junction()
+    found = movements(positions(("t", 1), en), j)
+    assert len(found) <= 1
+    return found[0] if found else None
+
+
+@pytest.mark.parametrize(("entry", "exit_", "names"), [
+    (-3.0, 166.0, ("north", "south")), (90.0, -3.0, ("east", "north")), (166.0, 90.0, ("south", "east")),
+    (272.0, 272.0, ("west", "west")),  # a U-turn
+])
+def test_a_vehicle_through_the_junction_counts_its_entry_and_exit(entry, exit_, names):
+    m = movement_of(through(entry, exit_))
+    assert (m.entry, m.exit) == names and m.key == ("t", 1)
+    inside = np.flatnonzero(junction().zones(*latlon(through(entry, exit_))) == INSIDE)[0]
+    assert m.t_ns == T0 + inside * (S // 10)  # when it first entered
+
+
+def test_what_a_track_does_between_first_entering_and_last_leaving_does_not_count():
+    """Jitter across the inner radius at a leg's mouth (a car on the ring's outer lane) counts once, with the legs
+    before the first entry and after the last exit."""
+    en = through(-3.0, 166.0)
+    jitter = np.array([at(90.0, 24.0), at(90.0, 25.5), at(90.0, 23.8), at(90.0, 26.0), at(92.0, 23.0)])
+    k = len(en) // 2
+    m = movement_of(np.vstack([en[:k], jitter, en[k:]]))
+    assert (m.entry, m.exit) == ("north", "south")
+
+
+def test_partial_passages_and_tracks_that_never_enter():
+    full = through(90.0, 272.0)
+    zones = junction().zones(*latlon(full))
+    first_in, last_in = np.flatnonzero(zones == INSIDE)[[0, -1]]
+    assert (movement_of(full[: last_in + 1]).entry, movement_of(full[: last_in + 1]).exit) == ("east", None)
+    assert (movement_of(full[first_in:]).entry, movement_of(full[first_in:]).exit) == (None, "west")
+    assert movement_of(path(at(0, 60), at(0, 30))) is None  # stopped on its leg (or turned off before)
+    assert movement_of(np.array([at(45, 40)] * 20)) is None  # parked between two legs
+
+
+def test_each_track_of_each_tracker_is_its_own_vehicle_and_positions_may_come_in_any_order():
+    a = positions(("tracker-1", 7), through(-3.0, 166.0))
+    b = positions(("tracker-2", 7), through(166.0, -3.0), t0_ns=T0 + 5 * S)
+    mixed = a + b
+    np.random.default_rng(0).shuffle(mixed)
+    found = movements(mixed, junction())
+    assert [(m.key, m.entry, m.exit) for m in found] == [(("tracker-1", 7), "north", "south"),
+                                                          (("tracker-2", 7), "south", "north")]
+
+
+def test_counts_are_binned_on_the_clock_with_approach_and_departure_volumes():
+    legs = [n for n, _ in LEGS]
+    t = T0 + 899 * S  # 16:14:59, the first 15-minute bin; then 16:15:00 and 16:31:00
+    found = [Movement(("a", 1), "north", "south", t), Movement(("a", 2), "east", None, T0 + 900 * S),
+             Movement(("a", 3), None, "west", T0 + 1860 * S), Movement(("a", 4), "north", "south", T0 + 1861 * S)]
+    bins = binned(found, 900)
+    assert [b.start_ns for b in bins] == [T0, T0 + 900 * S, T0 + 1800 * S]
+    last = bins[2].to_json(legs)
+    assert last["complete"][0][2] == 1 and last["complete_total"] == 1
+    assert last["entering"] == {"north": 1, "east": 0, "south": 0, "west": 0}
+    assert last["leaving"] == {"north": 0, "east": 0, "south": 1, "west": 1}
+    assert bins[1].to_json(legs)["entered_only"]["east"] == 1 and bins[1].to_json(legs)["entering"]["east"] == 1
+    with pytest.raises(ValueError, match="bin_s must be"):
+        binned(found, 0)
+
+
+def test_read_tracks_counts_and_names_bad_lines(tmp_path):
+    good = {"site": "s", "seq": 0, "t_ns": T0, "tracker": "t1", "tracks": [{"id": 3, "lat": CENTER[0],
+                                                                             "lon": CENTER[1]}]}
+    f = tmp_path / "tracks.jsonl"
+    f.write_text("\n".join([json.dumps(good), "{half", json.dumps({**good, "tracks": [{"id": 4, "lat": None,
+                                                                                      "lon": 1.0}]}),
+                            json.dumps({**good, "t_ns": "soon"}), "", json.dumps({**good, "t_ns": T0 + S})]) + "\n")
+    read = read_tracks([f])
+    assert read.lines == 5 and read.bad_lines == 3
+    assert [p[:2] for p in read.positions] == [(("t1", 3), T0), (("t1", 3), T0 + S)]
+    assert read.bad[0].startswith(f"{f}:2: JSONDecodeError") and read.bad[1].startswith(f"{f}:3: ValueError: track 4")
+    with pytest.raises(ValueError, match=r"tracks file .*nothing"):
+        read_tracks([tmp_path / "nothing.jsonl"])
+
+
+def test_movement_of_plain_arrays():
+    m = movement(("k", 1), np.arange(6) * S, np.array([NOWHERE, 2, INSIDE, 1, INSIDE, 3]), ["a", "b", "c", "d"])
+    assert (m.entry, m.exit, m.t_ns) == ("c", "d", 2 * S)
+
+
+# --- the site file and the command line -----------------------------------------------------------------------------
+
+
+def write_site(folder: Path, movements_section: dict | None) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    doc = {"site": "se", "cameras": [{"name": "NE", "kind": "fisheye", "width": 1280, "height": 960}]}
+    if movements_section is not None:
+        doc["movements"] = movements_section
+    (folder / "site.yaml").write_text(yaml.safe_dump(doc))
+    return folder
+
+
+SECTION = {"center": {"lat_deg": CENTER[0], "lon_deg": CENTER[1]},
+           "legs": [{"name": n, "bearing_deg": b} for n, b in LEGS], "inner_radius_m": 24.4, "outer_radius_m": 70.0}
+
+
+def test_the_site_files_movements_section_is_checked_naming_the_problem(tmp_path):
+    from shared.settings import load_settings
+
+    assert load_settings(write_site(tmp_path / "ok", SECTION)).movements.junction().names == [n for n, _ in LEGS]
+    bad = {**SECTION, "legs": [{"name": "north", "bearing_deg": 0.0}, {"name": "east", "bearing_deg": 40.0}]}
+    with pytest.raises(ValueError, match="legs north and east are 40 deg apart"):
+        load_settings(write_site(tmp_path / "overlap", bad))
+    with pytest.raises(ValueError, match=r"movements\.center needs lat_deg and lon_deg"):
+        load_settings(write_site(tmp_path / "centre", {**SECTION, "center": {"lat": 1.0}}))
+
+
+def tracks_file(path: Path, vehicles: list[tuple[int, np.ndarray, int]]) -> Path:
+    """A tracks file (one line per 100 ms tick) of vehicles given as (id, positions, first tick)."""
+    ticks = max(start + len(en) for _, en, start in vehicles)
+    with path.open("w") as f:
+        for k in range(ticks):
+            rows = []
+            for vid, en, start in vehicles:
+                if start <= k < start + len(en):
+                    lat, lon = latlon(en[k - start: k - start + 1])
+                    rows.append({"id": vid, "lat": float(lat[0]), "lon": float(lon[0])})
+            f.write(json.dumps({"site": "se", "seq": k, "t_ns": T0 + k * S // 10, "tracker": "t1", "tracks": rows})
+                    + "\n")
+    return path
+
+
+def test_roadside_counts_prints_the_movements_per_bin(tmp_path, capsys):
+    from roadside.cli import main
+
+    site = write_site(tmp_path / "site", SECTION)
+    f = tracks_file(tmp_path / "tracks.jsonl", [(1, through(-3.0, 166.0), 0), (2, through(90.0, 272.0), 5),
+                                                (3, through(-3.0, 166.0), 40), (4, path(at(0, 60), at(0, 30)), 0)])
+    assert main(["counts", str(f), "--site", str(site), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["legs"] == ["north", "east", "south", "west"] and doc["movements"] == 3 and doc["bad_lines"] == 0
+    (b,) = doc["bins"]
+    assert b["start"] == "2023-12-19T16:00:00Z" and b["end"] == "2023-12-19T16:15:00Z"
+    assert b["complete"] == [[0, 0, 2, 0], [0, 0, 0, 1], [0, 0, 0, 0], [0, 0, 0, 0]]
+    assert main(["counts", str(f), "--site", str(site)]) == 0
+    out = capsys.readouterr().out
+    assert "3 vehicles through the junction" in out and "entering" in out
+    assert main(["counts", str(f), "--site", str(write_site(tmp_path / "none", None))]) == 2
+    assert "has no movements: section" in capsys.readouterr().err
+
+
+# --- against the truth ----------------------------------------------------------------------------------------------
+
+
+def test_movements_are_scored_against_the_vehicles_through_the_tracks_matching(tmp_path, monkeypatch):
+    """Three vehicles go through; the tracks count one right, one with the wrong exit, and lose the third's exit.
+    The matching (eval.tracking's) is stood in for: each track is its vehicle's."""
+    import eval.movements as em
+
+    trips = {11: through(-3.0, 166.0), 12: through(90.0, 272.0), 13: through(166.0, -3.0)}
+    geo = SimpleNamespace(to_geodetic=lambda xyz: GEO.to_geodetic(xyz))
+    gt = SimpleNamespace(recording=SimpleNamespace(geo=geo), trajectories={
+        v: SimpleNamespace(t_ns=T0 + np.arange(len(en)) * S // 10, xyz=np.column_stack([en, np.zeros(len(en))]))
+        for v, en in trips.items()})
+    monkeypatch.setattr(em, "GroundTruth", SimpleNamespace)  # the stand-in is taken as it is
+    wrong_exit = through(90.0, 166.0)
+    lost = trips[13][: np.flatnonzero(junction().zones(*latlon(trips[13])) == INSIDE)[-1]]
+    f = tracks_file(tmp_path / "tracks.jsonl", [(1, trips[11], 0), (2, wrong_exit, 0), (3, lost, 0)])
+    frames = [SimpleNamespace(matched={11: ("t1", 1), 12: ("t1", 2), 13: ("t1", 3)})]
+    monkeypatch.setattr(em, "match_tracks", lambda *a, **k: SimpleNamespace(frames=frames))
+    s = em.evaluate_movements(gt, f, junction())
+    assert (s["complete_true"], s["complete_counted"]) == (3, 2)
+    # true N->S, E->W, S->N; counted N->S, E->S: |E->W| 1 + |S->N| 1 + |E->S| 1 over 3
+    assert s["count_error"] == pytest.approx(1.0)
+    assert s["movement_recall"] == pytest.approx(1 / 3) and s["movement_precision"] == pytest.approx(1 / 2)
+    assert s["entering_error"] == 0.0  # every vehicle's approach counted (the lost one's as entering only)
+    assert s["leaving_error"] == pytest.approx(1.0)  # W 1 and N 1 missed, S 1 too many, over 3
+    assert "count error 1.000" in em.as_table(s)
+
+
+def test_a_simulated_roundabouts_junction_comes_from_its_site_and_an_intersections_is_asked_for():
+    from shared.settings import MovementSettings
+    from sim.site import load_site
+
+    section = load_site("state_ellsworth").movements()
+    j = MovementSettings.model_validate(section).junction()
+    assert j.names == ["north", "east", "south", "west"] and j.inner_radius_m == pytest.approx(11 + 3.6 + 8.8 + 1)
+    with pytest.raises(ValueError, match="give `movements:` in the site file"):
+        load_site("intersection").movements()
