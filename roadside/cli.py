@@ -249,11 +249,15 @@ def _run_eval(args) -> int:
         print(dumps(result, indent=1))
         return 0
     if args.what == "movements":
+        import numpy as np
+
         from eval.movements import as_table, evaluate_demo_movements
 
         runs = [evaluate_demo_movements(d) for d in args.demo or [Path("out/demo")]]
         keys = ("count_error", "entering_error", "leaving_error", "movement_recall", "movement_precision")
-        result = {"runs": runs, "mean": {k: round(sum(r[k] for r in runs) / len(runs), 4) for k in keys}}
+        # the mean over the runs that have any (a run with no true movement has NaN scores)
+        result = {"runs": runs, "mean": {k: round(float(np.nanmean([r[k] for r in runs])), 4)
+                                         if any(r[k] == r[k] for r in runs) else float("nan") for k in keys}}
         if not args.json:
             for r in runs:
                 print(f"{r['demo']}:\n{as_table(r)}", file=sys.stderr)
@@ -386,7 +390,8 @@ def _add_counts(sub) -> None:
     p.add_argument("tracks", nargs="+", type=Path, help="tracks files (fuse_track.record; rotated ones too)")
     p.add_argument("--site", type=Path, required=True, help="site folder or site.yaml with a movements: section")
     p.add_argument("--bin-s", type=positive_float, default=900.0,
-                   help="bin length in seconds, bins aligned to the clock (default 900: 15 minutes)")
+                   help="bin length in seconds, 1 to 604800 (a week), bins aligned to the clock (default 900: 15 "
+                   "minutes)")
     p.add_argument("--json", action="store_true", help="one JSON document")
 
 

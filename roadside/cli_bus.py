@@ -62,24 +62,28 @@ def _site(args) -> None:
     from shared.settings import load_settings
 
     args.site_bus = None
-    if Path(args.site).exists():
-        settings = load_settings(site_path(Path(args.site)))
+    given = Path(args.site)
+    if given.exists():
+        settings = load_settings(site_path(given))
         args.site, args.site_bus = settings.site, settings.bus.model_copy(update={"listen": []})
+    elif len(given.parts) > 1 or given.suffix in (".yaml", ".yml"):
+        raise ValueError(f"site not found: {args.site}")
     check_name("site", args.site)
 
 
 def _bus(args):
-    """The bus settings of the endpoint flags: client mode to --connect, else --port-base's embedded ports, else the
-    --site file's bus, else the embedded default's ports; --ca, --cert and --key over any of them."""
+    """The bus settings of the endpoint flags over the --site file's bus (or the embedded default's): client mode to
+    --connect, or --port-base's embedded ports in peer mode; --ca, --cert and --key over the file's."""
     from shared.settings import BusSettings
 
-    tls = {k: v for k, v in (("tls_root_ca", args.ca), ("tls_certificate", args.cert), ("tls_private_key", args.key))
-           if v is not None}
+    base = getattr(args, "site_bus", None) or BusSettings()
+    flags = {k: v for k, v in (("tls_root_ca", args.ca), ("tls_certificate", args.cert), ("tls_private_key", args.key))
+             if v is not None}
     if args.connect:
-        return BusSettings(mode="client", connect=args.connect, **tls)
-    if args.port_base is None and getattr(args, "site_bus", None) is not None:
-        return BusSettings.model_validate({**args.site_bus.model_dump(), **tls})
-    return BusSettings(port_base=args.port_base or DEFAULT_PORT_BASE, **tls)
+        flags.update(mode="client", connect=args.connect)
+    elif args.port_base is not None:
+        flags.update(mode="peer", port_base=args.port_base, connect=[])
+    return BusSettings.model_validate({**base.model_dump(), **flags})
 
 
 def _add_tracks(sub) -> None:
@@ -286,7 +290,8 @@ def _add_play(sub) -> None:
     p.add_argument("--loop", action="store_true", help="start again at the end, times and seq going on (Ctrl-C stops)")
     p.add_argument("--connect", action="append", default=[], type=endpoint,
                    help="Zenoh endpoint of a router to publish through (default: listen where the embedded "
-                   "default's fuse_track would, --port-base + 3)")
+                   "default's fuse_track would, --port-base + 3); a development router, not a cabinet's: a cabinet's "
+                   "router drops what the network publishes (deploy/sites/README.md)")
     p.add_argument("--port-base", type=port_base, default=DEFAULT_PORT_BASE,
                    help="embedded default's first service port")
 
@@ -298,9 +303,12 @@ def _run_play(args) -> int:
     from shared.bus import BadInput, Stopper, zenoh_config
     from shared.settings import BusSettings
 
-    missing = [str(f) for f in args.files if not f.is_file()]
+    missing = [str(f) for f in args.files if not f.exists()]
     if missing:
         raise ValueError(f"tracks file not found: {', '.join(missing)}")
+    folders = [str(f) for f in args.files if not f.is_file()]
+    if folders:
+        raise ValueError(f"not a tracks file (a folder?): {', '.join(folders)}")
     bus = BusSettings(mode="client", connect=args.connect) if args.connect else BusSettings(port_base=args.port_base)
     where = ", ".join(args.connect) if args.connect else bus.service_endpoint("fuse_track")
     try:

@@ -346,10 +346,10 @@ class Tracks(Message):
 
     @classmethod
     def from_record(cls, line: Mapping) -> Tracks:
-        """The message a tracks-file line holds (fuse_track's recorder: site, seq, t_ns, tracker and `rows()`), with a
-        "playback" stamp; ValueError naming the first problem (a key missing, a value of the wrong kind, a row off
-        the contract, a file recorded before a field it needs: xy_cov, velocity_cov, yaw_confirmed and yaw_std
-        came with schema version 3)."""
+        """The message a tracks-file line holds (fuse_track's recorder: site, seq, t_ns, tracker and `rows()`; no
+        stamps); ValueError naming the first problem (a key missing, a value of the wrong kind or out of its column's
+        range, a row off the contract, a file recorded before a field it needs: xy_cov, velocity_cov, yaw_confirmed
+        and yaw_std came with schema version 3)."""
         if not isinstance(line, Mapping):
             raise ValueError(f"a tracks record must be a JSON object, got {type(line).__name__}")
         missing = [k for k in ("site", "seq", "t_ns", "tracker", "tracks") if k not in line]
@@ -367,23 +367,29 @@ class Tracks(Message):
                 raise ValueError(f"tracks record: track {i} has type {r['type']!r}, not one of {VEHICLE_TYPES}")
 
         def column(keys: tuple[str, ...], dtype) -> np.ndarray:
-            try:
-                return np.array([[r[k] for k in keys] for r in rows], dtype).reshape(len(rows), len(keys))
-            except (TypeError, ValueError) as exc:
-                raise ValueError(f"tracks record: {'/'.join(keys)} must be numbers ({exc})") from None
+            values = [r[k] for r in rows for k in keys]
+            integer = np.issubdtype(dtype, np.integer)
+            if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in values) or (
+                    integer and not all(isinstance(v, int) for v in values)):
+                raise ValueError(f"tracks record: {'/'.join(keys)} must be {'integers' if integer else 'numbers'}")
+            if integer and values and not (np.iinfo(dtype).min <= min(values) and max(values) <= np.iinfo(dtype).max):
+                raise ValueError(f"tracks record: {'/'.join(keys)} out of the range of {np.dtype(dtype).name}")
+            return np.array(values, dtype).reshape(len(rows), len(keys))
 
         def matrices(key: str) -> np.ndarray:
-            try:
-                return np.array([r[key] for r in rows], np.float32).reshape(len(rows), 2, 2)
-            except (TypeError, ValueError) as exc:
-                raise ValueError(f"tracks record: {key} must be 2x2 matrices ({exc})") from None
+            if not all(isinstance(m, list) and len(m) == 2 and all(
+                    isinstance(row, list) and len(row) == 2 and all(
+                        isinstance(v, int | float) and not isinstance(v, bool) for v in row) for row in m)
+                       for m in (r[key] for r in rows)):
+                raise ValueError(f"tracks record: {key} must be 2x2 matrices of numbers")
+            return np.array([r[key] for r in rows], np.float32).reshape(len(rows), 2, 2)
 
         if not all(isinstance(r["cameras"], list) and all(isinstance(c, str) for c in r["cameras"]) for r in rows):
             raise ValueError("tracks record: cameras must be lists of names")
         if not all(isinstance(r["yaw_confirmed"], bool) for r in rows):
             raise ValueError("tracks record: yaw_confirmed must be true or false")
         return cls(site=line["site"], seq=line["seq"], t_capture_ns=line["t_ns"], tracker=line["tracker"],
-                   stamps=[("playback", time.time_ns())], id=column(("id",), np.int64)[:, 0],
+                   id=column(("id",), np.int64)[:, 0],
                    xy=column(("x", "y"), np.float64), latlon=column(("lat", "lon"), np.float64),
                    velocity=column(("vx", "vy"), np.float32), yaw=column(("yaw",), np.float32)[:, 0],
                    size_lwh=column(("length", "width", "height"), np.float32),

@@ -35,6 +35,7 @@ from shared.geo import GeoFrame
 
 INSIDE = -2  # zone codes beside the legs' indices
 NOWHERE = -1
+MIN_BIN_S, MAX_BIN_S = 1.0, 7 * 86400.0  # the counts' bins: from a second (times print in whole seconds) to a week
 
 
 @dataclass(frozen=True)
@@ -155,8 +156,8 @@ class Counts:
 
 def binned(found: Sequence[Movement], bin_s: float) -> list[Counts]:
     """The movements counted in clock-aligned bins of `bin_s` seconds (the bins that hold any, in order)."""
-    if not (bin_s > 0 and math.isfinite(bin_s)):
-        raise ValueError(f"bin_s must be a finite number of seconds > 0, got {bin_s}")
+    if not MIN_BIN_S <= bin_s <= MAX_BIN_S:
+        raise ValueError(f"bin_s must be {MIN_BIN_S:g} to {MAX_BIN_S:g} seconds (a week), got {bin_s}")
     width = round(bin_s * 1e9)
     bins: dict[int, Counts] = {}
     for m in found:
@@ -185,7 +186,7 @@ def read_tracks(paths: Sequence[Path]) -> TrackPositions:
             out.lines += 1
             try:
                 out.positions += list(_positions(json.loads(line)))
-            except (json.JSONDecodeError, ValueError, TypeError, KeyError) as exc:
+            except (ValueError, TypeError, KeyError, RecursionError) as exc:  # JSONDecodeError is a ValueError
                 out.bad_lines += 1
                 if len(out.bad) < 20:
                     out.bad.append(f"{where}: {type(exc).__name__}: {exc}"[:300])

@@ -146,8 +146,9 @@ def test_counts_are_binned_on_the_clock_with_approach_and_departure_volumes():
     assert last["entering"] == {"north": 1, "east": 0, "south": 0, "west": 0}
     assert last["leaving"] == {"north": 0, "east": 0, "south": 1, "west": 1}
     assert bins[1].to_json(legs)["entered_only"]["east"] == 1 and bins[1].to_json(legs)["entering"]["east"] == 1
-    with pytest.raises(ValueError, match="bin_s must be"):
-        binned(found, 0)
+    for bad in (0, 0.5, 1e300, math.nan):
+        with pytest.raises(ValueError, match="bin_s must be 1 to 604800 seconds"):
+            binned(found, bad)
 
 
 def test_read_tracks_counts_and_names_bad_lines(tmp_path):
@@ -156,9 +157,10 @@ def test_read_tracks_counts_and_names_bad_lines(tmp_path):
     f = tmp_path / "tracks.jsonl"
     f.write_text("\n".join([json.dumps(good), "{half", json.dumps({**good, "tracks": [{"id": 4, "lat": None,
                                                                                       "lon": 1.0}]}),
-                            json.dumps({**good, "t_ns": "soon"}), "", json.dumps({**good, "t_ns": T0 + S})]) + "\n")
+                            json.dumps({**good, "t_ns": "soon"}), "", json.dumps({**good, "t_ns": T0 + S}),
+                            "[" * 100_000]) + "\n")
     read = read_tracks([f])
-    assert read.lines == 5 and read.bad_lines == 3
+    assert read.lines == 6 and read.bad_lines == 4
     assert [p[:2] for p in read.positions] == [(("t1", 3), T0), (("t1", 3), T0 + S)]
     assert read.bad[0].startswith(f"{f}:2: JSONDecodeError") and read.bad[1].startswith(f"{f}:3: ValueError: track 4")
     with pytest.raises(ValueError, match=r"tracks file .*nothing"):

@@ -58,7 +58,7 @@ def test_a_recorded_line_gives_back_the_message_that_was_recorded(tmp_path):
         back = Tracks.from_record(json.loads(line))
         sent = message(s, n=3)
         assert (back.site, back.seq, back.t_capture_ns, back.tracker) == (sent.site, s, sent.t_capture_ns, sent.tracker)
-        assert back.rows() == sent.rows() and [name for name, _ in back.stamps] == ["playback"]
+        assert back.rows() == sent.rows() and back.stamps == []  # the player stamps what it sends
         assert back.vtype.tolist() == sent.vtype.tolist() and back.cameras == sent.cameras
     assert len(Tracks.from_record({**record_of(message(0)), "tracks": []})) == 0
 
@@ -76,6 +76,12 @@ def test_a_recorded_line_gives_back_the_message_that_was_recorded(tmp_path):
     (lambda r: r["tracks"][0].update(yaw_confirmed=1), "yaw_confirmed must be true or false"),
     (lambda r: r["tracks"][0].update(vx=float("nan")), "contains NaN"),
     (lambda r: r.update(seq=-1), "seq"),
+    (lambda r: r["tracks"][0].update(id=2**70), "id out of the range of int64"),
+    (lambda r: r["tracks"][1].update(age=2**40), "age out of the range of int32"),
+    (lambda r: r["tracks"][0].update(id="5"), "id must be integers"),
+    (lambda r: r["tracks"][0].update(id=1.5), "id must be integers"),
+    (lambda r: r["tracks"][0].update(score=True), "score must be numbers"),
+    (lambda r: r["tracks"][0].update(xy_cov=[[1.0, "0"], [0.0, 1.0]]), "xy_cov must be 2x2 matrices of numbers"),
 ])
 def test_a_broken_record_is_named(change, named):
     record = record_of(message(4))
@@ -140,7 +146,39 @@ def test_bad_lines_and_other_sites_are_counted_and_skipped(tmp_path, caplog):
     log = caplog.text
     assert f"{path}:2" in log and "not JSON" in log
     assert f"{path}:4" in log and "tracks record without seq, t_ns, tracker, tracks" in log
-    assert "site 'elsewhere', not the recording's 'se'" in log
+    assert f"{path}:5" in log and "site 'elsewhere', not the recording's 'se'" in log
+
+
+def test_a_loop_counts_each_bad_line_once_and_a_deeply_nested_line_is_only_bad(tmp_path):
+    path = recording(tmp_path / "tracks.jsonl", range(3))
+    path.write_text(path.read_text() + "[" * 100_000 + "\n" + json.dumps({**record_of(message(3)), "tracks": [
+        {**message(3).rows()[0], "id": 2**70}]}) + "\n")
+    got: list[Tracks] = []
+    done = play([path], got.append, None, True, Clock(got, stop_after=9), BadInput("play"))
+    assert done.published == 9 and done.passes == 3 and done.bad == 2  # three passes, the two bad lines once
+
+
+def test_a_capture_time_that_steps_back_restarts_the_pace_there(tmp_path, monkeypatch):
+    """A recording whose clock steps back 0.5 s (fuse_track restarted with a new tracker): the messages after the
+    step are paced from the step, not sent at once to catch up with the first message's time."""
+    import services.fuse_track.player as player
+
+    now = [100.0]
+    monkeypatch.setattr(player.time, "monotonic", lambda: now[0])
+    path = tmp_path / "tracks.jsonl"
+    recording(path, range(10))
+    with path.open("a") as f:  # the new tracker's ticks start 0.5 s before the last one's
+        for k in range(10):
+            f.write(json.dumps(record_of(message(k + 5, tracker="tracker-b"))) + "\n")
+    sent: list[float] = []
+
+    def wait(wait_s: float) -> bool:  # the clock moves on as play waits
+        now[0] += wait_s
+        return False
+
+    play([path], lambda m: sent.append(now[0]), 1.0, False, wait, BadInput("play"))
+    assert sent[9] == pytest.approx(100.9) and sent[10] == pytest.approx(100.9)  # the step: at once
+    assert np.diff(sent[10:]) == pytest.approx([0.1] * 9)  # then at the recorded pace again
 
 
 def test_a_recording_without_a_good_line_is_refused_naming_it(tmp_path):
@@ -157,6 +195,8 @@ def test_roadside_play_refuses_missing_files_and_a_bad_pace(tmp_path, capsys):
 
     assert main(["play", str(tmp_path / "none.jsonl")]) == 2
     assert "tracks file not found" in capsys.readouterr().err
+    assert main(["play", str(tmp_path)]) == 2
+    assert "not a tracks file (a folder?)" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["play", str(tmp_path / "none.jsonl"), "--pace", "0"])
     assert "--pace" in capsys.readouterr().err
@@ -196,6 +236,7 @@ def test_a_vehicle_reads_a_played_recording_as_it_reads_a_cabinet(tmp_path):
     for m in got:
         original = message(m.seq % 20)
         assert m.rows() == original.rows() and m.tracker == original.tracker
+        assert [name for name, _ in m.stamps] == ["playback"]
         assert m.t_capture_ns == T0 + m.seq * STEP_NS  # a loop's times go on
 
 

@@ -285,3 +285,35 @@ def test_roadside_health_says_alive_but_not_working_then_working(tmp_path, monke
         for t in tokens:
             t.undeclare()
         session.close()
+
+
+def test_a_site_path_that_is_not_there_is_named_and_the_flags_go_over_the_site_files_bus(tmp_path, capsys):
+    import argparse
+
+    from roadside.cli import main
+    from roadside.cli_bus import _bus, _site, add_bus_jobs
+
+    assert main(["status", "--site", str(tmp_path / "exmaple"), "--timeout", "0.2"]) == 2
+    assert f"site not found: {tmp_path / 'exmaple'}" in capsys.readouterr().err
+    assert main(["status", "--site", "nosuch.yaml", "--timeout", "0.2"]) == 2
+    site = tmp_path / "site.yaml"
+    site.write_text(yaml.safe_dump({"site": "elm", "cameras": [{"name": "NE", "kind": "fisheye", "width": 64,
+                                                                    "height": 64}],
+                                    "bus": {"mode": "client", "connect": ["tcp/10.0.0.2:7447"], "host": "10.0.0.9",
+                                            "tls_root_ca": "/etc/ca.pem"}}))
+    parser = argparse.ArgumentParser()
+    add_bus_jobs(parser.add_subparsers(dest="job"))
+
+    def bus(*flags: str):
+        args = parser.parse_args(["status", "--site", str(site), *flags])
+        _site(args)
+        return args.site, _bus(args)
+
+    name, b = bus()
+    assert name == "elm"
+    assert (b.mode, b.connect, b.tls_root_ca) == ("client", ["tcp/10.0.0.2:7447"], Path("/etc/ca.pem"))
+    _, b = bus("--connect", "tls/10.0.0.3:7448")  # another router: the file's CA still checks it
+    assert (b.mode, b.connect, b.tls_root_ca) == ("client", ["tls/10.0.0.3:7448"], Path("/etc/ca.pem"))
+    _, b = bus("--port-base", "20000", "--ca", "/tmp/other.pem")  # the embedded default on the file's host
+    assert (b.mode, b.port_base, b.host, b.connect, b.tls_root_ca) == ("peer", 20000, "10.0.0.9", [],
+                                                                        Path("/tmp/other.pem"))

@@ -37,8 +37,8 @@ TOKEN = "playback"  # the liveliness token's instance: roadside/<site>/alive/fus
 MAX_LINE_BYTES = 64 * 1024 * 1024  # a longer line is not a Tracks message (4096 tracks of ~500 bytes is 2 MB)
 
 
-def records(paths: Iterable[Path], bad: BadInput) -> Iterator[Tracks]:
-    """The Tracks messages of the files, in order; each bad line counted in `bad` with its file and line number.
+def records(paths: Iterable[Path], bad: Callable[[str, str], None]) -> Iterator[tuple[str, Tracks]]:
+    """(file:line, message) of the files' lines, in order; each bad line counted by `bad(reason, file:line)`.
     ValueError for a file that cannot be opened."""
     for path in paths:
         try:
@@ -54,16 +54,18 @@ def records(paths: Iterable[Path], bad: BadInput) -> Iterator[Tracks]:
                     bad(f"a line of {len(line)} characters, more than a Tracks message holds", where)
                     continue
                 try:
-                    yield Tracks.from_record(json.loads(line))
+                    msg = Tracks.from_record(json.loads(line))
                 except json.JSONDecodeError as exc:
                     bad(f"not JSON ({exc.msg})", where)
-                except ValueError as exc:  # pydantic's ValidationError is one
-                    bad(" ".join(str(exc).split())[:300], where)
+                except (ValueError, RecursionError) as exc:  # pydantic's ValidationError is a ValueError
+                    bad(" ".join(str(exc).split())[:300] or type(exc).__name__, where)
+                else:
+                    yield where, msg
 
 
 @dataclass
 class Played:
-    """What a playback did: messages published, passes over the files, bad lines, the site and trackers seen."""
+    """What a playback did: messages published, passes over the files, bad lines (each counted once), the site."""
 
     published: int = 0
     passes: int = 0
@@ -77,44 +79,50 @@ def play(paths: list[Path], publish: Callable[[Tracks], None], speed: float | No
          stopped: Callable[[float], bool], bad: BadInput) -> Played:
     """Publish the files' messages at `speed` x their capture times' pace (None: as fast as `publish` takes them),
     over again with `loop`, until they end or `stopped(wait_s)` (waits up to wait_s, True once asked to stop).
-    ValueError when a pass publishes nothing (no file holds a good line)."""
+    Bad lines are counted in `bad` on the first pass. ValueError when a pass publishes nothing (no file holds a good
+    line)."""
     out = Played()
     shift_ns = shift_seq = 0
     clock: tuple[int, float] | None = None  # (capture time, monotonic time) that the pace counts from
+    prev: int | None = None  # the capture time of the message published last
     while True:
-        first = last = None
+        first = newest = None
         max_seq, gap_ns = -1, 0
-        for msg in records(paths, bad):
+        count = bad if out.passes == 0 else (lambda reason, where: None)
+        for where, msg in records(paths, count):
             if out.site is None:
                 out.site = msg.site
             elif msg.site != out.site:
-                bad(f"site {msg.site!r}, not the recording's {out.site!r}", "a record")
+                count(f"site {msg.site!r}, not the recording's {out.site!r}", where)
                 continue
             msg.t_capture_ns += shift_ns
             msg.seq += shift_seq
-            if last is not None and msg.t_capture_ns > last:
-                gap_ns = msg.t_capture_ns - last
-            if clock is None or msg.t_capture_ns < clock[0] or speed is None:
-                clock = (msg.t_capture_ns, time.monotonic())
+            t = msg.t_capture_ns
+            if prev is not None and t > prev:
+                gap_ns = t - prev
+            if clock is None or speed is None or (prev is not None and t < prev):  # the clock stepped back
+                clock = (t, time.monotonic())
             else:
-                wait_s = clock[1] + (msg.t_capture_ns - clock[0]) / 1e9 / speed - time.monotonic()
+                wait_s = clock[1] + (t - clock[0]) / 1e9 / speed - time.monotonic()
                 if wait_s > 0 and stopped(wait_s):
                     return _done(out, bad)
             if stopped(0):
                 return _done(out, bad)
             publish(msg)
+            prev = t
             out.published += 1
-            out.first_ns = msg.t_capture_ns if out.first_ns is None else out.first_ns
-            out.last_ns = msg.t_capture_ns
-            first = msg.t_capture_ns if first is None else first
-            last = msg.t_capture_ns
+            out.first_ns = t if out.first_ns is None else out.first_ns
+            out.last_ns = t
+            first = t if first is None else first
+            newest = t if newest is None else max(newest, t)
             max_seq = max(max_seq, msg.seq)
         if first is None:
             raise ValueError(f"no tracks message in {', '.join(map(str, paths))} ({bad.total} bad lines)")
         out.passes += 1
         if not loop:
             return _done(out, bad)
-        shift_ns += last - first + (gap_ns or DEFAULT_GAP_NS)  # the recording's span plus one interval
+        # the next pass starts one interval after the newest time sent (the span, with any step back in it)
+        shift_ns += newest - first + (gap_ns or DEFAULT_GAP_NS)
         shift_seq = max_seq + 1
 
 
@@ -150,6 +158,7 @@ class TracksPublisher:
     def __call__(self, msg: Tracks) -> None:
         if self.pub is None:
             self._declare(msg.site)
+        msg.stamps = [("playback", time.time_ns())]  # when it was sent (the recording keeps no stamps)
         payload = encode(msg)
         self.latest[:] = [payload]
         self.pub.put(payload)
