@@ -262,6 +262,10 @@ class FuseTrackSettings(Strict):
     # delivers again (fusion.py, 5; chosen on the validation recordings: docs/pipeline.md, "A camera down"). 0: never
     handover_s: float = Field(1.0, ge=0)
     handover_min_score: float = Field(0.6, ge=0, le=1)
+    # a fused object inside the footprint (length and width times long_footprint) of a longer fused object at least
+    # long_vehicle_m long is dropped: another camera's peak on the same bus or truck (fusion.py, 6; 0 = off)
+    long_vehicle_m: float = Field(7.0, ge=0, le=30)
+    long_footprint: float = Field(1.4, gt=0, le=4)
     gate_m: float = Field(3.0, gt=0)  # largest track-to-measurement distance
     max_age_ticks: int = Field(3, ge=1)
     min_hits: int = Field(3, ge=1)

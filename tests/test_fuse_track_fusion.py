@@ -324,3 +324,24 @@ def test_the_cameras_watch_starts_again_when_the_clocks_go_back():
     late = 2 * s
     assert fusion.fuse(frame("B", late, [[-30.0, 1.0]]), late, delivered=["B"]).extend_mask().tolist() == [False]
     assert fusion.down == {"A"}
+
+
+def test_another_cameras_peak_on_a_long_vehicle_is_dropped_and_a_car_beside_it_is_not():
+    """An 11 m bus heading east, seen by A (its object at the bus's near end, long) and by B, which reads its far end
+    as a car 5 m away (beyond the merge gate); a car beside that end, 3.5 m across the bus's axis, is a car of its
+    own. The car-sized peak inside the bus's footprint (times long_footprint) goes, the car beside it stays; with
+    long_vehicle_m 0 both stay, and a car-sized object never removes anything."""
+    regions = [CameraRegion("A", (-20.0, 0.0)), CameraRegion("B", (20.0, 0.0))]
+    bus = ObjectBatch.from_frame("A", 0, np.array([[-2.0, 0.0]]), np.zeros(1), np.array([[11.0, 2.6, 3.2]]),
+                                 np.array([3]), np.array([0.8]))
+    objects = ObjectBatch.concat([bus, frame("B", 0, [[3.0, 0.2], [3.0, 3.5]], score=0.7)])
+    config = FusionConfig(position_sigma=None, merge_gate_m=3.0)
+    fused = Fusion(regions, config).fuse(objects, 0)
+    assert config.long_vehicle_m == 7.0 and config.long_footprint == 1.4
+    assert sorted(map(tuple, np.round(fused.xy, 1).tolist())) == [(-2.0, 0.0), (3.0, 3.5)]
+    off = Fusion(regions, FusionConfig(position_sigma=None, merge_gate_m=3.0, long_vehicle_m=0.0)).fuse(objects, 0)
+    assert len(off) == 3
+    cars = ObjectBatch.concat([frame("A", 0, [[-2.0, 0.0]], score=0.8), frame("B", 0, [[0.5, 0.0]], score=0.7)])
+    assert len(Fusion(regions, FusionConfig(position_sigma=None, merge_gate_m=2.0)).fuse(cars, 0)) == 2
+    with pytest.raises(ValueError, match="long_footprint must be > 0"):
+        FusionConfig(long_footprint=0.0)

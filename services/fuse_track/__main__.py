@@ -122,7 +122,8 @@ def fusion_config(cfg: FuseTrackSettings) -> FusionConfig:
                         position_sigma=cfg.position_sigma, crowded_sigma_factor=cfg.crowded_sigma_factor,
                         occlusion_fallback=cfg.occlusion_fallback, extend_range_m=cfg.extend_range_m,
                         split_score=cfg.high_score, yaw_size_range_m=cfg.yaw_size_range_m,
-                        handover_s=cfg.handover_s, handover_min_score=cfg.handover_min_score)
+                        handover_s=cfg.handover_s, handover_min_score=cfg.handover_min_score,
+                        long_vehicle_m=cfg.long_vehicle_m, long_footprint=cfg.long_footprint)
 
 
 def tracker_config(cfg: FuseTrackSettings) -> TrackerConfig:

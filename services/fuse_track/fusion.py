@@ -42,6 +42,13 @@ default), optionally cut at `max_range_m`. Then, for the objects of one tick:
    heard from since the start counts as down from handover_s after the first tick; `fuse` learns which cameras
    delivered from its `delivered` argument.
 
+6. a fused object that lies inside the footprint of a longer one at least `long_vehicle_m` long (its length and
+   width times `long_footprint`, along its heading) is dropped: the other cameras' peaks on the same bus or truck.
+   The detector places a long vehicle at one end and another camera places it at the other, or reads its front as a
+   car of its own, farther apart than `merge_gate_m`; localize drops such second peaks within one frame
+   (`localize.footprint_overlap`), this across cameras. Without it the stray peak started a track, or pulled a car's
+   track beside the truck onto it and swapped their ids (docs/pipeline.md, "Long vehicles across cameras").
+
 A fused object is stated at its members' weighted mean capture time `t_ns` (each member shifted
 there with its hint), not at the tick time: the tracker does the last shift with its own velocity,
 so an object without a hint is never claimed to be at a time it was not seen.
@@ -323,7 +330,9 @@ class FusionConfig:
     handover_s: a camera that delivered no frame for this long (event time, s; `Fusion.fuse`'s `delivered`) is down,
     and the ground its region held goes to the nearest camera that is up (module doc, 5; 0 = never);
     handover_min_score: there, only that camera's objects scoring at least this count as in its region (the others
-    as outside it: extend-only within extend_range_m)."""
+    as outside it: extend-only within extend_range_m);
+    long_vehicle_m, long_footprint: a fused object inside the footprint of a longer one at least long_vehicle_m long,
+    its length and width times long_footprint, is dropped (module doc, 6; long_vehicle_m 0 = off)."""
 
     merge_gate_m: float = 3.0
     out_of_region_weight: float = 0.5
@@ -343,8 +352,16 @@ class FusionConfig:
     # down"); 0.6: the top of a plateau over 0.5-0.6 of the validation recordings' MOTA with each camera down in turn
     handover_s: float = 1.0
     handover_min_score: float = 0.6
+    # 7 m and 1.4: the middle of a plateau over 6.5-8 m and 1.3-1.5 of the validation recordings' MOTA and IDF1
+    # (docs/pipeline.md, "Long vehicles across cameras")
+    long_vehicle_m: float = 7.0
+    long_footprint: float = 1.4
 
     def __post_init__(self) -> None:
+        if not (np.isfinite(self.long_vehicle_m) and self.long_vehicle_m >= 0):
+            raise ValueError(f"long_vehicle_m must be >= 0 (0: off), got {self.long_vehicle_m}")
+        if not (np.isfinite(self.long_footprint) and self.long_footprint > 0):
+            raise ValueError(f"long_footprint must be > 0, got {self.long_footprint}")
         if not (np.isfinite(self.merge_gate_m) and self.merge_gate_m > 0):
             raise ValueError(f"merge_gate_m must be > 0, got {self.merge_gate_m}")
         if not 0 < self.out_of_region_weight <= 1:
@@ -510,7 +527,28 @@ class Fusion:
         # two pools (split_score): fused in one pass, never with each other, as if each were fused alone, the
         # high-scoring pool's objects first
         pool = (objects.score < self.config.split_score).astype(np.int64)
-        return self._fuse(objects, t_ref_ns, vel, pool, down)
+        return self._under_long_vehicles(self._fuse(objects, t_ref_ns, vel, pool, down))
+
+    def _under_long_vehicles(self, fused: ObjectBatch) -> ObjectBatch:
+        """The fused objects less those inside the footprint of a longer fused object at least long_vehicle_m long
+        (its length and width times long_footprint, along its heading; module doc, 6), the highest-scoring first."""
+        lmin = self.config.long_vehicle_m
+        if lmin <= 0 or len(fused) < 2:
+            return fused
+        length = fused.size_lwh[:, 0].astype(np.float64)
+        long_ = np.flatnonzero(length >= lmin)
+        if not long_.size:
+            return fused
+        drop = np.zeros(len(fused), bool)
+        half = 0.5 * self.config.long_footprint * fused.size_lwh[:, :2].astype(np.float64)
+        for i in long_[np.argsort(-fused.score[long_], kind="stable")]:
+            if drop[i]:
+                continue
+            c, s = np.cos(fused.yaw[i]), np.sin(fused.yaw[i])
+            d = fused.xy - fused.xy[i]
+            along, across = d[:, 0] * c + d[:, 1] * s, d[:, 1] * c - d[:, 0] * s
+            drop |= (np.abs(along) <= half[i, 0]) & (np.abs(across) <= half[i, 1]) & (length < length[i])
+        return fused.select(np.flatnonzero(~drop)) if drop.any() else fused
 
     def _fuse(self, objects: ObjectBatch, t_ref_ns: int, vel: np.ndarray, pool: np.ndarray,
               down: np.ndarray | None = None) -> ObjectBatch:
