@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from shared.geo import GeoFrame
+from shared.tracks_file import file_lines
 
 INSIDE = -2  # zone codes beside the legs' indices
 NOWHERE = -1
@@ -182,7 +183,7 @@ def read_tracks(paths: Sequence[Path]) -> TrackPositions:
     or lon) is counted and skipped. ValueError for a file that cannot be read."""
     out = TrackPositions()
     for path in paths:
-        for where, line in _lines(Path(path)):
+        for where, line in file_lines(Path(path)):
             out.lines += 1
             try:
                 out.positions += list(_positions(json.loads(line)))
@@ -191,17 +192,6 @@ def read_tracks(paths: Sequence[Path]) -> TrackPositions:
                 if len(out.bad) < 20:
                     out.bad.append(f"{where}: {type(exc).__name__}: {exc}"[:300])
     return out
-
-
-def _lines(path: Path) -> Iterator[tuple[str, str]]:
-    try:
-        handle = open(path, encoding="utf-8", errors="replace")  # closed by the with below: lines are streamed
-    except OSError as exc:
-        raise ValueError(f"tracks file {path}: {exc.strerror or exc}") from None
-    with handle:
-        for n, line in enumerate(handle, 1):
-            if line.strip():
-                yield f"{path}:{n}", line
 
 
 def _positions(obj: dict) -> Iterator[tuple[tuple[str, int], int, float, float]]:

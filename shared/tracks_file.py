@@ -5,8 +5,9 @@ format."""
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -175,3 +176,17 @@ def _int(v: Any, key: str) -> int:
     if isinstance(v, bool) or not isinstance(v, int | float) or not float(v).is_integer():
         raise ValueError(f"{key!r} must be an integer, got {v!r}")
     return int(v)
+
+
+def file_lines(path: Path) -> Iterator[tuple[str, str]]:
+    """("file:line", text) of a tracks file's lines that are not blank, streamed (a cabinet's files run to hundreds of
+    megabytes); bytes that are not UTF-8 are replaced, so they fail as bad JSON. ValueError for a file that cannot be
+    opened."""
+    try:
+        handle = open(path, encoding="utf-8", errors="replace")  # closed by the with below: lines are streamed
+    except OSError as exc:
+        raise ValueError(f"tracks file {path}: {exc.strerror or exc}") from None
+    with handle:
+        for n, line in enumerate(handle, 1):
+            if line.strip():
+                yield f"{path}:{n}", line

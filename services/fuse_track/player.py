@@ -30,6 +30,7 @@ from shared.bus import BadInput, declare_alive
 from shared.codec import encode
 from shared.keys import latest_tracks_key, tracks_key
 from shared.messages import Tracks
+from shared.tracks_file import file_lines
 
 log = logging.getLogger("roadside.play")
 DEFAULT_GAP_NS = 100_000_000  # a loop's step from the last message to the first of the next pass, if one message
@@ -41,26 +42,18 @@ def records(paths: Iterable[Path], bad: Callable[[str, str], None]) -> Iterator[
     """(file:line, message) of the files' lines, in order; each bad line counted by `bad(reason, file:line)`.
     ValueError for a file that cannot be opened."""
     for path in paths:
-        try:
-            handle = open(path, encoding="utf-8", errors="replace")  # closed by the with below: lines are streamed
-        except OSError as exc:
-            raise ValueError(f"tracks file {path}: {exc.strerror or exc}") from None
-        with handle:
-            for n, line in enumerate(handle, 1):
-                if not line.strip():
-                    continue
-                where = f"{path}:{n}"
-                if len(line) > MAX_LINE_BYTES:
-                    bad(f"a line of {len(line)} characters, more than a Tracks message holds", where)
-                    continue
-                try:
-                    msg = Tracks.from_record(json.loads(line))
-                except json.JSONDecodeError as exc:
-                    bad(f"not JSON ({exc.msg})", where)
-                except (ValueError, RecursionError) as exc:  # pydantic's ValidationError is a ValueError
-                    bad(" ".join(str(exc).split())[:300] or type(exc).__name__, where)
-                else:
-                    yield where, msg
+        for where, line in file_lines(path):
+            if len(line) > MAX_LINE_BYTES:
+                bad(f"a line of {len(line)} characters, more than a Tracks message holds", where)
+                continue
+            try:
+                msg = Tracks.from_record(json.loads(line))
+            except json.JSONDecodeError as exc:
+                bad(f"not JSON ({exc.msg})", where)
+            except (ValueError, RecursionError) as exc:  # pydantic's ValidationError is a ValueError
+                bad(" ".join(str(exc).split())[:300] or type(exc).__name__, where)
+            else:
+                yield where, msg
 
 
 @dataclass
