@@ -385,19 +385,54 @@ def _run_up(args) -> int:
 
 
 def _add_counts(sub) -> None:
-    p = sub.add_parser("counts", help="turning-movement counts from tracks files: the vehicles from each leg of the "
-                       "junction to each, per time bin (shared/movements.py; the site file's movements:)")
-    p.add_argument("tracks", nargs="+", type=Path, help="tracks files (fuse_track.record; rotated ones too)")
-    p.add_argument("--site", type=Path, required=True, help="site folder or site.yaml with a movements: section")
+    p = sub.add_parser("counts", help="turning-movement counts from tracks files, or live from the bus: the vehicles "
+                       "from each leg of the junction to each, per time bin (shared/movements.py; the site file's "
+                       "movements:)")
+    p.add_argument("tracks", nargs="*", type=Path, help="tracks files (fuse_track.record; rotated ones too)")
+    p.add_argument("--site", type=Path, required=True,
+                   help="site folder or site.yaml with a movements: section (with --live also the site's name and bus)")
     p.add_argument("--bin-s", type=positive_float, default=900.0,
                    help="bin length in seconds, 1 to 604800 (a week), bins aligned to the clock (default 900: 15 "
                    "minutes)")
-    p.add_argument("--json", action="store_true", help="one JSON document")
+    p.add_argument("--json", action="store_true", help="one JSON document (with --live: one JSON line a bin)")
+    p.add_argument("--live", action="store_true",
+                   help="count the site's live tracks instead of files, printing each bin as it closes, until Ctrl-C, "
+                   "--count or --timeout (the bins still open are printed then)")
+    p.add_argument("--connect", action="append", default=[], type=endpoint,
+                   help="with --live: Zenoh endpoint, the cabinet's router tcp/HOST:7447 (default: the site's bus)")
+    p.add_argument("--linger-s", type=positive_float, default=10.0,
+                   help="with --live: a track unseen this long (capture time) has left (default 10)")
+    p.add_argument("--close-after-s", type=positive_float, default=120.0,
+                   help="with --live: a bin is printed this long after its end (default 120)")
+    p.add_argument("--count", type=positive_int, help="with --live: stop after this many bins")
+    p.add_argument("--timeout", type=positive_float, help="with --live: stop after this many seconds without tracks")
+
+
+def _board(b: dict, legs: list[str]) -> str:
+    """A bin's counts (Counts.to_json with its start and end) as a table."""
+    width = max(6, *(len(leg) for leg in legs)) + 1
+    lines = [f"{b['start']} - {b['end']}: {b['complete_total']} vehicles through the junction, seen entering and "
+             "leaving",
+             "from \\ to".ljust(width) + "".join(leg.rjust(width) for leg in legs) + "entering".rjust(width + 3)]
+    for i, leg in enumerate(legs):
+        lines.append(leg.ljust(width) + "".join(str(c).rjust(width) for c in b["complete"][i])
+                     + str(b["entering"][leg]).rjust(width + 3))
+    lines.append("leaving".ljust(width) + "".join(str(b["leaving"][leg]).rjust(width) for leg in legs))
+    lines.append(f"  seen entering only {sum(b['entered_only'].values())}, leaving only "
+                 f"{sum(b['exited_only'].values())} (counted in entering / leaving)")
+    return "\n".join(lines)
+
+
+def _bin_json(b, legs: list[str]) -> dict:
+    from datetime import UTC, datetime
+
+    def when(t_ns: int) -> str:
+        return datetime.fromtimestamp(t_ns / 1e9, UTC).isoformat(timespec="seconds").replace("+00:00", "Z")
+
+    return {"start": when(b.start_ns), "end": when(b.end_ns), **b.to_json(legs)}
 
 
 def _run_counts(args) -> int:
-    from datetime import UTC, datetime
-
     from shared.movements import binned, movements, read_tracks
     from shared.settings import load_settings
 
@@ -407,35 +442,65 @@ def _run_counts(args) -> int:
         raise ValueError(f"{site}: the site file has no movements: section (the junction's centre, legs and radii; "
                          "deploy/sites/README.md)")
     junction = settings.movements.junction()
+    legs = junction.names
+    if args.live:
+        if args.tracks:
+            raise ValueError("counts --live counts the bus's tracks, not files: give one or the other")
+        return _run_counts_live(args, settings, junction)
+    if not args.tracks:
+        raise ValueError("counts needs tracks files (or --live)")
     read = read_tracks(args.tracks)
     found = movements(read.positions, junction)
-    bins = binned(found, args.bin_s)
-    legs = junction.names
-
-    def when(t_ns: int) -> str:
-        return datetime.fromtimestamp(t_ns / 1e9, UTC).isoformat(timespec="seconds").replace("+00:00", "Z")
-
     doc = {"site": settings.site, "legs": legs, "bin_s": args.bin_s, "lines": read.lines, "bad_lines": read.bad_lines,
-           "bad": read.bad, "movements": len(found),
-           "bins": [{"start": when(b.start_ns), "end": when(b.end_ns), **b.to_json(legs)} for b in bins]}
+           "bad": read.bad, "movements": len(found), "bins": [_bin_json(b, legs) for b in binned(found, args.bin_s)]}
     if args.json:
         print(dumps(doc, indent=1))
         return 0
-    width = max(6, *(len(leg) for leg in legs)) + 1
     for b in doc["bins"]:
-        print(f"{b['start']} - {b['end']}: {b['complete_total']} vehicles through the junction, seen entering and "
-              "leaving")
-        print("from \\ to".ljust(width) + "".join(leg.rjust(width) for leg in legs) + "entering".rjust(width + 3))
-        for i, leg in enumerate(legs):
-            print(leg.ljust(width) + "".join(str(c).rjust(width) for c in b["complete"][i])
-                  + str(b["entering"][leg]).rjust(width + 3))
-        print("leaving".ljust(width) + "".join(str(b["leaving"][leg]).rjust(width) for leg in legs))
-        print(f"  seen entering only {sum(b['entered_only'].values())}, leaving only "
-              f"{sum(b['exited_only'].values())} (counted in entering / leaving)")
+        print(_board(b, legs))
     for line in read.bad:
         print(f"skipped: {line}", file=sys.stderr)
     if not doc["bins"]:
         print("no vehicle went through the junction in these tracks", file=sys.stderr)
+    return 0
+
+
+def _run_counts_live(args, settings, junction) -> int:
+    import signal
+    import threading
+
+    from shared.client import TrackClient
+    from shared.movements import LiveCounts
+
+    live = LiveCounts(junction, args.bin_s, args.linger_s, args.close_after_s)
+    legs, bus = junction.names, settings.bus.model_copy(update={"listen": []})
+    if args.connect:
+        bus = bus.model_copy(update={"mode": "client", "connect": args.connect})
+    stop = threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    shown = 0
+
+    def show(bins) -> bool:  # True once --count bins are out
+        nonlocal shown
+        for b in bins:
+            doc = _bin_json(b, legs)
+            print(dumps({"site": settings.site, **doc}) if args.json else _board(doc, legs), flush=True)
+            shown += 1
+            if args.count and shown >= args.count:
+                return True
+        return False
+
+    with TrackClient(settings.site, bus.connect if bus.mode == "client" else None, bus) as client:
+        print(f"counting the live tracks of site {settings.site} in {args.bin_s:g} s bins", file=sys.stderr,
+              flush=True)
+        try:
+            for tracks in client.stream(timeout_s=args.timeout, stop=stop):
+                if show(live.update(tracks)):
+                    return 0
+        except KeyboardInterrupt:
+            pass
+    show(live.flush())
     return 0
 
 

@@ -361,8 +361,8 @@ class Tracks(Message):
         for i, r in enumerate(rows):
             gone = [k for k in RECORD_KEYS if k not in r]
             if gone:
-                raise ValueError(f"tracks record: track {i} has no {', '.join(gone)} (a file from before schema "
-                                 f"version {SCHEMA_VERSION}?)")
+                raise ValueError(f"tracks record: track {i} has no {', '.join(gone)} (a file of an older schema "
+                                 "version?)")
             if r["type"] not in VEHICLE_TYPES:
                 raise ValueError(f"tracks record: track {i} has type {r['type']!r}, not one of {VEHICLE_TYPES}")
 

@@ -110,6 +110,109 @@ def movement(key: tuple[str, int], t_ns: np.ndarray, zones: np.ndarray, names: S
                     int(t_ns[inside[0]]))
 
 
+@dataclass
+class Passage:
+    """One track's movement so far, position by position (the live counterpart of `movement`: the same rule)."""
+
+    key: tuple[str, int]
+    entry: int | None = None  # the leg it was last on before entering (before it enters: the leg it is on)
+    t_in: int | None = None  # when it first entered the junction (None: not yet)
+    exit: int | None = None  # the first leg it was on after it last left the junction
+    last_ns: int = 0  # when it was last seen
+
+    def add(self, t_ns: int, zone: int) -> None:
+        self.last_ns = t_ns
+        if self.t_in is None:
+            if zone >= 0:
+                self.entry = zone
+            elif zone == INSIDE:
+                self.t_in = t_ns
+        elif zone == INSIDE:
+            self.exit = None  # in again: the exit is the first leg after the last time inside
+        elif zone >= 0 and self.exit is None:
+            self.exit = zone
+
+    def movement(self, names: Sequence[str]) -> Movement | None:
+        if self.t_in is None:
+            return None
+        return Movement(self.key, None if self.entry is None else names[self.entry],
+                        None if self.exit is None else names[self.exit], self.t_in)
+
+
+class LiveCounts:
+    """Turning movements counted from live Tracks messages (`roadside counts --live`): each track's passage is
+    followed position by position; a track unseen for `linger_s` of capture time is done, and its movement is counted
+    in the bin of its entry. A bin is closed, and returned by `update` (empty too: nothing went through), once capture
+    time is `close_after_s` past its end; a passage that entered in it and is still open then is counted as it stands
+    (an exit not yet seen counts as entering only) and its track is not counted again. Capture time going back (a
+    clock step, a recording played again) counts what is open, returns every bin and starts again."""
+
+    MAX_EMPTY_BINS = 96  # a longer silence closes its empty bins without returning them (a day of 15-minute bins)
+
+    def __init__(self, junction: Junction, bin_s: float = 900.0, linger_s: float = 10.0,
+                 close_after_s: float = 120.0) -> None:
+        binned([], bin_s)  # checks bin_s
+        if not (0 < linger_s <= close_after_s and math.isfinite(close_after_s)):
+            raise ValueError(f"need 0 < linger_s <= close_after_s (finite), got {linger_s} and {close_after_s}")
+        self.junction, self.width = junction, round(bin_s * 1e9)
+        self.linger, self.close_after = round(linger_s * 1e9), round(close_after_s * 1e9)
+        self._reset()
+
+    def _reset(self) -> None:
+        self.open: dict[tuple[str, int], Passage] = {}
+        self.done: dict[tuple[str, int], int] = {}  # tracks counted at a bin's close, still seen: when last seen
+        self.bins: dict[int, Counts] = {}
+        self.next_start: int | None = None  # the first bin not yet closed
+        self.now: int | None = None
+
+    def update(self, tracks) -> list[Counts]:
+        """One Tracks message (shared.messages.Tracks) -> the bins it closes, in order."""
+        t = int(tracks.t_capture_ns)
+        out = self.flush() if self.now is not None and t < self.now else []
+        self.now = t
+        if self.next_start is None:
+            self.next_start = t // self.width * self.width
+        if len(tracks):
+            zones = self.junction.zones(tracks.latlon[:, 0], tracks.latlon[:, 1])
+            for i, z in zip(tracks.id.tolist(), zones.tolist(), strict=True):
+                key = (tracks.tracker, i)
+                if key in self.done:
+                    self.done[key] = t
+                else:
+                    self.open.setdefault(key, Passage(key)).add(t, z)
+        for key in [k for k, p in self.open.items() if p.last_ns < t - self.linger]:
+            self._count(self.open.pop(key))
+        self.done = {k: last for k, last in self.done.items() if last >= t - self.linger}
+        empty = 0
+        while self.next_start + self.width + self.close_after <= t:
+            start, end = self.next_start, self.next_start + self.width
+            for key in [k for k, p in self.open.items() if p.t_in is not None and p.t_in < end]:
+                p = self.open.pop(key)
+                self._count(p)
+                self.done[key] = p.last_ns
+            closed = self.bins.pop(start, None)
+            empty = 0 if closed else empty + 1
+            if closed or empty <= self.MAX_EMPTY_BINS:
+                out.append(closed or Counts(start, end))
+            self.next_start = end
+        return out
+
+    def flush(self) -> list[Counts]:
+        """Every open passage counted as it stands and every bin with a movement returned (the stream ended, or
+        its clock went back), in order; then it starts again."""
+        for p in self.open.values():
+            self._count(p)
+        out = [self.bins[b] for b in sorted(self.bins)]
+        self._reset()
+        return out
+
+    def _count(self, p: Passage) -> None:
+        m = p.movement(self.junction.names)
+        if m is not None and (m.entry is not None or m.exit is not None):  # seen only inside: on no leg
+            start = max(m.t_ns // self.width * self.width, self.next_start or 0)  # never into a closed bin
+            self.bins.setdefault(start, Counts(start, start + self.width)).add(m)
+
+
 def movements(tracks: Iterable[tuple[tuple[str, int], int, float, float]], junction: Junction) -> list[Movement]:
     """The movements of tracks given as (key, t_ns, lat, lon) positions, in any order."""
     by_key: dict[tuple[str, int], list[tuple[int, float, float]]] = {}
@@ -162,6 +265,8 @@ def binned(found: Sequence[Movement], bin_s: float) -> list[Counts]:
     width = round(bin_s * 1e9)
     bins: dict[int, Counts] = {}
     for m in found:
+        if m.entry is None and m.exit is None:  # seen only in the junction: counts on no leg
+            continue
         start = m.t_ns // width * width
         bins.setdefault(start, Counts(start, start + width)).add(m)
     return [bins[k] for k in sorted(bins)]

@@ -45,13 +45,14 @@ def path(*points: np.ndarray, step_m: float = 1.0) -> np.ndarray:
     return np.array([*out, points[-1]])
 
 
-def through(entry_deg: float, exit_deg: float, r_in: float = 60.0, r_out: float = 60.0) -> np.ndarray:
+def through(entry_deg: float, exit_deg: float, r_in: float = 60.0, r_out: float = 60.0,
+            step_m: float = 1.0) -> np.ndarray:
     """In along a leg at entry_deg, round the ring counter-clockwise (right-hand traffic: the bearing falls), out
     along exit_deg (the same leg: once round, a U-turn)."""
     ring = 19.0
     sweep = (entry_deg - exit_deg) % 360 or 360
     arc = [at(b, ring) for b in entry_deg - np.linspace(0, sweep, 12)]
-    return path(at(entry_deg, r_in), *arc, at(exit_deg, r_out))
+    return path(at(entry_deg, r_in), *arc, at(exit_deg, r_out), step_m=step_m)
 
 
 def positions(key, en: np.ndarray, t0_ns: int = T0, step_ns: int = S // 10) -> list:
@@ -271,3 +272,109 @@ def test_a_simulated_roundabouts_junction_comes_from_its_site_and_an_intersectio
     assert j.names == ["north", "east", "south", "west"] and j.inner_radius_m == pytest.approx(11 + 3.6 + 8.8 + 1)
     with pytest.raises(ValueError, match="give `movements:` in the site file"):
         load_site("intersection").movements()
+
+
+# --- live ------------------------------------------------------------------------------------------------------------
+
+
+def test_a_passage_followed_position_by_position_is_the_same_movement():
+    from shared.movements import Passage
+
+    rng = np.random.default_rng(3)
+    names = ["a", "b", "c", "d"]
+    for _ in range(500):
+        zones = rng.choice([NOWHERE, INSIDE, 0, 1, 2, 3], size=int(rng.integers(1, 30)))
+        t = np.arange(len(zones)) * S
+        p = Passage(("k", 1))
+        for ti, z in zip(t.tolist(), zones.tolist(), strict=True):
+            p.add(ti, z)
+        assert p.movement(names) == movement(("k", 1), t, zones, names), zones
+
+
+def tracks_message(t_ns: int, rows: list[tuple[int, np.ndarray]], tracker: str = "t1", seq: int = 0):
+    """A Tracks message of cars at ground positions (m, the junction's frame)."""
+    from shared.messages import Tracks
+
+    n, f4 = len(rows), np.float32
+    en = np.array([p for _, p in rows], float).reshape(n, 2)
+    lat, lon = latlon(en) if n else (np.zeros(0), np.zeros(0))
+    return Tracks(site="se", seq=seq, t_capture_ns=t_ns, tracker=tracker, id=np.array([i for i, _ in rows], np.int64),
+                  xy=en, latlon=np.column_stack([lat, lon]).reshape(n, 2), velocity=np.zeros((n, 2), f4),
+                  yaw=np.zeros(n, f4), size_lwh=np.tile(np.array([4.5, 1.8, 1.5], f4), (n, 1)),
+                  vtype=np.zeros(n, np.int8), score=np.full(n, 0.9, f4), age=np.zeros(n, np.int32),
+                  hits=np.zeros(n, np.int32), cameras=[[] for _ in range(n)],
+                  xy_cov=np.tile(np.eye(2, dtype=f4), (n, 1, 1)), velocity_cov=np.tile(np.eye(2, dtype=f4), (n, 1, 1)),
+                  yaw_confirmed=np.zeros(n, bool), yaw_std=np.full(n, 0.2, f4))
+
+
+def test_live_counts_close_each_bin_after_its_end_and_count_a_vehicle_once():
+    """10 s bins, closed 5 s after their end: car 1 goes north -> south within the first bin; car 2 enters from the
+    east at 8 s, slowly, and is still on the ring when the bin closes (counted entering only, and not again when it
+    leaves); nothing else enters in the second bin (returned empty); the clock going back returns what is open."""
+    from shared.movements import LiveCounts
+
+    live = LiveCounts(junction(), bin_s=10, linger_s=2, close_after_s=5)
+    one, two = through(-3.0, 166.0), through(90.0, 272.0, r_in=26.0, step_m=0.5)  # 10 and 5 m/s, a tick 0.1 s
+    steps = int(30 / 0.1)
+    closed = []
+    for k in range(steps):
+        rows = [(1, one[k])] if k < len(one) else []
+        if 80 <= k < 80 + len(two):
+            rows.append((2, two[k - 80]))
+        closed += live.update(tracks_message(T0 + k * S // 10, rows))
+    legs = [n for n, _ in LEGS]
+    assert [(c.start_ns - T0) // S for c in closed] == [0, 10]
+    first, second = (c.to_json(legs) for c in closed)
+    assert first["complete"][0][2] == 1 and first["complete_total"] == 1 and first["entered_only"]["east"] == 1
+    assert second["complete_total"] == 0 and second["entering"] == dict.fromkeys(legs, 0)
+    assert live.update(tracks_message(T0, [])) == [] and live.flush() == []  # back in time: nothing was open
+    with pytest.raises(ValueError, match="linger_s <= close_after_s"):
+        LiveCounts(junction(), linger_s=30, close_after_s=10)
+
+
+@pytest.mark.slow
+def test_roadside_counts_live_counts_a_played_recording_as_the_files_are_counted(tmp_path):
+    """`roadside counts --live` subscribed before `roadside play` publishes a tracks file: the bins it prints when
+    the stream ends are the file's own counts."""
+    import subprocess
+    import sys
+
+    from pipeline_fixtures import REPO, free_port_base, service_env
+
+    port_base = free_port_base()
+    site = write_site(tmp_path / "site", SECTION)
+    doc = yaml.safe_load((site / "site.yaml").read_text())
+    (site / "site.yaml").write_text(yaml.safe_dump({**doc, "bus": {"port_base": port_base}}))
+    from services.fuse_track.recorder import Recorder
+
+    vehicles = [(1, through(-3.0, 166.0), 0), (2, through(90.0, 272.0), 5), (3, through(166.0, 166.0), 60)]
+    f = tmp_path / "tracks.jsonl"
+    rec = Recorder(f)
+    for k in range(max(start + len(en) for _, en, start in vehicles)):
+        rec.write(tracks_message(T0 + k * S // 10, [(i, en[k - start]) for i, en, start in vehicles
+                                                    if start <= k < start + len(en)], seq=k))
+    rec.close()
+    counts = subprocess.Popen([sys.executable, "-m", "roadside", "counts", "--live", "--site", str(site), "--json",
+                               "--bin-s", "60", "--close-after-s", "120", "--timeout", "10"], cwd=REPO,
+                              env=service_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        player = subprocess.run([sys.executable, "-m", "roadside", "play", str(f), "--pace", "10", "--port-base",
+                                 str(port_base)], cwd=REPO, env=service_env(), capture_output=True, text=True,
+                                timeout=120)
+        out, err = counts.communicate(timeout=120)
+    finally:
+        counts.kill()
+    assert player.returncode == 0, player.stdout + player.stderr
+    assert counts.returncode == 0, err
+    live = [json.loads(line) for line in out.splitlines()]
+    from roadside.cli import main
+
+    offline = tmp_path / "offline.json"
+    with open(offline, "w") as handle:
+        import contextlib
+
+        with contextlib.redirect_stdout(handle):
+            assert main(["counts", str(f), "--site", str(site), "--json", "--bin-s", "60"]) == 0
+    files = json.loads(offline.read_text())["bins"]
+    assert [{k: v for k, v in b.items() if k != "site"} for b in live] == files
+    assert files[0]["complete_total"] == 3 and files[0]["complete"][2][2] == 1  # a U-turn at the south leg

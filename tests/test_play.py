@@ -66,7 +66,7 @@ def test_a_recorded_line_gives_back_the_message_that_was_recorded(tmp_path):
 @pytest.mark.parametrize(("change", "named"), [
     (lambda r: r.pop("t_ns"), "tracks record without t_ns"),
     (lambda r: r.update(tracks={"id": 1}), "'tracks' must be a list of objects"),
-    (lambda r: r["tracks"][1].pop("xy_cov"), "track 1 has no xy_cov (a file from before schema version"),
+    (lambda r: r["tracks"][1].pop("xy_cov"), "track 1 has no xy_cov (a file of an older schema version"),
     (lambda r: r["tracks"][0].update(type="tram"), "track 0 has type 'tram'"),
     (lambda r: r["tracks"][0].update(x="east"), "x/y must be numbers"),
     (lambda r: r["tracks"][0].update(xy_cov=[1.0, 2.0]), "xy_cov must be 2x2 matrices"),
