@@ -405,7 +405,9 @@ def _add_counts(sub) -> None:
     p.add_argument("--close-after-s", type=positive_float, default=120.0,
                    help="with --live: a bin is printed this long after its end (default 120)")
     p.add_argument("--count", type=positive_int, help="with --live: stop after this many bins")
-    p.add_argument("--timeout", type=positive_float, help="with --live: stop after this many seconds without tracks")
+    p.add_argument("--timeout", type=positive_float,
+                   help="with --live: stop after this many seconds without a Tracks message (fuse_track sends one a "
+                   "tick, empty ones too)")
 
 
 def _board(b: dict, legs: list[str]) -> str:
@@ -477,8 +479,9 @@ def _run_counts_live(args, settings, junction) -> int:
     if args.connect:
         bus = bus.model_copy(update={"mode": "client", "connect": args.connect})
     stop = threading.Event()
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    if threading.current_thread() is threading.main_thread():  # Ctrl-C and SIGTERM end the stream between messages
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stop.set())
     shown = 0
 
     def show(bins) -> bool:  # True once --count bins are out
@@ -494,12 +497,9 @@ def _run_counts_live(args, settings, junction) -> int:
     with TrackClient(settings.site, bus.connect if bus.mode == "client" else None, bus) as client:
         print(f"counting the live tracks of site {settings.site} in {args.bin_s:g} s bins", file=sys.stderr,
               flush=True)
-        try:
-            for tracks in client.stream(timeout_s=args.timeout, stop=stop):
-                if show(live.update(tracks)):
-                    return 0
-        except KeyboardInterrupt:
-            pass
+        for tracks in client.stream(timeout_s=args.timeout, stop=stop):
+            if show(live.update(tracks)):
+                return 0
     show(live.flush())
     return 0
 

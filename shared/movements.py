@@ -144,10 +144,12 @@ class LiveCounts:
     followed position by position; a track unseen for `linger_s` of capture time is done, and its movement is counted
     in the bin of its entry. A bin is closed, and returned by `update` (empty too: nothing went through), once capture
     time is `close_after_s` past its end; a passage that entered in it and is still open then is counted as it stands
-    (an exit not yet seen counts as entering only) and its track is not counted again. Capture time going back (a
-    clock step, a recording played again) counts what is open, returns every bin and starts again."""
+    (an exit not yet seen counts as entering only) and its track is not counted again. After a silence of more than
+    MAX_EMPTY_BINS bins (or a clock set forward) only the bins with something in them are returned. Capture time going
+    back by more than `close_after_s` (a clock step, a recording played again) counts what is open, returns every bin
+    and starts again; a smaller step back (a restarted tracker's first tick) is taken as it comes."""
 
-    MAX_EMPTY_BINS = 96  # a longer silence closes its empty bins without returning them (a day of 15-minute bins)
+    MAX_EMPTY_BINS = 96  # a day of 15-minute bins
 
     def __init__(self, junction: Junction, bin_s: float = 900.0, linger_s: float = 10.0,
                  close_after_s: float = 120.0) -> None:
@@ -163,13 +165,13 @@ class LiveCounts:
         self.done: dict[tuple[str, int], int] = {}  # tracks counted at a bin's close, still seen: when last seen
         self.bins: dict[int, Counts] = {}
         self.next_start: int | None = None  # the first bin not yet closed
-        self.now: int | None = None
+        self.now: int | None = None  # the newest capture time seen
 
     def update(self, tracks) -> list[Counts]:
         """One Tracks message (shared.messages.Tracks) -> the bins it closes, in order."""
         t = int(tracks.t_capture_ns)
-        out = self.flush() if self.now is not None and t < self.now else []
-        self.now = t
+        out = self.flush() if self.now is not None and t < self.now - self.close_after else []
+        self.now = t if self.now is None else max(self.now, t)
         if self.next_start is None:
             self.next_start = t // self.width * self.width
         if len(tracks):
@@ -177,25 +179,31 @@ class LiveCounts:
             for i, z in zip(tracks.id.tolist(), zones.tolist(), strict=True):
                 key = (tracks.tracker, i)
                 if key in self.done:
-                    self.done[key] = t
+                    self.done[key] = max(self.done[key], t)
                 else:
                     self.open.setdefault(key, Passage(key)).add(t, z)
-        for key in [k for k, p in self.open.items() if p.last_ns < t - self.linger]:
+        now = self.now
+        for key in [k for k, p in self.open.items() if p.last_ns < now - self.linger]:
             self._count(self.open.pop(key))
-        self.done = {k: last for k, last in self.done.items() if last >= t - self.linger}
-        empty = 0
-        while self.next_start + self.width + self.close_after <= t:
-            start, end = self.next_start, self.next_start + self.width
-            for key in [k for k, p in self.open.items() if p.t_in is not None and p.t_in < end]:
-                p = self.open.pop(key)
-                self._count(p)
-                self.done[key] = p.last_ns
-            closed = self.bins.pop(start, None)
-            empty = 0 if closed else empty + 1
-            if closed or empty <= self.MAX_EMPTY_BINS:
-                out.append(closed or Counts(start, end))
-            self.next_start = end
+        self.done = {k: last for k, last in self.done.items() if last >= now - self.linger}
+        last = now - self.close_after - self.width  # the bins starting at or before it close
+        if (last - self.next_start) // self.width > self.MAX_EMPTY_BINS:
+            held = {*self.bins, *(p.t_in // self.width * self.width for p in self.open.values() if p.t_in is not None)}
+            out += [self._close(b) for b in sorted(held) if self.next_start <= b <= last]
+            self.next_start = last // self.width * self.width + self.width
+        while self.next_start <= last:
+            out.append(self._close(self.next_start))
         return out
+
+    def _close(self, start: int) -> Counts:
+        """Bin `start` closed (its open passages counted as they stand) and the next one the first open."""
+        end = start + self.width
+        for key in [k for k, p in self.open.items() if p.t_in is not None and p.t_in < end]:
+            p = self.open.pop(key)
+            self._count(p)
+            self.done[key] = p.last_ns
+        self.next_start = max(self.next_start, end)
+        return self.bins.pop(start, None) or Counts(start, end)
 
     def flush(self) -> list[Counts]:
         """Every open passage counted as it stands and every bin with a movement returned (the stream ended, or

@@ -345,3 +345,18 @@ def test_another_cameras_peak_on_a_long_vehicle_is_dropped_and_a_car_beside_it_i
     assert len(Fusion(regions, FusionConfig(position_sigma=None, merge_gate_m=2.0)).fuse(cars, 0)) == 2
     with pytest.raises(ValueError, match="long_footprint must be > 0"):
         FusionConfig(long_footprint=0.0)
+
+
+def test_the_longest_object_acts_first_and_a_dropped_one_drops_nothing():
+    """A 14 m object, a 9 m one inside its footprint, and a car inside the 9 m one's footprint only: the 14 m one
+    drops the 9 m one, which then drops nothing, so the car stays, whatever their scores."""
+    regions = [CameraRegion("A", (-20.0, 0.0)), CameraRegion("B", (20.0, 0.0))]
+
+    def one(camera, x, length, score):
+        return ObjectBatch.from_frame(camera, 0, np.array([[x, 0.0]]), np.zeros(1), np.array([[length, 2.5, 3.0]]),
+                                      np.array([2]), np.array([score]))
+
+    for s14, s9 in ((0.95, 0.9), (0.5, 0.9)):
+        chain = ObjectBatch.concat([one("A", -8.0, 14.0, s14), one("B", 1.0, 9.0, s9), one("B", 6.0, 4.5, 0.4)])
+        kept = Fusion(regions, FusionConfig(position_sigma=None, merge_gate_m=2.0)).fuse(chain, 0)
+        assert sorted(np.round(kept.xy[:, 0], 1).tolist()) == [-8.0, 6.0], (s14, s9)

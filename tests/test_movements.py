@@ -378,3 +378,24 @@ def test_roadside_counts_live_counts_a_played_recording_as_the_files_are_counted
     files = json.loads(offline.read_text())["bins"]
     assert [{k: v for k, v in b.items() if k != "site"} for b in live] == files
     assert files[0]["complete_total"] == 3 and files[0]["complete"][2][2] == 1  # a U-turn at the south leg
+
+
+def test_live_counts_take_a_small_step_back_as_it_comes_and_a_jump_forward_at_once():
+    from shared.movements import LiveCounts
+
+    legs = [n for n, _ in LEGS]
+    one = through(-3.0, 166.0)
+    live = LiveCounts(junction(), bin_s=10, linger_s=2, close_after_s=5)
+    out = []
+    for k in range(len(one)):
+        t = T0 + k * S // 10 - (1 if k == 50 else 0) * S // 20  # one tick 50 ms behind the one before it
+        out += live.update(tracks_message(t, [(1, one[k])], seq=k))
+    out += live.flush()
+    assert sum(c.to_json(legs)["complete_total"] for c in out) == 1  # one vehicle, once, north -> south
+    assert sum(sum(c.to_json(legs)["entered_only"].values()) for c in out) == 0
+    # a clock set forward by years: no stall, no years of empty bins; then a big step back starts again
+    live = LiveCounts(junction(), bin_s=1, linger_s=1, close_after_s=2)
+    live.update(tracks_message(10**9, [(1, one[0])]))
+    jumped = live.update(tracks_message(T0, []))
+    assert len(jumped) <= LiveCounts.MAX_EMPTY_BINS + 1 and live.next_start > T0 - 10 * S
+    assert live.update(tracks_message(10**9, [])) == [] and live.next_start == 10**9  # back: it started again

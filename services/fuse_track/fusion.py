@@ -43,7 +43,8 @@ default), optionally cut at `max_range_m`. Then, for the objects of one tick:
    delivered from its `delivered` argument.
 
 6. a fused object that lies inside the footprint of a longer one at least `long_vehicle_m` long (its length and
-   width times `long_footprint`, along its heading) is dropped: the other cameras' peaks on the same bus or truck.
+   width times `long_footprint`, along its heading) is dropped: the other cameras' peaks on the same bus or truck
+   (the longest first; a dropped one drops nothing).
    The detector places a long vehicle at one end and another camera places it at the other, or reads its front as a
    car of its own, farther apart than `merge_gate_m`; localize drops such second peaks within one frame
    (`localize.footprint_overlap`), this across cameras. Without it the stray peak started a track, or pulled a car's
@@ -531,7 +532,10 @@ class Fusion:
 
     def _under_long_vehicles(self, fused: ObjectBatch) -> ObjectBatch:
         """The fused objects less those inside the footprint of a longer fused object at least long_vehicle_m long
-        (its length and width times long_footprint, along its heading; module doc, 6), the highest-scoring first."""
+        (its length and width times long_footprint, along its heading; module doc, 6): the longest first, an object
+        already dropped dropping nothing. Whatever its score, and extend-only too: limited to objects it outscores,
+        or to long objects that are not extend-only, the rule gained less (docs/pipeline.md, "Long vehicles across
+        cameras")."""
         lmin = self.config.long_vehicle_m
         if lmin <= 0 or len(fused) < 2:
             return fused
@@ -541,7 +545,7 @@ class Fusion:
             return fused
         drop = np.zeros(len(fused), bool)
         half = 0.5 * self.config.long_footprint * fused.size_lwh[:, :2].astype(np.float64)
-        for i in long_[np.argsort(-fused.score[long_], kind="stable")]:
+        for i in long_[np.lexsort((-fused.score[long_], -length[long_]))]:  # the longest first, then the surest
             if drop[i]:
                 continue
             c, s = np.cos(fused.yaw[i]), np.sin(fused.yaw[i])
