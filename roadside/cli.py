@@ -479,9 +479,10 @@ def _run_counts_live(args, settings, junction) -> int:
     if args.connect:
         bus = bus.model_copy(update={"mode": "client", "connect": args.connect})
     stop = threading.Event()
+    before = {}
     if threading.current_thread() is threading.main_thread():  # Ctrl-C and SIGTERM end the stream between messages
         for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: stop.set())
+            before[sig] = signal.signal(sig, lambda *_: stop.set())
     shown = 0
 
     def show(bins) -> bool:  # True once --count bins are out
@@ -494,14 +495,18 @@ def _run_counts_live(args, settings, junction) -> int:
                 return True
         return False
 
-    with TrackClient(settings.site, bus.connect if bus.mode == "client" else None, bus) as client:
-        print(f"counting the live tracks of site {settings.site} in {args.bin_s:g} s bins", file=sys.stderr,
-              flush=True)
-        for tracks in client.stream(timeout_s=args.timeout, stop=stop):
-            if show(live.update(tracks)):
-                return 0
-    show(live.flush())
-    return 0
+    try:
+        with TrackClient(settings.site, bus.connect if bus.mode == "client" else None, bus) as client:
+            print(f"counting the live tracks of site {settings.site} in {args.bin_s:g} s bins", file=sys.stderr,
+                  flush=True)
+            for tracks in client.stream(timeout_s=args.timeout, stop=stop):
+                if show(live.update(tracks)):
+                    return 0
+        show(live.flush())
+        return 0
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
 
 
 def _add_viz(sub) -> None:
