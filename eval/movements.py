@@ -44,12 +44,10 @@ def _error(true: dict, counted: dict) -> float:
     return diff / total if total else float("nan")
 
 
-def evaluate_movements(recording, tracks: str | Path | Sequence[str | Path], junction: Junction,
-                       cameras: Sequence[str] | None = None) -> dict:
-    """The scores of the module doc for one run: its recording (or GroundTruth), its tracks file(s)."""
+def evaluate_movements(recording, tracks: str | Path, junction: Junction, cameras: Sequence[str] | None = None) -> dict:
+    """The scores of the module doc for one run: its recording (or GroundTruth), its tracks file."""
     gt = recording if isinstance(recording, GroundTruth) else GroundTruth(recording)
-    paths = [Path(tracks)] if isinstance(tracks, str | Path) else [Path(p) for p in tracks]
-    read = read_tracks(paths)
+    read = read_tracks([Path(tracks)])
     if read.bad_lines:
         raise ValueError(f"{read.bad_lines} bad lines in the tracks: {read.bad[0]}")
     counted = movements(read.positions, junction)
@@ -63,7 +61,7 @@ def evaluate_movements(recording, tracks: str | Path | Sequence[str | Path], jun
     t_json, c_json = true_bin.to_json(legs), counted_bin.to_json(legs)
 
     # each track's vehicle: the one it matched most often (eval.tracking's matching, every camera's ground)
-    res = match_tracks(gt, paths[0] if len(paths) == 1 else _joined(paths), cameras=cameras)
+    res = match_tracks(gt, Path(tracks), cameras=cameras)
     votes: dict[tuple[str, int], Counter] = {}
     for fm in res.frames:
         for vid, key in fm.matched.items():
@@ -86,15 +84,6 @@ def evaluate_movements(recording, tracks: str | Path | Sequence[str | Path], jun
         "exited_only_counted": sum(c_json["exited_only"].values()),
         "tracks_lines": read.lines,
     }
-
-
-def _joined(paths: Sequence[Path]) -> list[dict]:
-    import json
-
-    rows = []
-    for p in paths:
-        rows += [json.loads(line) for line in Path(p).read_text().splitlines() if line.strip()]
-    return sorted(rows, key=lambda r: r["t_ns"])
 
 
 def as_table(scores: dict) -> str:

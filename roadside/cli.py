@@ -471,13 +471,12 @@ def _run_counts_live(args, settings, junction) -> int:
     import signal
     import threading
 
+    from roadside.cli_bus import asking_bus
     from shared.client import TrackClient
     from shared.movements import LiveCounts
 
     live = LiveCounts(junction, args.bin_s, args.linger_s, args.close_after_s)
-    legs, bus = junction.names, settings.bus.model_copy(update={"listen": []})
-    if args.connect:
-        bus = bus.model_copy(update={"mode": "client", "connect": args.connect})
+    legs = junction.names
     stop = threading.Event()
     before = {}
     if threading.current_thread() is threading.main_thread():  # Ctrl-C and SIGTERM end the stream between messages
@@ -496,7 +495,7 @@ def _run_counts_live(args, settings, junction) -> int:
         return False
 
     try:
-        with TrackClient(settings.site, bus.connect if bus.mode == "client" else None, bus) as client:
+        with TrackClient(settings.site, args.connect or None, asking_bus(settings.bus)) as client:
             print(f"counting the live tracks of site {settings.site} in {args.bin_s:g} s bins", file=sys.stderr,
                   flush=True)
             for tracks in client.stream(timeout_s=args.timeout, stop=stop):

@@ -65,25 +65,31 @@ def _site(args) -> None:
     given = Path(args.site)
     if given.exists():
         settings = load_settings(site_path(given))
-        args.site, args.site_bus = settings.site, settings.bus.model_copy(update={"listen": []})
+        args.site, args.site_bus = settings.site, settings.bus
     elif len(given.parts) > 1 or given.suffix in (".yaml", ".yml"):
         raise ValueError(f"site not found: {args.site}")
     check_name("site", args.site)
 
 
 def _bus(args):
-    """The bus settings of the endpoint flags over the --site file's bus (or the embedded default's): client mode to
-    --connect, or --port-base's embedded ports in peer mode; --ca, --cert and --key over the file's."""
+    """The bus settings of the endpoint flags over the --site file's bus (or the embedded default's)."""
+    tls = {k: v for k, v in (("tls_root_ca", args.ca), ("tls_certificate", args.cert), ("tls_private_key", args.key))
+           if v is not None}
+    return asking_bus(getattr(args, "site_bus", None), args.connect, args.port_base, tls)
+
+
+def asking_bus(base=None, connect: list[str] | None = None, port_base: int | None = None, tls: dict | None = None):
+    """The bus of a process that only asks (listening nowhere): `base` (a site's bus; default the embedded
+    default's) in client mode to `connect` if given, or in peer mode on `port_base`'s embedded ports; the `tls`
+    files over the base's."""
     from shared.settings import BusSettings
 
-    base = getattr(args, "site_bus", None) or BusSettings()
-    flags = {k: v for k, v in (("tls_root_ca", args.ca), ("tls_certificate", args.cert), ("tls_private_key", args.key))
-             if v is not None}
-    if args.connect:
-        flags.update(mode="client", connect=args.connect)
-    elif args.port_base is not None:
-        flags.update(mode="peer", port_base=args.port_base, connect=[])
-    return BusSettings.model_validate({**base.model_dump(), **flags})
+    flags: dict = {"listen": [], **(tls or {})}
+    if connect:
+        flags.update(mode="client", connect=list(connect))
+    elif port_base is not None:
+        flags.update(mode="peer", port_base=port_base, connect=[])
+    return BusSettings.model_validate({**(base or BusSettings()).model_dump(), **flags})
 
 
 def _add_tracks(sub) -> None:
@@ -123,9 +129,8 @@ def _run_tracks(args) -> int:
     from shared.messages import err95_m
 
     _site(args)
-    bus = _bus(args)
     n = 0
-    with TrackClient(args.site, bus.connect if bus.mode == "client" else None, bus, wait_s=args.wait or None) as client:
+    with TrackClient(args.site, None, _bus(args), wait_s=args.wait or None) as client:
         for tracks in client.stream(timeout_s=args.timeout):
             if args.now:
                 tracks = tracks.predicted(time.time_ns())

@@ -18,7 +18,8 @@ uncertainty to match (docs/wire-format.md, "Where a vehicle is now").
 
 A client that joins late gets the current tracks at once: `stream()` first asks fuse_track's
 queryable (`roadside/<site>/tracks/latest`) for the newest message, then follows the live ones.
-`connect` is the cabinet's Zenoh router (or, on the embedded default, any service's loopback port); over TLS
+`connect` is the cabinet's Zenoh router (or, on the embedded default, any service's loopback port); without it, the
+router of a `bus` in client mode (a site's settings at the cabinet), else fuse_track's port of the bus; over TLS
 (`tls/HOST:7448`) give the cabinet's CA certificate as `bus=BusSettings(tls_root_ca=...)`, and the client refuses a
 router whose certificate does not chain to it; a cabinet that lets only enrolled vehicles in (mutual TLS) also
 wants the vehicle's own certificate and key, `BusSettings(tls_certificate=..., tls_private_key=...)`.
@@ -59,7 +60,9 @@ class TrackClient:
         if wait_s is not None and wait_s > MAX_WAIT_S:
             raise ValueError(f"wait_s must be at most {MAX_WAIT_S:.0f} s (None: no limit), got {wait_s!r}")
         bus = bus or BusSettings()
-        endpoints = [check_endpoint(e) for e in connect] if connect else [bus.service_endpoint("fuse_track")]
+        if not connect:
+            connect = bus.connect if bus.mode == "client" else [bus.service_endpoint("fuse_track")]
+        endpoints = [check_endpoint(e) for e in connect]
         conf = zenoh.Config()
         conf.insert_json5("mode", '"client"')
         conf.insert_json5("connect/endpoints", json.dumps(endpoints))
