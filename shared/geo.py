@@ -111,6 +111,21 @@ def offset_latlon(lat_deg: np.ndarray, lon_deg: np.ndarray, east_m: np.ndarray,
             np.asarray(lon_deg, np.float64) + np.degrees(np.asarray(east_m, np.float64) / (n * np.cos(lat))))
 
 
+def in_footprints(xy: np.ndarray, yaw: np.ndarray, size_lwh: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    """(N, N) bool, inside[a, b]: ground point b (site metres) lies within a's footprint, its length and width times
+    `scale` centred on its point along its yaw (rad); the diagonal is True. What localize's footprint rule and the
+    fusion's long-vehicle rule both ask: is this object another peak on that vehicle's body?"""
+    xy = np.asarray(xy, np.float64).reshape(-1, 2)
+    n = len(xy)
+    yaw = np.asarray(yaw, np.float64).reshape(n)
+    half = 0.5 * scale * np.asarray(size_lwh, np.float64).reshape(n, -1)[:, :2]
+    d = xy[None, :, :] - xy[:, None, :]  # d[a, b]: from a to b
+    c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+    along = np.abs(d[..., 0] * c + d[..., 1] * s)
+    across = np.abs(d[..., 1] * c - d[..., 0] * s)
+    return (along <= half[:, :1]) & (across <= half[:, 1:])
+
+
 def _prime_vertical(lat: np.ndarray) -> np.ndarray:
     """The prime vertical radius of curvature N (m) at geodetic latitude `lat` (rad)."""
     return WGS84_A / np.sqrt(1 - WGS84_E2 * np.sin(lat) ** 2)

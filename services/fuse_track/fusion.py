@@ -64,6 +64,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from shared.geo import in_footprints
 from shared.messages import not_covariances
 from shared.position_error import POSITION_SIGMA, check_position_sigma, position_information
 
@@ -544,14 +545,10 @@ class Fusion:
         if not long_.size:
             return fused
         drop = np.zeros(len(fused), bool)
-        half = 0.5 * self.config.long_footprint * fused.size_lwh[:, :2].astype(np.float64)
+        inside = in_footprints(fused.xy, fused.yaw, fused.size_lwh, self.config.long_footprint)
         for i in long_[np.lexsort((-fused.score[long_], -length[long_]))]:  # the longest first, then the surest
-            if drop[i]:
-                continue
-            c, s = np.cos(fused.yaw[i]), np.sin(fused.yaw[i])
-            d = fused.xy - fused.xy[i]
-            along, across = d[:, 0] * c + d[:, 1] * s, d[:, 1] * c - d[:, 0] * s
-            drop |= (np.abs(along) <= half[i, 0]) & (np.abs(across) <= half[i, 1]) & (length < length[i])
+            if not drop[i]:
+                drop |= inside[i] & (length < length[i])
         return fused.select(np.flatnonzero(~drop)) if drop.any() else fused
 
     def _fuse(self, objects: ObjectBatch, t_ref_ns: int, vel: np.ndarray, pool: np.ndarray,

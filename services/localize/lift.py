@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibration.masks import LookupMasks
-from shared.geo import GeoFrame
+from shared.geo import GeoFrame, in_footprints
 from shared.raster import bilinear, bilinear_cells
 
 # the peaks a kept object takes in (`merge_along`): within this distance of its axis, their own axes within this
@@ -113,13 +113,9 @@ def footprint_groups(xy: np.ndarray, yaw: np.ndarray, size_lwh: np.ndarray, scor
     if n < 2 or scale <= 0:
         return {int(a): np.zeros(0, np.int64) for a in order}
     yaw = np.asarray(yaw, np.float64).reshape(n)
-    half = 0.5 * scale * np.asarray(size_lwh, np.float64).reshape(n, 3)[:, :2]
-    ok = np.isfinite(xy).all(axis=1) & np.isfinite(yaw) & np.isfinite(half).all(axis=1)
-    d = xy[None, :, :] - xy[:, None, :]  # d[a, b]: from a to b
-    c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
-    along = np.abs(d[..., 0] * c + d[..., 1] * s)
-    across = np.abs(d[..., 1] * c - d[..., 0] * s)
-    inside = (along <= half[:, :1]) & (across <= half[:, 1:])  # inside[a, b]: b's point in a's footprint
+    size = np.asarray(size_lwh, np.float64).reshape(n, 3)
+    ok = np.isfinite(xy).all(axis=1) & np.isfinite(yaw) & np.isfinite(size[:, :2]).all(axis=1)
+    inside = in_footprints(xy, yaw, size, scale)  # inside[a, b]: b's point in a's footprint
     inside = (inside | inside.T) & ok[:, None] & ok[None, :]
     np.fill_diagonal(inside, False)
     drop = np.zeros(n, bool)
