@@ -127,3 +127,17 @@ def evaluate_demo_movements(demo_dir: str | Path) -> dict:
         if not need.exists():
             raise ValueError(f"{demo}: not a roadside demo folder ({need.name} missing)")
     return {"demo": str(demo), **evaluate_movements(demo / "recording", demo / "tracks.jsonl", demo_junction(demo))}
+
+
+MEAN_KEYS = ("count_error", "entering_error", "leaving_error", "movement_recall", "movement_precision")
+
+
+def evaluate_demos_movements(demo_dirs: Sequence[str | Path]) -> dict:
+    """Each demo folder's scores (`evaluate_demo_movements`) and their mean over the runs that have each (a run
+    without a true movement has NaN scores: it leaves the others' mean as it is)."""
+    runs = [evaluate_demo_movements(d) for d in demo_dirs]
+    mean = {}
+    for k in MEAN_KEYS:
+        vals = [r[k] for r in runs if r[k] == r[k]]
+        mean[k] = round(sum(vals) / len(vals), 4) if vals else float("nan")
+    return {"runs": runs, "mean": mean}

@@ -249,17 +249,11 @@ def _run_eval(args) -> int:
         print(dumps(result, indent=1))
         return 0
     if args.what == "movements":
-        import numpy as np
+        from eval.movements import as_table, evaluate_demos_movements
 
-        from eval.movements import as_table, evaluate_demo_movements
-
-        runs = [evaluate_demo_movements(d) for d in args.demo or [Path("out/demo")]]
-        keys = ("count_error", "entering_error", "leaving_error", "movement_recall", "movement_precision")
-        # the mean over the runs that have any (a run with no true movement has NaN scores)
-        result = {"runs": runs, "mean": {k: round(float(np.nanmean([r[k] for r in runs])), 4)
-                                         if any(r[k] == r[k] for r in runs) else float("nan") for k in keys}}
+        result = evaluate_demos_movements(args.demo or [Path("out/demo")])
         if not args.json:
-            for r in runs:
+            for r in result["runs"]:
                 print(f"{r['demo']}:\n{as_table(r)}", file=sys.stderr)
         print(dumps(result, indent=1))
         return 0

@@ -399,3 +399,14 @@ def test_live_counts_take_a_small_step_back_as_it_comes_and_a_jump_forward_at_on
     jumped = live.update(tracks_message(T0, []))
     assert len(jumped) <= LiveCounts.MAX_EMPTY_BINS + 1 and live.next_start > T0 - 10 * S
     assert live.update(tracks_message(10**9, [])) == [] and live.next_start == 10**9  # back: it started again
+
+
+def test_the_mean_over_runs_leaves_out_a_run_without_movements(monkeypatch):
+    import eval.movements as em
+
+    scores = {"a": dict.fromkeys(em.MEAN_KEYS, 0.5), "b": dict.fromkeys(em.MEAN_KEYS, math.nan),
+              "c": dict.fromkeys(em.MEAN_KEYS, 0.25)}
+    monkeypatch.setattr(em, "evaluate_demo_movements", lambda d: {"demo": d, **scores[d]})
+    out = em.evaluate_demos_movements(["a", "b", "c"])
+    assert [r["demo"] for r in out["runs"]] == ["a", "b", "c"] and out["mean"]["count_error"] == 0.375
+    assert math.isnan(em.evaluate_demos_movements(["b"])["mean"]["movement_recall"])
