@@ -58,7 +58,7 @@ def evaluate_movements(recording, tracks: str | Path, junction: Junction, camera
         true_bin.add(m)
     for m in counted:
         counted_bin.add(m)
-    t_json, c_json = true_bin.to_json(legs), counted_bin.to_json(legs)
+    t_json, c_json = true_bin.to_json(junction), counted_bin.to_json(junction)
 
     # each track's vehicle: the one it matched most often (eval.tracking's matching, every camera's ground)
     res = match_tracks(gt, Path(tracks), cameras=cameras)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -389,6 +390,12 @@ def _add_counts(sub) -> None:
                    help="bin length in seconds, 1 to 604800 (a week), bins aligned to the clock (default 900: 15 "
                    "minutes)")
     p.add_argument("--json", action="store_true", help="one JSON document (with --live: one JSON line a bin)")
+    p.add_argument("--csv", action="store_true",
+                   help="CSV instead: start,end,observed_s,from,to,turn,vehicles, a row for each pair of legs a bin "
+                   "(turn U/L/T/R), then the vehicles seen entering only (to empty) and leaving only (from empty)")
+    p.add_argument("--out", type=Path,
+                   help="also append the bins to this CSV file (the header when it is new), each bin written and "
+                   "synced to disk as it is counted: a cabinet's record of its counts")
     p.add_argument("--live", action="store_true",
                    help="count the site's live tracks instead of files, printing each bin as it closes, until Ctrl-C, "
                    "--count or --timeout (the bins still open are printed then)")
@@ -407,38 +414,82 @@ def _add_counts(sub) -> None:
 def _board(b: dict, legs: list[str]) -> str:
     """A bin's counts (Counts.to_json with its start and end) as a table."""
     width = max(6, *(len(leg) for leg in legs)) + 1
-    lines = [f"{b['start']} - {b['end']}: {b['complete_total']} vehicles through the junction, seen entering and "
-             "leaving",
-             "from \\ to".ljust(width) + "".join(leg.rjust(width) for leg in legs) + "entering".rjust(width + 3)]
+    span = (b["end_ns"] - b["start_ns"]) / 1e9
+    seen = "" if b["observed_s"] >= span else f" (tracks for {b['observed_s']:g} s of its {span:g})"
+    lines = [f"{b['start']} - {b['end']}{seen}: {b['complete_total']} vehicles through the junction, seen entering "
+             "and leaving",
+             "from \\ to".ljust(width) + "".join(leg.rjust(width) for leg in legs) + "entering".rjust(width + 3)
+             + "  U/L/T/R"]
     for i, leg in enumerate(legs):
         lines.append(leg.ljust(width) + "".join(str(c).rjust(width) for c in b["complete"][i])
-                     + str(b["entering"][leg]).rjust(width + 3))
+                     + str(b["entering"][leg]).rjust(width + 3) + "  " + "/".join(map(str, b["turns"][leg].values())))
     lines.append("leaving".ljust(width) + "".join(str(b["leaving"][leg]).rjust(width) for leg in legs))
     lines.append(f"  seen entering only {sum(b['entered_only'].values())}, leaving only "
                  f"{sum(b['exited_only'].values())} (counted in entering / leaving)")
     return "\n".join(lines)
 
 
-def _bin_json(b, legs: list[str]) -> dict:
-    from datetime import UTC, datetime
+def _bin_json(b, junction) -> dict:
+    from shared.movements import iso_utc
 
-    def when(t_ns: int) -> str:
-        return datetime.fromtimestamp(t_ns / 1e9, UTC).isoformat(timespec="seconds").replace("+00:00", "Z")
+    return {"start": iso_utc(b.start_ns), "end": iso_utc(b.end_ns), **b.to_json(junction)}
 
-    return {"start": when(b.start_ns), "end": when(b.end_ns), **b.to_json(legs)}
+
+class _CountsCsv:
+    """The bins as CSV rows (shared.movements.CSV_HEADER) on stdout (`--csv`) and/or appended to a file (`--out`: the
+    header when the file is new or empty; each bin flushed and synced as it is written)."""
+
+    def __init__(self, stdout: bool, path: Path | None, junction) -> None:
+        import csv
+
+        from shared.movements import CSV_HEADER
+
+        self.junction, self.file, self.out = junction, None, None
+        if stdout:
+            self.out = csv.writer(sys.stdout, lineterminator="\n")
+            self.out.writerow(CSV_HEADER)
+        if path is not None:
+            if path.is_dir():
+                raise ValueError(f"--out {path}: a folder, not a file")
+            try:
+                self.file = open(path, "a", newline="")  # closed by close()
+            except OSError as exc:
+                raise ValueError(f"--out {path}: cannot append ({exc.strerror})") from None
+            self.writer = csv.writer(self.file, lineterminator="\n")
+            if self.file.tell() == 0:
+                self.writer.writerow(CSV_HEADER)
+                self._sync()
+
+    def write(self, b) -> None:
+        rows = b.csv_rows(self.junction)
+        if self.out is not None:
+            self.out.writerows(rows)
+            sys.stdout.flush()
+        if self.file is not None:
+            self.writer.writerows(rows)
+            self._sync()
+
+    def _sync(self) -> None:
+        self.file.flush()
+        os.fsync(self.file.fileno())
+
+    def close(self) -> None:
+        if self.file is not None:
+            self.file.close()
 
 
 def _run_counts(args) -> int:
     from shared.movements import binned, movements, read_tracks
     from shared.settings import load_settings
 
+    if args.csv and args.json:
+        raise ValueError("counts: --csv or --json, not both")
     site = site_path(args.site)
     settings = load_settings(site)
     if settings.movements is None:
         raise ValueError(f"{site}: the site file has no movements: section (the junction's centre, legs and radii; "
                          "deploy/sites/README.md)")
     junction = settings.movements.junction()
-    legs = junction.names
     if args.live:
         if args.tracks:
             raise ValueError("counts --live counts the bus's tracks, not files: give one or the other")
@@ -447,16 +498,25 @@ def _run_counts(args) -> int:
         raise ValueError("counts needs tracks files (or --live)")
     read = read_tracks(args.tracks)
     found = movements(read.positions, junction)
+    bins = binned(found, args.bin_s, read.times_ns)
+    legs = junction.names
     doc = {"site": settings.site, "legs": legs, "bin_s": args.bin_s, "lines": read.lines, "bad_lines": read.bad_lines,
-           "bad": read.bad, "movements": len(found), "bins": [_bin_json(b, legs) for b in binned(found, args.bin_s)]}
+           "bad": read.bad, "movements": len(found), "bins": [_bin_json(b, junction) for b in bins]}
+    table = _CountsCsv(args.csv, args.out, junction)
+    try:
+        for b in bins:
+            table.write(b)
+    finally:
+        table.close()
     if args.json:
         print(dumps(doc, indent=1))
         return 0
-    for b in doc["bins"]:
-        print(_board(b, legs))
+    if not args.csv:
+        for b in doc["bins"]:
+            print(_board(b, legs))
     for line in read.bad:
         print(f"skipped: {line}", file=sys.stderr)
-    if not doc["bins"]:
+    if not found:
         print("no vehicle went through the junction in these tracks", file=sys.stderr)
     return 0
 
@@ -481,13 +541,16 @@ def _run_counts_live(args, settings, junction) -> int:
     def show(bins) -> bool:  # True once --count bins are out
         nonlocal shown
         for b in bins:
-            doc = _bin_json(b, legs)
-            print(dumps({"site": settings.site, **doc}) if args.json else _board(doc, legs), flush=True)
+            table.write(b)
+            if not args.csv:
+                doc = _bin_json(b, junction)
+                print(dumps({"site": settings.site, **doc}) if args.json else _board(doc, legs), flush=True)
             shown += 1
             if args.count and shown >= args.count:
                 return True
         return False
 
+    table = _CountsCsv(args.csv, args.out, junction)
     try:
         with TrackClient(settings.site, args.connect or None, asking_bus(settings.bus)) as client:
             print(f"counting the live tracks of site {settings.site} in {args.bin_s:g} s bins", file=sys.stderr,
@@ -498,6 +561,7 @@ def _run_counts_live(args, settings, junction) -> int:
         show(live.flush())
         return 0
     finally:
+        table.close()
         for sig, handler in before.items():
             signal.signal(sig, handler)
 

@@ -19,6 +19,14 @@ in the ring, or whose position jitters across the inner radius, is counted once.
 latitude and longitude, so a tracks file counts the same whatever site frame its tracker had.
 Counts are binned by the movement's time in `bin_s` bins aligned to the clock (UTC: 900 s, the traffic
 engineer's 15 minutes, starts at :00, :15, :30, :45).
+
+Each complete movement is also a turn (`Junction.turn`), from the legs' bearings: the angle from the direction the
+vehicle came in on (its entry leg's bearing turned round) to the one it left on (its exit leg's), "T" (through)
+within 45 degrees of straight on, "R" clockwise beyond it, "L" anticlockwise, "U" back out on the leg it came in on.
+A bin also says how much of it the tracks covered (`observed_s`): the time between consecutive Tracks messages (empty
+ones too: fuse_track publishes one a tick) no more than COVER_GAP_S apart. A bin of a cabinet that was down for
+part of it, or at the start or end of a recording, covers less than its length: its counts are a part of the
+traffic, not all of it.
 """
 
 from __future__ import annotations
@@ -37,6 +45,10 @@ from shared.tracks_file import file_lines
 INSIDE = -2  # zone codes beside the legs' indices
 NOWHERE = -1
 MIN_BIN_S, MAX_BIN_S = 1.0, 7 * 86400.0  # the counts' bins: from a second (times print in whole seconds) to a week
+COVER_GAP_S = 2.0  # Tracks messages further apart than this leave the time between them uncovered
+TURNS = ("U", "L", "T", "R")
+THROUGH_DEG = 45.0  # a turn within this of straight on is through
+CSV_HEADER = ("start", "end", "observed_s", "from", "to", "turn", "vehicles")
 
 
 @dataclass(frozen=True)
@@ -75,6 +87,14 @@ class Junction:
     @property
     def names(self) -> list[str]:
         return [n for n, _ in self.legs]
+
+    def turn(self, entry: str, exit_: str) -> str:
+        """The turn ("U", "L", "T" or "R") of a vehicle in on leg `entry` and out on leg `exit_` (module doc)."""
+        bearing = dict(self.legs)
+        if entry == exit_:
+            return "U"
+        angle = (bearing[exit_] - bearing[entry]) % 360.0 - 180.0  # from the way it came in (entry's + 180)
+        return "T" if abs(angle) <= THROUGH_DEG else "R" if angle > 0 else "L"
 
     def zones(self, lat_deg: np.ndarray, lon_deg: np.ndarray) -> np.ndarray:
         """(N,) int: the leg index of each position, INSIDE the junction, or NOWHERE."""
@@ -140,14 +160,15 @@ class Passage:
 
 
 class LiveCounts:
-    """Turning movements counted from live Tracks messages (`roadside counts --live`): each track's passage is
-    followed position by position; a track unseen for `linger_s` of capture time is done, and its movement is counted
-    in the bin of its entry. A bin is closed, and returned by `update` (empty too: nothing went through), once capture
-    time is `close_after_s` past its end; a passage that entered in it and is still open then is counted as it stands
-    (an exit not yet seen counts as entering only) and its track is not counted again. After a silence of more than
-    MAX_EMPTY_BINS bins (or a clock set forward) only the bins with something in them are returned. Capture time going
-    back by more than `close_after_s` (a clock step, a recording played again) counts what is open, returns every bin
-    and starts again; a smaller step back (a restarted tracker's first tick) is taken as it comes."""
+    """Turning movements counted from live Tracks messages (`roadside counts --live`), and the time they covered (as
+    `binned` counts it from a file's messages): each track's passage is followed position by position; a track unseen
+    for `linger_s` of capture time is done, and its movement is counted in the bin of its entry. A bin is closed, and
+    returned by `update` (empty too: nothing went through), once capture time is `close_after_s` past its end; a
+    passage that entered in it and is still open then is counted as it stands (an exit not yet seen counts as entering
+    only) and its track is not counted again. After a silence of more than MAX_EMPTY_BINS bins (or a clock set
+    forward) only the bins with something in them are returned. Capture time going back by more than `close_after_s`
+    (a clock step, a recording played again) counts what is open, returns every bin and starts again; a smaller step
+    back (a restarted tracker's first tick) is taken as it comes."""
 
     MAX_EMPTY_BINS = 96  # a day of 15-minute bins
 
@@ -158,6 +179,7 @@ class LiveCounts:
             raise ValueError(f"need 0 < linger_s <= close_after_s (finite), got {linger_s} and {close_after_s}")
         self.junction, self.width = junction, round(bin_s * 1e9)
         self.linger, self.close_after = round(linger_s * 1e9), round(close_after_s * 1e9)
+        self.gap = round(COVER_GAP_S * 1e9)
         self._reset()
 
     def _reset(self) -> None:
@@ -171,6 +193,8 @@ class LiveCounts:
         """One Tracks message (shared.messages.Tracks) -> the bins it closes, in order."""
         t = int(tracks.t_capture_ns)
         out = self.flush() if self.now is not None and t < self.now - self.close_after else []
+        if self.now is not None and 0 < t - self.now <= self.gap:  # covered since the newest message before
+            cover(self.bins, self.width, self.now, t, self.next_start)
         self.now = t if self.now is None else max(self.now, t)
         if self.next_start is None:
             self.next_start = t // self.width * self.width
@@ -237,13 +261,15 @@ def movements(tracks: Iterable[tuple[tuple[str, int], int, float, float]], junct
 
 @dataclass
 class Counts:
-    """Movements counted per bin: `complete[(entry, exit)]`, `entered_only[entry]`, `exited_only[exit]`."""
+    """Movements counted per bin: `complete[(entry, exit)]`, `entered_only[entry]`, `exited_only[exit]`, and how much
+    of the bin the tracks covered (`observed_ns`, module doc)."""
 
     start_ns: int
     end_ns: int
     complete: dict[tuple[str, str], int] = field(default_factory=dict)
     entered_only: dict[str, int] = field(default_factory=dict)
     exited_only: dict[str, int] = field(default_factory=dict)
+    observed_ns: int = 0
 
     def add(self, m: Movement) -> None:
         if m.entry is not None and m.exit is not None:
@@ -253,25 +279,67 @@ class Counts:
         elif m.exit is not None:
             self.exited_only[m.exit] = self.exited_only.get(m.exit, 0) + 1
 
-    def to_json(self, legs: Sequence[str]) -> dict:
-        """The bin as JSON: its times, the entry x exit matrix (rows entries, columns exits, the legs' order) and
-        the approach volumes (entering each leg: complete and entered-only; leaving it: complete and exited-only)."""
+    def to_json(self, junction: Junction) -> dict:
+        """The bin as JSON: its times, how much of it was observed, the entry x exit matrix (rows entries, columns
+        exits, the legs' order), each entry leg's turns, and the approach volumes (entering each leg: complete and
+        entered-only; leaving it: complete and exited-only)."""
+        legs = junction.names
         matrix = [[self.complete.get((a, b), 0) for b in legs] for a in legs]
-        return {"start_ns": self.start_ns, "end_ns": self.end_ns, "legs": list(legs), "complete": matrix,
-                "complete_total": sum(self.complete.values()),
+        turns = {a: dict.fromkeys(TURNS, 0) for a in legs}
+        for (a, b), n in self.complete.items():
+            turns[a][junction.turn(a, b)] += n
+        return {"start_ns": self.start_ns, "end_ns": self.end_ns, "observed_s": round(self.observed_ns / 1e9, 1),
+                "legs": list(legs), "complete": matrix, "complete_total": sum(self.complete.values()), "turns": turns,
                 "entered_only": {leg: self.entered_only.get(leg, 0) for leg in legs},
                 "exited_only": {leg: self.exited_only.get(leg, 0) for leg in legs},
                 "entering": {leg: sum(matrix[i]) + self.entered_only.get(leg, 0) for i, leg in enumerate(legs)},
                 "leaving": {leg: sum(row[j] for row in matrix) + self.exited_only.get(leg, 0)
                             for j, leg in enumerate(legs)}}
 
+    def csv_rows(self, junction: Junction) -> list[tuple]:
+        """The bin as rows of CSV_HEADER (times as ISO 8601 UTC): one a pair of legs (zeros too, so that every bin
+        has the same rows), then one a leg for the vehicles seen entering only (`to` empty) and one for those seen
+        leaving only (`from` empty)."""
+        start, end, seen = iso_utc(self.start_ns), iso_utc(self.end_ns), round(self.observed_ns / 1e9, 1)
+        legs = junction.names
+        rows = [(start, end, seen, a, b, junction.turn(a, b), self.complete.get((a, b), 0)) for a in legs for b in legs]
+        rows += [(start, end, seen, a, "", "", self.entered_only.get(a, 0)) for a in legs]
+        rows += [(start, end, seen, "", b, "", self.exited_only.get(b, 0)) for b in legs]
+        return rows
 
-def binned(found: Sequence[Movement], bin_s: float) -> list[Counts]:
-    """The movements counted in clock-aligned bins of `bin_s` seconds (the bins that hold any, in order)."""
+
+def iso_utc(t_ns: int) -> str:
+    """A time (ns since the epoch) as ISO 8601 UTC to the second: 2023-12-19T16:00:00Z."""
+    from datetime import UTC, datetime
+
+    return datetime.fromtimestamp(t_ns // 10**9, UTC).isoformat().replace("+00:00", "Z")
+
+
+def cover(bins: dict[int, Counts], width: int, a_ns: int, b_ns: int, first_ns: int | None = None) -> None:
+    """Adds the span [a_ns, b_ns) to the `observed_ns` of the `width`-ns bins it overlaps (from the bin starting at
+    `first_ns` on, when given: closed bins are not reopened), creating the bins it needs."""
+    if b_ns <= a_ns:
+        return
+    start = max(a_ns // width * width, first_ns if first_ns is not None else a_ns // width * width)
+    while start < b_ns:
+        overlap = min(b_ns, start + width) - max(a_ns, start)
+        if overlap > 0:
+            bins.setdefault(start, Counts(start, start + width)).observed_ns += overlap
+        start += width
+
+
+def binned(found: Sequence[Movement], bin_s: float, times_ns: Iterable[int] = ()) -> list[Counts]:
+    """The movements counted in clock-aligned bins of `bin_s` seconds, and how much of each bin the Tracks messages
+    at `times_ns` (any order) covered: the bins that hold a movement or were observed, in order."""
     if not MIN_BIN_S <= bin_s <= MAX_BIN_S:
         raise ValueError(f"bin_s must be {MIN_BIN_S:g} to {MAX_BIN_S:g} seconds (a week), got {bin_s}")
     width = round(bin_s * 1e9)
     bins: dict[int, Counts] = {}
+    times = np.unique(np.fromiter(times_ns, np.int64))
+    gap = round(COVER_GAP_S * 1e9)
+    for a, b in zip(times[:-1].tolist(), times[1:].tolist(), strict=True):
+        if b - a <= gap:
+            cover(bins, width, a, b)
     for m in found:
         if m.entry is None and m.exit is None:  # seen only in the junction: counts on no leg
             continue
@@ -285,6 +353,7 @@ class TrackPositions:
     """What `read_tracks` found: every track position (key, t_ns, lat, lon), the lines read and the bad ones."""
 
     positions: list[tuple[tuple[str, int], int, float, float]] = field(default_factory=list)
+    times_ns: list[int] = field(default_factory=list)  # each good line's capture time: what the tracks covered
     lines: int = 0
     bad: list[str] = field(default_factory=list)  # "file:line: reason", the first 20
     bad_lines: int = 0
@@ -299,7 +368,9 @@ def read_tracks(paths: Sequence[Path]) -> TrackPositions:
         for where, line in file_lines(Path(path)):
             out.lines += 1
             try:
-                out.positions += list(_positions(json.loads(line)))
+                obj = json.loads(line)
+                out.positions += list(_positions(obj))
+                out.times_ns.append(obj["t_ns"])
             except (ValueError, TypeError, KeyError, RecursionError) as exc:  # JSONDecodeError is a ValueError
                 out.bad_lines += 1
                 if len(out.bad) < 20:

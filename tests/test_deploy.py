@@ -29,6 +29,7 @@ ROUTER_PORT = 7447
 SERVICE_ENDPOINT = "unixsock-stream//run/zenoh/cabinet.sock"  # the services' way in: a socket on a shared volume
 SITE_FILE = "/site/site.yaml"
 METRICS = "metrics"  # the services' Prometheus metrics (`roadside metrics`)
+COUNTS = "counts"  # the junction's turning-movement counts (`roadside counts --live`), under its profile
 METRICS_PORT = 9464
 
 
@@ -180,8 +181,10 @@ def test_compose_file_matches_the_compose_specification():
 # --- compose.yaml --------------------------------------------------------------------------------
 
 
-def test_compose_has_the_router_the_four_services_and_their_metrics():
-    assert set(_compose()["services"]) == {ROUTER, *SERVICES, METRICS}
+def test_compose_has_the_router_the_four_services_their_metrics_and_the_counts():
+    services = _compose()["services"]
+    assert set(services) == {ROUTER, *SERVICES, METRICS, COUNTS}
+    assert [name for name, svc in services.items() if "profiles" in svc] == [COUNTS]  # opt-in: it needs movements:
 
 
 @pytest.mark.parametrize("name", SERVICES)
@@ -325,7 +328,7 @@ def test_common_parts_come_from_an_extension_anchor():
     doc = _compose()
     anchors = [k for k in doc if k.startswith("x-")]
     assert anchors, "no x- extension field"
-    assert len(re.findall(r"<<: \*roadside-service", text)) == len(SERVICES) + 1  # and the metrics
+    assert len(re.findall(r"<<: \*roadside-service", text)) == len(SERVICES) + 2  # and the metrics and counts
 
 
 def test_the_metrics_serve_the_sites_services_through_the_router_on_a_published_port(monkeypatch):
@@ -355,6 +358,34 @@ def test_the_metrics_serve_the_sites_services_through_the_router_on_a_published_
     assert published == [f"{METRICS_PORT}:{METRICS_PORT}"]
     assert _interpolate(str(svc["ports"][0]), {"METRICS_PORT": "127.0.0.1:9999"}) == f"127.0.0.1:9999:{METRICS_PORT}"
     assert f"http://127.0.0.1:{METRICS_PORT}/metrics" in " ".join(svc["healthcheck"]["test"])
+
+
+def test_the_counts_append_the_example_sites_junction_to_a_volume_through_the_router(monkeypatch, tmp_path):
+    """The counts service counts the live tracks of the mounted site's junction through the router's socket and
+    appends its CSV to a named volume of its own; its healthcheck looks for that file."""
+    import argparse
+
+    from roadside.cli import _add_counts
+    from roadside.cli_bus import asking_bus
+
+    doc = _compose()
+    svc = doc["services"][COUNTS]
+    assert svc["profiles"] == [COUNTS] and svc["command"][:3] == ["roadside", "counts", "--live"]
+    for key in [k for k in os.environ if k.startswith("ROADSIDE_")]:
+        monkeypatch.delenv(key)
+    for key, value in _service_env(svc).items():
+        monkeypatch.setenv(key, value)
+    parser = argparse.ArgumentParser()
+    _add_counts(parser.add_subparsers(dest="job"))
+    args = parser.parse_args([str(EXAMPLE_SITE) if a == SITE_FILE else a for a in svc["command"][1:]])
+    settings = load_settings(args.site)
+    assert settings.movements is not None and len(settings.movements.junction().names) >= 3
+    bus = asking_bus(settings.bus)
+    assert bus.mode == "client" and bus.connect == [SERVICE_ENDPOINT]
+    data = {v.split(":")[1]: v.split(":")[0] for v in svc["volumes"]}
+    assert args.out.parent.as_posix() in data and data[args.out.parent.as_posix()] in doc["volumes"]
+    assert data[args.out.parent.as_posix()] != "tracks"  # its own volume: fuse_track's rotation never touches it
+    assert args.out.as_posix() in " ".join(svc["healthcheck"]["test"])
 
 
 @pytest.mark.parametrize("name", SERVICES)
@@ -393,7 +424,7 @@ def _targets(doc: dict) -> dict[str, str]:
 def test_dockerfile_has_the_stages_compose_targets():
     stages = _dockerfile_stages()
     targets = _targets(_compose())
-    assert set(targets) == {*SERVICES, METRICS}
+    assert set(targets) == {*SERVICES, METRICS, COUNTS}
     missing = {name: t for name, t in targets.items() if t not in stages}
     assert not missing, f"stages not in deploy/Dockerfile: {missing}"
     assert targets["detect"] != targets["ingest"], "detect should use the GPU stage"

@@ -136,20 +136,64 @@ def test_each_track_of_each_tracker_is_its_own_vehicle_and_positions_may_come_in
 
 
 def test_counts_are_binned_on_the_clock_with_approach_and_departure_volumes():
-    legs = [n for n, _ in LEGS]
     t = T0 + 899 * S  # 16:14:59, the first 15-minute bin; then 16:15:00 and 16:31:00
     found = [Movement(("a", 1), "north", "south", t), Movement(("a", 2), "east", None, T0 + 900 * S),
              Movement(("a", 3), None, "west", T0 + 1860 * S), Movement(("a", 4), "north", "south", T0 + 1861 * S)]
     bins = binned(found, 900)
     assert [b.start_ns for b in bins] == [T0, T0 + 900 * S, T0 + 1800 * S]
-    last = bins[2].to_json(legs)
+    last = bins[2].to_json(junction())
     assert last["complete"][0][2] == 1 and last["complete_total"] == 1
     assert last["entering"] == {"north": 1, "east": 0, "south": 0, "west": 0}
     assert last["leaving"] == {"north": 0, "east": 0, "south": 1, "west": 1}
-    assert bins[1].to_json(legs)["entered_only"]["east"] == 1 and bins[1].to_json(legs)["entering"]["east"] == 1
+    second = bins[1].to_json(junction())
+    assert second["entered_only"]["east"] == 1 and second["entering"]["east"] == 1
     for bad in (0, 0.5, 1e300, math.nan):
         with pytest.raises(ValueError, match="bin_s must be 1 to 604800 seconds"):
             binned(found, bad)
+
+
+@pytest.mark.parametrize(("entry", "exit_", "turn"), [
+    ("north", "south", "T"), ("north", "east", "L"), ("north", "west", "R"), ("north", "north", "U"),
+    ("east", "west", "T"), ("east", "south", "L"), ("south", "east", "R"), ("west", "south", "R"),
+    ("west", "north", "L"), ("south", "north", "T")])
+def test_a_movement_is_a_turn_from_the_legs_bearings(entry, exit_, turn):
+    """In from the north (heading south), out to the east is a left turn, whichever side the traffic drives on."""
+    assert junction().turn(entry, exit_) == turn
+
+
+def test_a_skewed_leg_is_through_within_45_degrees_and_a_turn_beyond():
+    j = Junction(*CENTER, legs=(("a", 0.0), ("b", 130.0), ("c", 180.0), ("d", 235.0)), inner_radius_m=20,
+                 outer_radius_m=60, half_width_deg=25)
+    assert [j.turn("a", x) for x in "bcd"] == ["L", "T", "R"]  # 50 deg left of straight on, straight on, 55 right
+    j = Junction(*CENTER, legs=(("a", 0.0), ("b", 140.0), ("c", 260.0)), inner_radius_m=20, outer_radius_m=60)
+    assert [j.turn("a", x) for x in "bc"] == ["T", "R"]  # 40 deg off straight on is still through
+
+
+def test_a_bin_says_how_much_of_it_the_tracks_covered():
+    """Messages every 0.1 s from 16:14:00 to 16:16:00 with a 5 s hole at 16:15:30 (more than COVER_GAP_S: not
+    covered) and a lone message at 16:40: 60 s of the first bin, 55 of the second, none of the third, which is
+    left out unless a movement is in it."""
+    times = [T0 + 840 * S + k * S // 10 for k in range(1201)]
+    times = [t for t in times if not T0 + 930 * S < t < T0 + 935 * S] + [T0 + 2400 * S]
+    bins = binned([], 900, times)
+    assert [b.start_ns for b in bins] == [T0, T0 + 900 * S]
+    assert bins[0].observed_ns == 60 * S and bins[1].observed_ns == pytest.approx(55 * S, abs=S // 5)
+    bins = binned([Movement(("a", 1), "north", "south", T0 + 2400 * S)], 900, times)
+    assert len(bins) == 3 and bins[2].observed_ns == 0 and bins[2].to_json(junction())["observed_s"] == 0.0
+
+
+def test_live_counts_cover_what_the_files_count_covers():
+    """The same messages, with holes, counted live and from a file: the same coverage per bin."""
+    from shared.movements import LiveCounts
+
+    rng = np.random.default_rng(5)
+    steps = np.where(rng.random(3000) < 0.01, rng.uniform(2, 8, 3000), 0.1)  # now and then a hole of 2-8 s
+    times = (T0 + np.cumsum(steps) * S).astype(np.int64).tolist()
+    live = LiveCounts(junction(), bin_s=60, linger_s=2, close_after_s=5)
+    out = [c for t in times for c in live.update(tracks_message(t, []))] + live.flush()
+    files = binned([], 60, times)
+    assert [(c.start_ns, c.observed_ns) for c in out if c.observed_ns] == [(c.start_ns, c.observed_ns) for c in files]
+    assert sum(c.observed_ns for c in files) < (times[-1] - times[0]) - 10 * S  # the holes are not covered
 
 
 def test_read_tracks_counts_and_names_bad_lines(tmp_path):
@@ -232,6 +276,30 @@ def test_roadside_counts_prints_the_movements_per_bin(tmp_path, capsys):
     assert "3 vehicles through the junction" in out and "entering" in out
     assert main(["counts", str(f), "--site", str(write_site(tmp_path / "none", None))]) == 2
     assert "has no movements: section" in capsys.readouterr().err
+
+
+def test_roadside_counts_writes_csv_and_appends_a_cabinets_file(tmp_path, capsys):
+    from roadside.cli import main
+
+    site = write_site(tmp_path / "site", SECTION)
+    f = tracks_file(tmp_path / "tracks.jsonl", [(1, through(-3.0, 166.0), 0), (2, through(90.0, 166.0), 5)])
+    assert main(["counts", str(f), "--site", str(site), "--csv", "--bin-s", "60"]) == 0
+    rows = [line.split(",") for line in capsys.readouterr().out.splitlines()]
+    assert rows[0] == ["start", "end", "observed_s", "from", "to", "turn", "vehicles"]
+    assert len(rows) == 1 + 16 + 4 + 4  # one bin: every pair of legs, then entering only and leaving only
+    counted = {(r[3], r[4], r[5]): int(r[6]) for r in rows[1:]}
+    assert counted[("north", "south", "T")] == 1 and counted[("east", "south", "L")] == 1 and sum(counted.values()) == 2
+    assert rows[1][:3] == ["2023-12-19T16:00:00Z", "2023-12-19T16:01:00Z", f"{float(rows[1][2]):g}"]
+    out = tmp_path / "counts.csv"
+    for _ in range(2):  # appended: one header
+        assert main(["counts", str(f), "--site", str(site), "--out", str(out), "--json"]) == 0
+    lines = out.read_text().splitlines()
+    assert lines[0].startswith("start,end,") and len(lines) == 1 + 2 * 24 and lines.count(lines[0]) == 1
+    assert json.loads(capsys.readouterr().out.split("\n}\n")[0] + "\n}")["bins"][0]["turns"]["north"]["T"] == 1
+    assert main(["counts", str(f), "--site", str(site), "--csv", "--json"]) == 2
+    assert "--csv or --json" in capsys.readouterr().err
+    assert main(["counts", str(f), "--site", str(site), "--out", str(tmp_path)]) == 2
+    assert "a folder, not a file" in capsys.readouterr().err
 
 
 # --- against the truth ----------------------------------------------------------------------------------------------
@@ -324,10 +392,14 @@ def test_live_counts_close_each_bin_after_its_end_and_count_a_vehicle_once():
         closed += live.update(tracks_message(T0 + k * S // 10, rows))
     legs = [n for n, _ in LEGS]
     assert [(c.start_ns - T0) // S for c in closed] == [0, 10]
-    first, second = (c.to_json(legs) for c in closed)
+    first, second = (c.to_json(junction()) for c in closed)
     assert first["complete"][0][2] == 1 and first["complete_total"] == 1 and first["entered_only"]["east"] == 1
     assert second["complete_total"] == 0 and second["entering"] == dict.fromkeys(legs, 0)
-    assert live.update(tracks_message(T0, [])) == [] and live.flush() == []  # back in time: nothing was open
+    assert first["observed_s"] == second["observed_s"] == 10.0  # a message every 0.1 s through both
+    # back in time: the bin still open (20-30 s, observed to 29.9 s, nobody through) comes out, then nothing
+    (rest,) = live.update(tracks_message(T0, []))
+    assert (rest.start_ns - T0) // S == 20 and rest.observed_ns == 99 * S // 10 and not rest.complete
+    assert live.flush() == []
     with pytest.raises(ValueError, match="linger_s <= close_after_s"):
         LiveCounts(junction(), linger_s=30, close_after_s=10)
 
@@ -355,7 +427,8 @@ def test_roadside_counts_live_counts_a_played_recording_as_the_files_are_counted
                                                     if start <= k < start + len(en)], seq=k))
     rec.close()
     counts = subprocess.Popen([sys.executable, "-m", "roadside", "counts", "--live", "--site", str(site), "--json",
-                               "--bin-s", "60", "--close-after-s", "120", "--timeout", "10"], cwd=REPO,
+                               "--bin-s", "60", "--close-after-s", "120", "--timeout", "10", "--out",
+                               str(tmp_path / "live.csv")], cwd=REPO,
                               env=service_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         player = subprocess.run([sys.executable, "-m", "roadside", "play", str(f), "--pace", "10", "--port-base",
@@ -377,13 +450,15 @@ def test_roadside_counts_live_counts_a_played_recording_as_the_files_are_counted
             assert main(["counts", str(f), "--site", str(site), "--json", "--bin-s", "60"]) == 0
     files = json.loads(offline.read_text())["bins"]
     assert [{k: v for k, v in b.items() if k != "site"} for b in live] == files
+    with open(offline, "w") as handle, contextlib.redirect_stdout(handle):
+        assert main(["counts", str(f), "--site", str(site), "--csv", "--bin-s", "60"]) == 0
+    assert (tmp_path / "live.csv").read_text() == offline.read_text()  # the cabinet's file: the same rows
     assert files[0]["complete_total"] == 3 and files[0]["complete"][2][2] == 1  # a U-turn at the south leg
 
 
 def test_live_counts_take_a_small_step_back_as_it_comes_and_a_jump_forward_at_once():
     from shared.movements import LiveCounts
 
-    legs = [n for n, _ in LEGS]
     one = through(-3.0, 166.0)
     live = LiveCounts(junction(), bin_s=10, linger_s=2, close_after_s=5)
     out = []
@@ -391,8 +466,8 @@ def test_live_counts_take_a_small_step_back_as_it_comes_and_a_jump_forward_at_on
         t = T0 + k * S // 10 - (1 if k == 50 else 0) * S // 20  # one tick 50 ms behind the one before it
         out += live.update(tracks_message(t, [(1, one[k])], seq=k))
     out += live.flush()
-    assert sum(c.to_json(legs)["complete_total"] for c in out) == 1  # one vehicle, once, north -> south
-    assert sum(sum(c.to_json(legs)["entered_only"].values()) for c in out) == 0
+    assert sum(c.to_json(junction())["complete_total"] for c in out) == 1  # one vehicle, once, north -> south
+    assert sum(sum(c.to_json(junction())["entered_only"].values()) for c in out) == 0
     # a clock set forward by years: no stall, no years of empty bins; then a big step back starts again
     live = LiveCounts(junction(), bin_s=1, linger_s=1, close_after_s=2)
     live.update(tracks_message(10**9, [(1, one[0])]))
