@@ -639,11 +639,13 @@ def _run_viz(args) -> int:
     for flag in ("connect", "viewer", "count", "timeout"):
         if getattr(args, flag):
             raise ValueError(f"--{flag} goes with --live")
-    origin = None
+    origin = junction = None
     if args.site:
         from shared.settings import load_settings
 
-        origin = load_settings(site_path(args.site)).origin
+        settings = load_settings(site_path(args.site))
+        origin = settings.origin
+        junction = settings.movements.junction() if settings.movements is not None else None
     basemap = args.basemap
     if args.recording:
         from roadside.demo import site_basemap
@@ -652,7 +654,8 @@ def _run_viz(args) -> int:
         basemap = site_basemap(args.recording)
         origin = origin or Recording(args.recording).meta["site"]["origin"]
     frames = _viz_frames(args) if args.frames else None
-    summary = tracks_file_to_rrd(args.tracks, args.out, site_origin=origin, basemap=basemap, frames=frames)
+    summary = tracks_file_to_rrd(args.tracks, args.out, site_origin=origin, basemap=basemap, frames=frames,
+                                 junction=junction)
     print(dumps(summary, indent=1))
     if summary["messages"] == 0:  # the .rrd holds the map alone: say so, as --live does when nothing came
         why = (f"; line {summary['first_bad_line']}: {summary['first_bad_reason']}" if summary["bad_lines"] else "")
@@ -698,7 +701,8 @@ def _run_viz_live(args) -> int:
                     return
 
         try:
-            summary = live(messages(), rec, site_origin=settings.origin, basemap=args.basemap)
+            summary = live(messages(), rec, site_origin=settings.origin, basemap=args.basemap,
+                           junction=settings.movements.junction() if settings.movements is not None else None)
         finally:
             rec.flush()
             rec.disconnect()

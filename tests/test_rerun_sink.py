@@ -366,3 +366,29 @@ def test_an_optional_layer_is_drawn_while_rows_carry_it_and_cleared_once_after()
     path = "world/tracks/t1/heading"
     assert [sink._draws(path, rows) for rows in ([0, 1], [], [], [2], [])] == [True, True, False, True, True]
     assert not sink._draws("world/tracks/t2/heading", [])  # another tracker's layer is its own
+
+
+def test_the_sites_junction_is_drawn_where_the_counts_take_it_to_be(tracks_file: Path, tmp_path: Path) -> None:
+    """With the site's junction and origin the .rrd holds `world/junction`: the inner circle round the junction's
+    centre (in the site frame) and each leg's sector between the radii, labelled; without an origin it is left out."""
+    from services.rerun_sink.sink import junction_strips
+    from shared.movements import Junction
+
+    origin = GeoFrame(42.2294, -83.7390, 265.0)
+    centre = origin.to_geodetic(np.array([[10.0, -5.0, 0.0]]))[0]
+    junction = Junction(float(centre[0]), float(centre[1]), (("north", 0.0), ("east", 90.0), ("south", 180.0)),
+                        inner_radius_m=20.0, outer_radius_m=60.0, half_width_deg=30.0)
+    strips, labels = junction_strips(junction, origin)
+    assert labels == ["junction", "leg north", "leg east", "leg south"]
+    assert np.allclose(np.hypot(strips[0][:, 0] - 10.0, strips[0][:, 1] + 5.0), 20.0, atol=0.01)
+    east = strips[2] - [10.0, -5.0]
+    r, bearing = np.hypot(east[:, 0], east[:, 1]), np.degrees(np.arctan2(east[:, 0], east[:, 1]))
+    assert np.allclose(r[[0, -1]], 20.0, atol=0.01) and np.allclose(r[1:-1], 60.0, atol=0.01)
+    assert bearing.min() == pytest.approx(60.0, abs=0.01) and bearing.max() == pytest.approx(120.0, abs=0.01)
+
+    chunk = pytest.importorskip("rerun.chunk")
+    for given, drawn in ((origin, True), (None, False)):
+        out = tmp_path / f"{drawn}.rrd"
+        tracks_file_to_rrd(tracks_file, out, site_origin=given, junction=junction)
+        paths = {c.entity_path for c in chunk.RrdReader(out).stream()}
+        assert ("/world/junction" in paths) is drawn

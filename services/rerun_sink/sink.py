@@ -19,6 +19,9 @@ View layout (the blueprint `TrackSink.blueprint()` builds):
       its heading +- 1.96 sigma (the 95 % interval, at most +- 90 deg), reaching `HEADING_REACH_M` beyond its
       front; where its heading is not confirmed (`yaw_confirmed` false) the fan is drawn behind it too, as the
       vehicle may face either way
+    - `world/junction`                    LineStrips3D, when the site's junction is given (site.yaml's `movements:`,
+      shared/movements.py) and the origin places it: the junction's inner circle and each leg's sector between the
+      two radii, labelled with the leg's name (static): where `roadside counts` takes a vehicle to be
   Every track has its own colour, from a stable hash of (tracker, id), and the label "<id> <type>" on all
   three (shown on the point, on hover for the lines). Each message replaces its tracker's drawings, so a
   track that ended leaves the view at the next message but stays in the recording (scrub back to see it).
@@ -61,6 +64,7 @@ import rerun.blueprint as rrb
 
 from shared.geo import GeoFrame
 from shared.messages import CHI2_2DOF_95, check_name
+from shared.movements import Junction
 from shared.tracks_file import TrackRow, TracksMessage, _int, parse_tracks_message
 
 from .basemap import Basemap
@@ -72,6 +76,8 @@ WORLD = "world"
 Z_TRAIL_M = 0.05  # heights above the basemap (z = 0) so the drawings are not hidden in it
 Z_FOOTPRINT_M = 0.10
 Z_POSITION_M = 0.15
+Z_JUNCTION_M = 0.02
+JUNCTION_COLOR = (235, 235, 235)
 HEADING_REACH_M = 2.0  # how far beyond a track's front its heading fan reaches
 def track_color(tracker: str, track_id: int) -> tuple[int, int, int]:
     """A stable RGB colour for (tracker, id): the same in every run (crc32, not Python's salted hash)."""
@@ -171,6 +177,7 @@ class TrackSink:
         forget_after_s: float = 2.0,
         speed_flush_s: float = 1.0,
         jpeg_quality: int | None = 80,
+        junction: Junction | None = None,
     ) -> None:
         if not isinstance(recording, rr.RecordingStream):
             raise ValueError(f"recording must be an rr.RecordingStream, got {type(recording).__name__}")
@@ -198,6 +205,7 @@ class TrackSink:
         self.forget_after_ns = int(forget_after_s * 1e9)
         self.speed_flush_ns = int(speed_flush_s * 1e9)
         self.jpeg_quality = jpeg_quality
+        self.junction = junction
         self._tracks: dict[tuple[str, int], _TrackState] = {}
         self._drew: set[str] = set()  # the optional layers (entity paths) the last message of their tracker drew
         self._last_speed_flush_ns: int | None = None
@@ -427,6 +435,30 @@ class TrackSink:
         rec.send_property("site", rr.AnyValues(**props))
         if self.basemap is not None:
             rec.log(f"{WORLD}/basemap", basemap_mesh(self.basemap), static=True)
+        if self.junction is not None and self.origin is not None:
+            strips, labels = junction_strips(self.junction, self.origin)
+            rec.log(f"{WORLD}/junction", rr.LineStrips3D([_at_z(s, Z_JUNCTION_M) for s in strips], labels=labels,
+                                                         colors=[JUNCTION_COLOR], radii=[0.08]), static=True)
+
+
+def junction_strips(junction: Junction, origin: GeoFrame, points: int = 72) -> tuple[list[np.ndarray], list[str]]:
+    """The junction in the site frame: its inner circle, then each leg's sector (from the inner radius out along
+    one edge, round the outer radius, back along the other), as (N, 2) strips, and their labels."""
+    centre = origin.to_enu(np.array([junction.lat_deg]), np.array([junction.lon_deg]))[0, :2]
+
+    def at(bearing_deg: np.ndarray, r: float) -> np.ndarray:
+        b = np.radians(bearing_deg)
+        return centre + r * np.column_stack([np.sin(b), np.cos(b)])
+
+    strips = [at(np.linspace(0.0, 360.0, points + 1), junction.inner_radius_m)]
+    labels = ["junction"]
+    hw = junction.half_width_deg
+    for name, bearing in junction.legs:
+        edge = np.linspace(bearing - hw, bearing + hw, max(int(points * 2 * hw / 360), 2) + 1)
+        strips.append(np.vstack([at(edge[:1], junction.inner_radius_m), at(edge, junction.outer_radius_m),
+                                 at(edge[-1:], junction.inner_radius_m)]))
+        labels.append(f"leg {name}")
+    return strips, labels
 
 
 def basemap_mesh(basemap: Basemap) -> rr.Mesh3D:
@@ -487,12 +519,14 @@ def tracks_file_to_rrd(
     frames: Iterable[Sequence] | None = None,
     application_id: str = "roadside",
     max_trail_points: int = 50,
+    junction: Junction | None = None,
 ) -> dict:
     """Convert a tracks file (JSON lines, see the module docstring) to a Rerun .rrd file.
 
     site_origin: the site's GeoFrame (or its dict), for a lat/lon basemap and rows without x, y.
     basemap: a Basemap, or the path of a basemap world file (see basemap.py).
     frames: optional (camera, t_ns, image, detections) tuples, logged with `TrackSink.log_frame`.
+    junction: the site's junction (shared/movements.py), drawn when the origin places it.
     Bad lines are skipped. Returns {"tracks_file", "rrd", "lines" (non-blank lines read), "messages",
     "bad_lines", "first_bad_line" (1-based line number or None), "first_bad_reason", "rows", "tracks",
     "frames", "t_first_ns", "t_last_ns", "span_s"}. Raises FileNotFoundError naming a missing tracks file."""
@@ -521,12 +555,13 @@ def tracks_file_to_rrd(
                 try:
                     msg = parse_tracks_message(json.loads(line), origin)
                     if sink is None:
-                        sink = TrackSink(rec, msg.site, origin, bm, max_trail_points=max_trail_points)
+                        sink = TrackSink(rec, msg.site, origin, bm, max_trail_points=max_trail_points,
+                                         junction=junction)
                     sink.log_tracks(msg)
                 except ValueError as e:  # json.JSONDecodeError is a ValueError too
                     bad.add(lineno, f"{type(e).__name__}: {e}" if isinstance(e, json.JSONDecodeError) else str(e))
         if sink is None:
-            sink = TrackSink(rec, "unknown", origin, bm, max_trail_points=max_trail_points)
+            sink = TrackSink(rec, "unknown", origin, bm, max_trail_points=max_trail_points, junction=junction)
         sink.flush()
         for frame in frames or ():
             sink.log_frame(*frame)
@@ -549,6 +584,7 @@ def live(
     site_origin: GeoFrame | Mapping | None = None,
     basemap: Basemap | str | Path | None = None,
     max_trail_points: int = 50,
+    junction: Junction | None = None,
 ) -> dict:
     """Log Tracks messages as they come: `messages` yields Tracks-like dicts (a tracks-file line, parsed)
     or `shared.messages.Tracks`, e.g. from the caller's Zenoh subscriber; `recording` is the caller's
@@ -564,7 +600,8 @@ def live(
         try:
             msg = parse_tracks_message(obj, origin)
             if sink is None:
-                sink = TrackSink(recording, msg.site, origin, bm, max_trail_points=max_trail_points)
+                sink = TrackSink(recording, msg.site, origin, bm, max_trail_points=max_trail_points,
+                                 junction=junction)
                 sink.log_tracks(msg)
                 recording.send_blueprint(sink.blueprint())
             else:
