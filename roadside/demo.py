@@ -437,7 +437,8 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
     mv = evaluate_movements(gt, tracks_path, settings.movements.junction(), cams)
     log("writing the Rerun recording")
     origin = settings.origin
-    viz = tracks_file_to_rrd(tracks_path, cfg.out / "demo.rrd", site_origin=origin, basemap=site_basemap(rec_dir))
+    viz = tracks_file_to_rrd(tracks_path, cfg.out / "demo.rrd", site_origin=origin, basemap=site_basemap(rec_dir),
+                             junction=settings.movements.junction())
     recording = Recording(rec_dir)
     summary = {
         "recording": str(rec_dir), "seconds": cfg.seconds, "hz": cfg.hz, "cameras": cams,
