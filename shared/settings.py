@@ -162,7 +162,7 @@ class IngestSettings(Strict):
     # each camera's JPEGs are decoded at the largest reduction (1/1, 1/2, 1/4: DCT-domain, cheap) that keeps the
     # longer side at least this long: the detector's input size (`input_long_side` in models/README.md)
     decode_long_side: int = Field(640, ge=32)
-    fps: float | None = Field(None, gt=0)  # capture times from a frame rate where the source has none
+    fps: float | None = Field(None, ge=0.001, le=10000)  # capture times from a frame rate where the source has none
     max_frames: int | None = Field(None, gt=0)  # stop after this many frames per camera
     # pace "max": frames published but not yet detected (default: detect.workers, so that no worker idles)
     max_in_flight: int | None = Field(None, ge=1)
@@ -352,7 +352,12 @@ class Settings(BaseSettings):
     localize: LocalizeSettings = LocalizeSettings()
     fuse_track: FuseTrackSettings = FuseTrackSettings()
     movements: MovementSettings | None = None  # the junction's legs, for turning-movement counts
-    log_level: str = "INFO"
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"] = "INFO"
+
+    @field_validator("log_level", mode="before")
+    @classmethod
+    def _log_level(cls, v: object) -> object:
+        return v.upper() if isinstance(v, str) else v  # debug is DEBUG; anything else is named by the Literal
 
     @field_validator("origin")
     @classmethod

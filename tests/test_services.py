@@ -558,6 +558,52 @@ def test_ingest_decodes_each_camera_as_small_as_the_detector_allows():
     assert decode_scale_for(1280, 960, 1280) == 1  # a full-resolution model
     assert decode_scale_for(2560, 1920, 640) == 4
     assert decode_scale_for(1280, 960, 2000) == 1  # never larger than the camera's image
+    # only a reduction that divides both sides: a JPEG decoded at 1/s rounds an odd side up, and one scale must map
+    # the frame back to the camera's size (detect's detections, localize's masks)
+    assert decode_scale_for(1281, 960, 640) == 1 and decode_scale_for(1280, 962, 320) == 2
+
+
+def test_detect_refuses_a_frame_that_is_not_its_cameras_size_before_decoding_it():
+    """A header claiming 16384 x 16384 in a few hundred bytes would cost a quarter gigabyte to decode: the frame's
+    size (at its scale) is checked against the camera's first."""
+    from services.detect.__main__ import frame_image
+    from shared.messages import Frame
+
+    def frame(width, height, scale, data):
+        return Frame(site="s", camera="NE", seq=3, t_capture_ns=1, encoding="jpeg", width=width, height=height,
+                     scale=scale, camera_kind="fisheye", data=data)
+
+    with pytest.raises(ValueError, match=r"camera NE seq 3: a 16384x16384 frame at scale 1 is 16384x16384, the "
+                                         r"camera is 1280x960"):
+        frame_image(frame(16384, 16384, 1.0, jpeg_claiming(16384, 16384)), (1280, 960))
+    assert frame_image(frame(640, 480, 0.5, jpeg_claiming(640, 480)), (1280, 960)).shape == (480, 640)
+    assert frame_image(frame(641, 480, 641 / 1281, jpeg_claiming(641, 480)), (1281, 960)).shape == (480, 641)
+
+
+def test_detect_names_an_unknown_execution_provider_and_drops_one_this_runtime_lacks(caplog):
+    import onnxruntime as ort
+
+    from services.detect.__main__ import usable_providers
+
+    with pytest.raises(ValueError, match="CPUExecutionProvidr is not an ONNX Runtime execution provider"):
+        usable_providers(["CPUExecutionProvidr"])
+    assert usable_providers(["CPUExecutionProvider"]) == ["CPUExecutionProvider"]
+    if "CUDAExecutionProvider" not in ort.get_available_providers():
+        assert usable_providers(["CUDAExecutionProvider", "CPUExecutionProvider"]) == ["CPUExecutionProvider"]
+        assert "CUDAExecutionProvider not in this ONNX Runtime" in caplog.text
+        with pytest.raises(ValueError, match="none of CUDAExecutionProvider is in this ONNX Runtime"):
+            usable_providers(["CUDAExecutionProvider"])
+
+
+def test_settings_name_a_bad_log_level_and_an_absurd_frame_rate(tmp_path):
+    from shared.settings import load_settings
+
+    site = Path(__file__).resolve().parents[1] / "deploy" / "sites" / "example" / "site.yaml"
+    assert load_settings(site, log_level="warning").log_level == "WARNING"
+    with pytest.raises(ValueError, match="log_level: Input should be 'DEBUG'"):
+        load_settings(site, log_level="verbose")
+    with pytest.raises(ValueError, match=r"ingest\.fps"):
+        load_settings(site, ingest={"fps": 1e-300})
 
 
 def jpeg_claiming(width: int, height: int) -> bytes:
@@ -692,7 +738,8 @@ def test_detect_drops_bad_frames_and_keeps_running(site, site_name, small_record
         # a PNG said to be a JPEG: refused before decoding (its header's size is not checked: a decompression bomb)
         (key, tampered(jpeg, data=cv2.imencode(".png", np.zeros((8, 8), np.uint8))[1].tobytes()),
          "encoding 'jpeg' but the data is not a JPEG"),
-        (key, tampered(frame, width=4000, height=1, data=bytes(4000)), "cannot detect on a 4000x1 image"),
+        (key, tampered(frame, width=4000, height=1, data=bytes(4000)),
+         "a 4000x1 frame at scale 0.5 is 8000x2, the camera is 1280x960"),  # not the camera's: refused undecoded
         (key, tampered(frame, camera="SW"), "frame for camera SW on the key of camera NE"),
         (key, encode(good_objects(site_name, 0)), "expected a frame message, got 'objects'"),
     ]

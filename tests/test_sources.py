@@ -95,3 +95,74 @@ def test_a_video_file_given_by_url_ends_and_png_folders_still_play(tmp_path):
     frame = next(iter(ImageFolderSource({"NE": folder})))
     cam = CameraSettings(name="NE", kind="pinhole", width=64, height=48, masks="m.npz")
     assert to_frame_fields(frame, cam, "gray8", 1)["width"] == 64
+
+
+def _clip(path, frames: int = 5):
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48))
+    for k in range(frames):
+        writer.write(np.full((48, 64, 3), 40 * k, np.uint8))
+    writer.release()
+    return path
+
+
+def test_a_video_file_plays_again_from_the_start_for_each_loop(tmp_path):
+    source = VideoSource(str(_clip(tmp_path / "clip.avi")), "NE")
+    first, second = list(source), list(source)
+    assert len(first) == len(second) == 5 and [f.t_capture_ns for f in first] == [f.t_capture_ns for f in second]
+    assert not any(f.error for f in second)
+
+
+def test_a_live_stream_beside_recorded_frames_is_refused_naming_the_camera(camera_url, tmp_path):
+    """Live frames carry the wall clock, recorded ones their own times: merged, one would wait for the other for
+    years. Each camera needs a source, too."""
+    from services.ingest.sources import open_source
+
+    folder = tmp_path / "NE"
+    folder.mkdir()
+    cv2.imwrite(str(folder / "1700000000000000000.png"), np.full((48, 64), 90, np.uint8))
+    with pytest.raises(ValueError, match=r"camera SW stream live .* do not share a clock"):
+        open_source(str(folder), ["NE", "SW"], {"SW": camera_url})
+    with pytest.raises(ValueError, match="no source for camera SW: give each camera its own source"):
+        open_source("", ["NE", "SW"], {"NE": str(folder)})
+    assert {f.camera for f in open_source("", ["NE"], {"NE": str(folder)})} == {"NE"}
+
+
+def test_camera_folders_are_matched_exactly_before_by_suffix(tmp_path):
+    """NE's folder beside T_NE's is NE's; a suffix (gs_State_Ellsworth_NE) serves when nothing matches exactly."""
+    from services.ingest.sources import open_source
+
+    for name in ("NE", "T_NE", "gs_site_SW"):
+        (tmp_path / name).mkdir()
+        cv2.imwrite(str(tmp_path / name / "1700000000000000000.png"), np.full((48, 64), 90, np.uint8))
+    source = open_source(str(tmp_path), ["NE", "T_NE", "SW"], {})
+    assert {f.camera: f.origin.split("/")[-2] for f in source} == {"NE": "NE", "T_NE": "T_NE", "SW": "gs_site_SW"}
+
+
+def test_capture_times_in_names_and_numbered_frames_in_their_order(tmp_path):
+    from services.ingest.sources import ImageFolderSource, capture_time_from_name
+
+    assert capture_time_from_name("1718218800123456789.jpg") == 1718218800123456789  # ns
+    assert capture_time_from_name("1718218800123456.jpg") == 1718218800123456000  # us
+    assert capture_time_from_name("1718218800123.jpg") == 1718218800123000000  # ms
+    assert capture_time_from_name("0000000000000001.jpg") is None  # a zero-padded frame counter: no time
+    assert capture_time_from_name("171821880012345.jpg") is None  # 15 digits: no unit
+    for n in (1, 2, 10, 11):
+        cv2.imwrite(str(tmp_path / f"frame{n}.png"), np.full((48, 64), 90, np.uint8))
+    frames = list(ImageFolderSource({"c": tmp_path}, fps=10, start_ns=0))
+    assert [f.origin.split("/")[-1] for f in frames] == ["frame1.png", "frame2.png", "frame10.png", "frame11.png"]
+    assert [f.t_capture_ns for f in frames] == [0, 100_000_000, 200_000_000, 300_000_000]
+
+
+def test_a_recording_without_frames_for_a_camera_is_named(tmp_path, small_recording):
+    import shutil
+
+    from services.ingest.sources import RecordingSource
+    from sim.recording import Recording
+
+    copy = tmp_path / "rec"
+    shutil.copytree(small_recording, copy)
+    camera = Recording(copy).camera_names[0]
+    for f in (copy / "frames" / camera).iterdir():
+        f.unlink()
+    with pytest.raises(ValueError, match=f"has no frames for camera {camera}"):
+        RecordingSource(copy)

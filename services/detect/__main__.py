@@ -42,8 +42,16 @@ log = logging.getLogger("roadside.detect")
 IDLE_WAIT_S = 0.1
 
 
-def frame_image(frame: Frame) -> np.ndarray:
-    """(H, W) uint8 grey image of a Frame; ValueError for a corrupt one."""
+def frame_image(frame: Frame, camera_size: tuple[int, int] | None = None) -> np.ndarray:
+    """(H, W) uint8 grey image of a Frame; ValueError for a corrupt one, or for one that is not its camera's
+    `camera_size` (width, height) at its `scale` (within a pixel of the reduced image: a JPEG decoded at 1/s rounds
+    a side up), checked before anything is decoded."""
+    if camera_size is not None:
+        full_w, full_h = frame.width / frame.scale, frame.height / frame.scale
+        if max(abs(full_w - camera_size[0]), abs(full_h - camera_size[1])) > 1.0 / frame.scale:
+            raise ValueError(f"camera {frame.camera} seq {frame.seq}: a {frame.width}x{frame.height} frame at scale "
+                             f"{frame.scale:g} is {full_w:.0f}x{full_h:.0f}, the camera is "
+                             f"{camera_size[0]}x{camera_size[1]}")
     if frame.encoding == "gray8":
         return np.frombuffer(frame.data, np.uint8).reshape(frame.height, frame.width)
     if frame.encoding == "bgr8":
@@ -61,10 +69,30 @@ def frame_image(frame: Frame) -> np.ndarray:
     return img
 
 
+def usable_providers(wanted: list[str]) -> list[str]:
+    """Of the execution providers a site asks for, those this ONNX Runtime has, in order (a warning names the rest);
+    ValueError for a name ONNX Runtime does not know (a typo) or when none is left."""
+    import onnxruntime as ort
+
+    unknown = [p for p in wanted if p not in ort.get_all_providers()]
+    if unknown:
+        raise ValueError(f"detect.providers: {', '.join(unknown)} is not an ONNX Runtime execution provider "
+                         f"(e.g. {', '.join(available_providers())})")
+    have = set(ort.get_available_providers())
+    usable = [p for p in wanted if p in have]
+    if len(usable) < len(wanted):
+        log.warning("detect.providers: %s not in this ONNX Runtime (it has %s)",
+                    ", ".join(p for p in wanted if p not in have), ", ".join(sorted(have)))
+    if not usable:
+        raise ValueError(f"detect.providers: none of {', '.join(wanted)} is in this ONNX Runtime (it has "
+                         f"{', '.join(sorted(have))})")
+    return usable
+
+
 def load_detector(settings: Settings) -> OnnxDetector:
     cfg = settings.detect
-    providers = cfg.providers or available_providers()
-    gpu = any(p != "CPUExecutionProvider" for p in providers)
+    providers = usable_providers(cfg.providers) if cfg.providers else available_providers()
+    gpu = any(p != "CPUExecutionProvider" for p in providers)  # the fp16 model only where a GPU provider is
     path = settings.path(cfg.model_gpu) if gpu and cfg.model_gpu is not None else settings.path(cfg.model)
     if not path.is_file() and gpu:
         path = settings.path(cfg.model)
@@ -111,6 +139,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
         done = 0
 
         areas = {c.name: c.detect_area_px for c in settings.cameras}
+        sizes = {c.name: (c.width, c.height) for c in settings.cameras}
 
         def infer(img: np.ndarray, scale: float, area: tuple[int, int, int, int] | None):
             t0 = time.perf_counter()
@@ -135,7 +164,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
             while waiting and len(running) < workers:
                 t_in, frame = waiting.pop(0)
                 try:
-                    img = frame_image(frame)
+                    img = frame_image(frame, sizes[frame.camera])
                 except ValueError as exc:
                     bad(str(exc), frame.camera)
                     continue

@@ -34,8 +34,10 @@ REDUCED = {1: cv2.IMREAD_GRAYSCALE, 2: cv2.IMREAD_REDUCED_GRAYSCALE_2, 4: cv2.IM
 
 
 def decode_scale_for(width: int, height: int, long_side: int) -> int:
-    """The largest JPEG reduction (4, 2 or 1) that keeps an image's longer side at least `long_side`."""
-    return next((s for s in (4, 2) if max(width, height) // s >= long_side), 1)
+    """The largest JPEG reduction (4, 2 or 1) that keeps an image's longer side at least `long_side` and divides
+    both sides (a JPEG decoded at 1/s rounds an odd side up, and one scale must map the image back to the
+    camera's size)."""
+    return next((s for s in (4, 2) if max(width, height) // s >= long_side and width % s == 0 and height % s == 0), 1)
 
 
 def to_frame_fields(sf: SourceFrame, cam: CameraSettings, encoding: str, decode_scale: int) -> dict:

@@ -3,9 +3,10 @@
 Every source yields `SourceFrame`s in capture-time order (merged over its cameras):
 - `RecordingSource`: a simulator recording (docs/recording-format.md); capture time from the file name.
 - `ImageFolderSource`: one folder of images per camera; capture time from each file name — integer
-  nanoseconds (`1718218800000000000.jpg`) or a date and time (`2023-12-19 11-00-00-034395.jpg`, as in
-  the real State/Ellsworth footage; taken as UTC unless a time zone is given) — or, when names carry no
-  time, from a frame rate.
+  nanoseconds, microseconds or milliseconds since the epoch (19, 16 or 13 digits: `1718218800000000000.jpg`,
+  from 2000 on) or a date and time (`2023-12-19 11-00-00-034395.jpg`, as in the real State/Ellsworth footage;
+  taken as UTC unless a time zone is given) — or, when names carry no time, from a frame rate, the files in
+  the order of their names with numbers compared as numbers (`frame2.png` before `frame10.png`).
 - `VideoSource`: a video file or an RTSP/HTTP stream through OpenCV; capture time from the stream's
   position (files) or the wall clock at grab (live streams).
 
@@ -30,6 +31,8 @@ from shared.messages import T_CAPTURE_END
 # a live camera's stream: reopened when it drops (a file:// URL or a finite video over HTTP ends)
 STREAM_SCHEMES = ("rtsp", "rtsps", "rtmp", "udp", "tcp", "srt", "http", "https")
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
+EPOCH_DIGITS = {19: 1, 16: 1_000, 13: 1_000_000}  # a name of so many digits: ns, us or ms since the epoch
+T_NAME_MIN = 946_684_800 * 10**9  # 2000-01-01: a number in a name below it is a frame counter, not a time
 DATETIME_RE = re.compile(r"(\d{4})-(\d{2})-(\d{2})[ _T](\d{2})[-:_](\d{2})[-:_](\d{2})(?:[-._](\d{1,9}))?")
 
 
@@ -48,11 +51,12 @@ class SourceFrame:
 
 def capture_time_from_name(name: str, tz: timezone = UTC) -> int | None:
     """Capture time (ns since the epoch) from a file name, None when it carries none or one outside the times a
-    message may carry (1970 to 2116, `shared.messages.T_CAPTURE_END`)."""
+    message may carry (1970 to 2116, `shared.messages.T_CAPTURE_END`; a number of digits since the epoch from 2000
+    on: a zero-padded frame counter is no time)."""
     stem = Path(name).stem
-    if stem.isdigit() and len(stem) >= 16:
-        t = int(stem)
-        return t if t < T_CAPTURE_END else None
+    if stem.isdigit():
+        t = int(stem) * EPOCH_DIGITS.get(len(stem), 0)
+        return t if T_NAME_MIN <= t < T_CAPTURE_END else None
     m = DATETIME_RE.search(stem)
     if m is None:
         return None
@@ -74,6 +78,11 @@ def _read(camera: str, t_ns: int, path: Path) -> SourceFrame:
         return SourceFrame(camera, t_ns, origin=str(path), error=f"camera {camera}: cannot read {path}: {exc}")
 
 
+def _natural(path: Path) -> list:
+    """A sort key for file names with numbers compared as numbers: frame2 before frame10."""
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.name)]
+
+
 def _merge(streams: dict[str, list[tuple[int, Path]]]) -> list[tuple[int, str, Path]]:
     return sorted((t, cam, p) for cam, items in streams.items() for t, p in items)
 
@@ -86,9 +95,11 @@ class RecordingSource:
 
         self.recording = Recording(path)
         names = cameras or self.recording.camera_names
-        self.items = _merge({c: self.recording.frames(c) for c in names})
-        if not self.items:
-            raise ValueError(f"recording {path} has no frames for cameras {names}")
+        streams = {c: self.recording.frames(c) for c in names}
+        empty = [c for c, items in streams.items() if not items]
+        if empty:
+            raise ValueError(f"recording {path} has no frames for camera{'s' * (len(empty) > 1)} {', '.join(empty)}")
+        self.items = _merge(streams)
 
     def __iter__(self) -> Iterator[SourceFrame]:
         for t, cam, p in self.items:
@@ -115,6 +126,7 @@ class ImageFolderSource:
                     raise ValueError(f"camera {cam}: no capture time (or one outside 1970-2116) in file name {bad!r}; "
                                      f"give a frame rate (fps)")
                 t0 = time.time_ns() if start_ns is None else start_ns
+                files = sorted(files, key=_natural)
                 times = [t0 + round(i * 1e9 / fps) for i in range(len(files))]
             streams[cam] = sorted(zip(times, files, strict=True))
         self.items = _merge(streams)
@@ -149,6 +161,12 @@ class VideoSource:
     def __iter__(self) -> Iterator[SourceFrame]:
         n = 0
         wait_s = self.RECONNECT_S
+        if not self.cap.isOpened():  # played before (ingest.loop): from the start again
+            self.cap = cv2.VideoCapture(self.url)
+            if not self.cap.isOpened() and not self.live:
+                yield SourceFrame(self.camera, self.t0_ns, origin=self.url,
+                                  error=f"camera {self.camera}: OpenCV cannot open {self.url} again")
+                return
         while True:
             ok, img = self.cap.read()
             if not ok:
@@ -177,15 +195,25 @@ def open_source(source: str, cameras: list[str], camera_sources: dict[str, str |
     """The source a site's settings describe.
 
     `source` is a simulator recording, a folder of per-camera image folders (matched to camera names:
-    a sub-folder whose name equals or ends with `_<camera>` or `<camera>`), one image folder, a video
-    file or a stream URL. `camera_sources` (camera -> its own source) take precedence.
+    the sub-folder named `<camera>`, in any case, else the one whose name ends with `_<camera>`), one image folder,
+    a video file or a stream URL. `camera_sources` (camera -> its own source) take precedence; live streams and
+    recorded frames are not mixed (their clocks differ: ValueError).
     """
     own = {c: s for c, s in camera_sources.items() if s}
     if own:
-        parts = [open_source(s, [c], {}, fps) for c, s in own.items()]
         rest = [c for c in cameras if c not in own]
-        if rest and source:
+        if rest and not source:
+            raise ValueError(f"no source for camera{'s' * (len(rest) > 1)} {', '.join(rest)}: give each camera its "
+                             "own source, or ingest.source for the cameras without one")
+        parts = [open_source(s, [c], {}, fps) for c, s in own.items()]
+        if rest:
             parts.append(open_source(source, rest, {}, fps))
+        live = [p for p in parts if getattr(p, "live", False)]
+        if live and len(live) < len(parts):
+            raise ValueError(f"camera{'s' * (len(live) > 1)} {', '.join(p.camera for p in live)} stream live (the "
+                             "wall clock) and the others play recorded frames (their own capture times): the two do "
+                             "not share a clock, so fuse_track could not put them in one tick; give every camera a "
+                             "live stream, or play them all from recordings")
         return parts[0] if len(parts) == 1 else MergedSource(parts)
     if not source:
         raise ValueError("no source: set ingest.source in the site file or pass --source")
@@ -209,7 +237,9 @@ def open_source(source: str, cameras: list[str], camera_sources: dict[str, str |
         return ImageFolderSource({cameras[0]: path}, fps)
     folders = {}
     for cam in cameras:
-        match = [p for n, p in subdirs.items() if n == cam or n.endswith("_" + cam) or n.lower() == cam.lower()]
+        match = ([p for n, p in subdirs.items() if n == cam]  # NE beside T_NE: NE's folder is NE
+                 or [p for n, p in subdirs.items() if n.lower() == cam.lower()]
+                 or [p for n, p in subdirs.items() if n.endswith("_" + cam)])
         if len(match) != 1:
             raise ValueError(f"camera {cam}: expected one sub-folder of {path} named {cam} or *_{cam}, "
                              f"found {sorted(p.name for p in match) or 'none'} among {sorted(subdirs)}")
