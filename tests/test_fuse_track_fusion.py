@@ -360,3 +360,14 @@ def test_the_longest_object_acts_first_and_a_dropped_one_drops_nothing():
         chain = ObjectBatch.concat([one("A", -8.0, 14.0, s14), one("B", 1.0, 9.0, s9), one("B", 6.0, 4.5, 0.4)])
         kept = Fusion(regions, FusionConfig(position_sigma=None, merge_gate_m=2.0)).fuse(chain, 0)
         assert sorted(np.round(kept.xy[:, 0], 1).tolist()) == [-8.0, 6.0], (s14, s9)
+
+
+def test_a_tick_whose_only_object_is_a_low_scoring_one_dropped_fuses_to_nothing():
+    """With two score pools (`split_score`, the site's `high_score`) a lone low-scoring object in another camera's
+    region and beyond the extend range groups with nothing: no object, not an IndexError that stopped fuse_track."""
+    regions = [CameraRegion("A", (0.0, 0.0)), CameraRegion("B", (100.0, 0.0))]
+    fusion = Fusion(regions, FusionConfig(split_score=0.3, extend_range_m=50.0))
+    assert len(fusion.fuse(frame("A", 0, [[90.0, 0.0]], score=0.25), 0)) == 0
+    both = ObjectBatch.concat([frame("A", 0, [[90.0, 0.0]], score=0.25), frame("B", 0, [[95.0, 0.0]], score=0.9)])
+    fused = fusion.fuse(both, 0)
+    assert len(fused) == 1 and fused.camera.tolist() == ["B"]

@@ -205,6 +205,10 @@ def main(settings: Settings, stopper: Stopper) -> int:
                 except ValueError as exc:  # what validation let through and fusion, the tracker or Tracks cannot take
                     bad(f"tick at {tick.t_ref_ns} dropped: {exc}", "tick")
                     continue
+                except Exception as exc:  # a bug: its traceback logged, the tick counted as dropped, the next one taken
+                    log.exception("tick at %d: internal error", tick.t_ref_ns)
+                    bad(f"tick at {tick.t_ref_ns} dropped: internal error ({type(exc).__name__}: {exc})", "tick")
+                    continue
                 payload = encode(msg)
                 pub.put(payload)
                 latest[:] = [payload]

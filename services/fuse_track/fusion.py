@@ -565,7 +565,7 @@ class Fusion:
         weight = np.maximum(objects.score, 1e-6) * np.where(in_region, 1.0, self.config.out_of_region_weight)
         source = frame_labels(objects.camera, objects.t_ns)  # the frame each object comes from
         labels, extend = self._group(objects, p_ref, in_region, weight, cam_idx, owners, source, pool)
-        if pool.any():  # the high-scoring pool's groups first, each pool's in its own order
+        if pool.any() and (labels >= 0).any():  # the high-scoring pool's groups first, each pool's in its own order
             groups = np.zeros(int(labels.max()) + 1, np.int64)
             groups[labels[labels >= 0]] = pool[labels >= 0]
             rank = np.empty_like(groups)
