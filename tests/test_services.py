@@ -668,10 +668,30 @@ def test_detect_workers_infer_a_burst_side_by_side_and_publish_each_frame_once(s
     for seq in range(1, 7):
         peer.put(key, encode(good_frame(site_name, small_recording, seq)))
     assert peer.wait_for(lambda: {d.seq for d in peer.got["detections"]} >= set(range(1, 7)), WAIT_S), detect.log()
+    seqs = [d.seq for d in peer.got["detections"]]
+    assert seqs == sorted(seqs), seqs  # two at a time, and still in capture order: a newer one waits for the older
     assert_clean_exit(detect, detect.terminate())
     seqs = [d.seq for d in peer.got["detections"] if d.seq > 0]
     assert sorted(seqs) == list(range(1, 7))  # every frame once, none lost or doubled by the pool
     assert "2 workers x 1 threads" in detect.log()
+
+
+def test_a_frame_inferred_before_an_older_one_of_its_camera_waits_for_it():
+    from concurrent.futures import Future
+    from types import SimpleNamespace
+
+    from services.detect.__main__ import behind
+
+    def item(camera, t, done):
+        fut = Future()
+        if done:
+            fut.set_result(None)
+        return (fut, SimpleNamespace(camera=camera, t_capture_ns=t), 0)
+
+    older, newer, other = item("NE", 1, False), item("NE", 2, True), item("SW", 0, False)
+    assert behind(newer, [older, newer, other]) and not behind(older, [older, newer, other])
+    older[0].set_result(None)
+    assert not behind(newer, [older, newer, other])
 
 
 def test_detect_keeps_the_newest_frames_per_camera_oldest_first():

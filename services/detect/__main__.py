@@ -10,7 +10,9 @@ Detections are published in original-sensor pixels on `roadside/<site>/cam/<came
 `detect.workers` frames are inferred at once, each with `detect.threads` ONNX Runtime threads (one session,
 run from a thread pool; the runtime releases the GIL): on a CPU two single-threaded inferences side by side
 take 47 % more frames per second than one two-threaded inference, at a higher latency per frame
-(shared/settings.py). Detections of one camera may then be published slightly out of capture order.
+(shared/settings.py). Each camera's detections are published in capture order all the same: a frame whose
+inference ends before that of an older frame of its camera waits for it (fuse_track takes a camera's newer frame
+to mean its older ones have come).
 A frame decoded smaller than the model's input needs (`Frame.scale`: ingest's `decode_long_side` below the
 model's `input_long_side`) is enlarged back to the scale the model was trained at, with one warning per camera.
 A camera's `detect_area_px` (its fisheye image circle) limits the inference to that rectangle, at the whole
@@ -176,7 +178,9 @@ def main(settings: Settings, stopper: Stopper) -> int:
                 future = pool.submit(infer, img, frame.scale, areas[frame.camera])
                 future.add_done_callback(lambda _: wake.set())
                 running.append((future, frame, t_in))
-            for item in [r for r in running if r[0].done()]:
+            for item in sorted((r for r in running if r[0].done()), key=lambda r: r[1].t_capture_ns):
+                if behind(item, running):
+                    continue
                 running.remove(item)
                 future, frame, t_in = item
                 try:
@@ -198,7 +202,8 @@ def main(settings: Settings, stopper: Stopper) -> int:
                 infer_avg = infer_ms if math.isnan(infer_avg) else 0.9 * infer_avg + 0.1 * infer_ms
                 status.gauge("infer_ms_avg", infer_avg)
                 done += 1
-            if not any(r[0].done() for r in running) and (not waiting or len(running) >= workers):
+            if not any(r[0].done() and not behind(r, running) for r in running) and (
+                    not waiting or len(running) >= workers):
                 wake.wait(IDLE_WAIT_S)
                 wake.clear()
         log.info("stopped: %d frames detected, %d bad messages %s", done, bad.total, dict(bad.counts))
@@ -208,6 +213,13 @@ def main(settings: Settings, stopper: Stopper) -> int:
         pool.shutdown(wait=True, cancel_futures=True)
         session.close()
     return 0
+
+
+def behind(item: tuple[Future, Frame, int], running: list[tuple[Future, Frame, int]]) -> bool:
+    """Whether an older frame of `item`'s camera is still in inference: `item` is published after it."""
+    frame = item[1]
+    return any(f.camera == frame.camera and f.t_capture_ns < frame.t_capture_ns and not fut.done()
+               for fut, f, _ in running)
 
 
 def newest_per_camera(waiting: list[tuple[int, Frame]], ring: int) -> list[tuple[int, Frame]]:
