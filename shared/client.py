@@ -98,7 +98,8 @@ class TrackClient:
         `poll_s` of `stop` being set (e.g. by a signal handler: the caller's loop then ends normally).
         Messages of the same tracker not newer than the last one given (queued when the current one was asked
         for, duplicates, out of order) are skipped; a restarted fuse_track (another tracker id, seq from 0) is
-        followed at once."""
+        followed at once, and so is a recording played again (`roadside play`: the same tracker, seq 0 again).
+        `timeout_s` counts from the last message received, skipped ones too."""
         last: tuple[str, int] | None = None
         current = self.latest()
         if current is not None:
@@ -108,9 +109,10 @@ class TrackClient:
         while stop is None or not stop.is_set():
             got = False
             for msg in self.receiver.poll():
-                if last is not None and msg.tracker == last[0] and msg.seq <= last[1]:
-                    continue  # a duplicate or one older than what the caller already has
                 got = True
+                if (last is not None and msg.tracker == last[0] and msg.seq <= last[1]
+                        and not (msg.seq == 0 < last[1])):
+                    continue  # a duplicate or one older than what the caller already has
                 last = (msg.tracker, msg.seq)
                 yield msg  # type: ignore[misc]
             if got:

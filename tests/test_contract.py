@@ -868,6 +868,9 @@ def test_client_stream_gives_the_current_tracks_then_only_newer_ones() -> None:
     # after the current one, duplicates and stragglers of the tracker followed are skipped too
     client.receiver = Queue([[make_tracks(1, seq=s, tracker="tracker-b") for s in (6, 6, 4, 7)]])
     assert [t.seq for t in client.stream(timeout_s=0.05, poll_s=0.001)] == [5, 6, 7]
+    # a recording played again (`roadside play`: its tracker, seq from 0 again) is followed from its start
+    client.receiver = Queue([[make_tracks(1, seq=s, tracker="tracker-b") for s in (6, 7, 0, 1, 1, 2)]])
+    assert [t.seq for t in client.stream(timeout_s=0.05, poll_s=0.001)] == [5, 6, 7, 0, 1, 2]
 
 
 def test_client_stream_ends_when_told_to_stop() -> None:
