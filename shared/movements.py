@@ -252,8 +252,10 @@ def movements(tracks: Iterable[tuple[tuple[str, int], int, float, float]], junct
         by_key.setdefault(key, []).append((t, lat, lon))
     out = []
     for key, rows in by_key.items():
-        a = np.array(sorted(rows), float).reshape(-1, 3)
-        m = movement(key, a[:, 0].astype(np.int64), junction.zones(a[:, 1], a[:, 2]), junction.names)
+        rows.sort()
+        t = np.array([r[0] for r in rows], np.int64)  # nanoseconds stay integers (a float64 rounds them by 128 ns)
+        a = np.array([r[1:] for r in rows], float).reshape(-1, 2)
+        m = movement(key, t, junction.zones(a[:, 0], a[:, 1]), junction.names)
         if m is not None:
             out.append(m)
     return sorted(out, key=lambda m: (m.t_ns, m.key))

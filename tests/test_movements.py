@@ -125,6 +125,15 @@ def test_partial_passages_and_tracks_that_never_enter():
     assert movement_of(np.array([at(45, 40)] * 20)) is None  # parked between two legs
 
 
+def test_a_movements_time_is_its_tracks_own_to_the_nanosecond():
+    edge = T0 + 900 * S  # a 15-minute bin's end
+    en = through(-3.0, 166.0)
+    k = int(np.flatnonzero(junction().zones(*latlon(en)) == INSIDE)[0])  # the step it enters at
+    found = movements(positions(("t", 1), en, t0_ns=edge - 1 - k * (S // 10)), junction())
+    (m,) = found
+    assert m.t_ns == edge - 1 and binned(found, 900)[0].start_ns == T0  # entered 1 ns before the edge: that bin
+
+
 def test_each_track_of_each_tracker_is_its_own_vehicle_and_positions_may_come_in_any_order():
     a = positions(("tracker-1", 7), through(-3.0, 166.0))
     b = positions(("tracker-2", 7), through(166.0, -3.0), t0_ns=T0 + 5 * S)
