@@ -174,6 +174,24 @@ def test_live_state_is_bounded_and_ended_tracks_are_forgotten(tmp_path: Path) ->
     rec.disconnect()
 
 
+def test_a_new_tracker_clears_the_drawings_and_tracks_of_the_one_before(tmp_path: Path) -> None:
+    """fuse_track restarted: its old tracker's last tracks do not stay frozen on the map, nor in the sink's state."""
+    chunk = pytest.importorskip("rerun.chunk")
+    rec = rr.RecordingStream("roadside_test")
+    rec.save(tmp_path / "restart.rrd")
+    sink = TrackSink(rec, "s1")
+    for k in range(5):
+        sink.log_tracks(_message(k, tracker="ft0"))
+    for k in range(5, 8):
+        sink.log_tracks(_message(k, tracker="ft1"))
+    assert {key[0] for key in sink._tracks} == {"ft1"} and sink.trail_of("ft0", 3) is None
+    rec.flush()
+    rec.disconnect()
+    cleared = [c for c in chunk.RrdReader(tmp_path / "restart.rrd").stream()
+               if c.entity_path == "/world/tracks/ft0" and "Clear" in str(c.to_record_batch().schema)]
+    assert cleared, "no Clear logged on the old tracker's entity"
+
+
 def test_live_counts_bad_messages_and_uses_the_first_site(tmp_path: Path) -> None:
     rec = rr.RecordingStream("roadside_test")
     rec.save(tmp_path / "live.rrd")

@@ -24,7 +24,8 @@ View layout (the blueprint `TrackSink.blueprint()` builds):
       two radii, labelled with the leg's name (static): where `roadside counts` takes a vehicle to be
   Every track has its own colour, from a stable hash of (tracker, id), and the label "<id> <type>" on all
   three (shown on the point, on hover for the lines). Each message replaces its tracker's drawings, so a
-  track that ended leaves the view at the next message but stays in the recording (scrub back to see it).
+  track that ended leaves the view at the next message but stays in the recording (scrub back to see it); a
+  message of another tracker (fuse_track restarted) clears the one before's drawings.
 - **plots**: `plots/speed/<tracker>/<id>` (m/s, one series per track, in the track's colour) and
   `plots/tracks/<tracker>` (tracks per message).
 - **cameras** (only when frames are logged): `cameras/<name>/image`, `.../boxes` (2D boxes),
@@ -208,6 +209,7 @@ class TrackSink:
         self.junction = junction
         self._tracks: dict[tuple[str, int], _TrackState] = {}
         self._drew: set[str] = set()  # the optional layers (entity paths) the last message of their tracker drew
+        self._tracker: str | None = None  # the tracker of the last message: another one ends it
         self._last_speed_flush_ns: int | None = None
         self._cameras: set[str] = set()
         self._span = _Span()
@@ -247,6 +249,9 @@ class TrackSink:
         strips, owner = footprint_strips(x, y, yaw, length, width,
                                          np.array([r.yaw_confirmed is not False for r in msg.rows], bool))
         rec.set_time(TIMELINE, timestamp=np.datetime64(msg.t_ns, "ns"))
+        if self._tracker not in (None, msg.tracker):
+            self._end_tracker(self._tracker)
+        self._tracker = msg.tracker
         rec.log(
             f"{base}/trails",
             rr.LineStrips3D(trails, colors=colors, labels=labels, show_labels=False, radii=rr.Radius.ui_points(1.5)),
@@ -327,6 +332,17 @@ class TrackSink:
             trail.append((x, y))
         pts = np.array(trail, np.float64)
         return pts if trail[-1] == (x, y) else np.vstack([pts, [x, y]])
+
+    def _end_tracker(self, tracker: str) -> None:
+        """A tracker that gave way to another (fuse_track restarted, or its capture time went back): its drawings
+        cleared from now on (they stay in the recording before), its speeds sent and its tracks forgotten."""
+        base = f"{WORLD}/tracks/{_path_part(tracker)}"
+        self.rec.log(base, rr.Clear(recursive=True))
+        self._drew = {p for p in self._drew if not p.startswith(base + "/")}
+        for key, state in list(self._tracks.items()):
+            if key[0] == tracker:
+                self._send_speeds(key, state)
+                del self._tracks[key]
 
     def _forget(self, tracker: str, t_ns: int) -> None:
         for key, state in list(self._tracks.items()):
