@@ -308,6 +308,13 @@ def evaluate_tracks_real(labels_dir: str | Path, tracks: str | Path, masks_dir: 
             scored += 1
         per[f.stem] = _scores(acc, scored)
         nees.extend(acc["nees"])
+    if not any(p["frames"] for p in per.values()):
+        def when(t_ns: int) -> str:
+            return datetime.fromtimestamp(t_ns / 1e9, UTC).isoformat(timespec="seconds")
+
+        raise ValueError(f"{tracks}: no tracks within {max_gap_ms:g} ms of any labelled frame ({missing} frames): the "
+                         f"tracks run {when(lines[0].t_ns)} to {when(lines[-1].t_ns)} UTC; are they the real site's "
+                         "held-out footage played through the pipeline?")
     return {"roi_m": ROI_M, "match_m": MATCH_M, "tracks_file": str(tracks), "frames_without_tracks": missing,
             "overall": _overall(per), "per_camera": per,
             # the tracks' own position uncertainty (xy_cov) against the hand labels (eval.tracking's pos_cov_*; the

@@ -497,6 +497,12 @@ def _run_counts(args) -> int:
     if not args.tracks:
         raise ValueError("counts needs tracks files (or --live)")
     read = read_tracks(args.tracks)
+    if not read.times_ns:
+        why = f"; {read.bad[0]}" if read.bad else ""
+        raise ValueError(f"no tracks line in {', '.join(map(str, args.tracks))} ({read.lines} lines{why})")
+    if read.sites - {settings.site}:
+        raise ValueError(f"the tracks are of site {', '.join(sorted(read.sites))}, {site} is site {settings.site}: "
+                         "give the tracks' own site (its junction)")
     found = movements(read.positions, junction)
     bins = binned(found, args.bin_s, read.times_ns)
     legs = junction.names

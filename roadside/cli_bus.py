@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 import time
 from pathlib import Path
 
@@ -131,6 +132,11 @@ def _run_tracks(args) -> int:
     _site(args)
     n = 0
     with TrackClient(args.site, None, _bus(args), wait_s=args.wait or None) as client:
+        if client.latest() is None:  # no fuse_track of this site answers: is the bus another site's?
+            others = client.sites() - {args.site}
+            if others:
+                print(f"roadside tracks: no tracks of site {args.site} on this bus; it has site"
+                      f"{'s' * (len(others) > 1)} {', '.join(sorted(others))} (--site)", file=sys.stderr, flush=True)
         for tracks in client.stream(timeout_s=args.timeout):
             if args.now:
                 tracks = tracks.predicted(time.time_ns())

@@ -48,6 +48,7 @@ from shared.keys import latest_tracks_key, tracks_key
 from shared.messages import Tracks
 from shared.settings import BusSettings, check_endpoint
 
+REPLAYED_NS = 5 * 10**9  # a message of the same tracker this much older than the last given: a replay, followed
 MAX_WAIT_S = 7 * 86400.0  # a longer wait is None: Zenoh's timeout is in milliseconds
 RECONNECT = {"period_init_ms": 250, "period_max_ms": 2000, "period_increase_factor": 2}  # Zenoh's connect/retry
 
@@ -92,18 +93,30 @@ class TrackClient:
             return msg  # type: ignore[return-value]
         return None
 
+    def sites(self, timeout_s: float = 1.0) -> set[str]:
+        """The sites whose services are on this bus (their liveliness tokens, `roadside/<site>/alive/...`): what
+        to tell a client that asked for a site none of them is."""
+        found = set()
+        for reply in self.session.liveliness().get("roadside/*/alive/**", timeout=timeout_s):
+            if reply.ok is not None:
+                parts = str(reply.ok.key_expr).split("/")
+                if len(parts) > 2:
+                    found.add(parts[1])
+        return found
+
     def stream(self, timeout_s: float | None = None, poll_s: float = 0.1,
                stop: threading.Event | None = None) -> Iterator[Tracks]:
         """The current tracks at once, then every new message; stops after `timeout_s` without one, or within
         `poll_s` of `stop` being set (e.g. by a signal handler: the caller's loop then ends normally).
         Messages of the same tracker not newer than the last one given (queued when the current one was asked
         for, duplicates, out of order) are skipped; a restarted fuse_track (another tracker id, seq from 0) is
-        followed at once, and so is a recording played again (`roadside play`: the same tracker, seq 0 again).
+        followed at once, and so is a recording played again (`roadside play`: the same tracker, its seq and
+        capture time back to their start, more than REPLAYED_NS before the last message given).
         `timeout_s` counts from the last message received, skipped ones too."""
-        last: tuple[str, int] | None = None
+        last: tuple[str, int, int] | None = None  # tracker, seq, capture time of the last message given
         current = self.latest()
         if current is not None:
-            last = (current.tracker, current.seq)
+            last = (current.tracker, current.seq, current.t_capture_ns)
             yield current
         quiet_since = time.monotonic()
         while stop is None or not stop.is_set():
@@ -111,9 +124,9 @@ class TrackClient:
             for msg in self.receiver.poll():
                 got = True
                 if (last is not None and msg.tracker == last[0] and msg.seq <= last[1]
-                        and not (msg.seq == 0 < last[1])):
+                        and msg.t_capture_ns >= last[2] - REPLAYED_NS):
                     continue  # a duplicate or one older than what the caller already has
-                last = (msg.tracker, msg.seq)
+                last = (msg.tracker, msg.seq, msg.t_capture_ns)
                 yield msg  # type: ignore[misc]
             if got:
                 quiet_since = time.monotonic()

@@ -356,6 +356,7 @@ class TrackPositions:
 
     positions: list[tuple[tuple[str, int], int, float, float]] = field(default_factory=list)
     times_ns: list[int] = field(default_factory=list)  # each good line's capture time: what the tracks covered
+    sites: set[str] = field(default_factory=set)  # the sites the good lines name
     lines: int = 0
     bad: list[str] = field(default_factory=list)  # "file:line: reason", the first 20
     bad_lines: int = 0
@@ -373,6 +374,8 @@ def read_tracks(paths: Sequence[Path]) -> TrackPositions:
                 obj = json.loads(line)
                 out.positions += list(_positions(obj))
                 out.times_ns.append(obj["t_ns"])
+                if isinstance(obj.get("site"), str):
+                    out.sites.add(obj["site"])
             except (ValueError, TypeError, KeyError, RecursionError) as exc:  # JSONDecodeError is a ValueError
                 out.bad_lines += 1
                 if len(out.bad) < 20:

@@ -868,8 +868,16 @@ def test_client_stream_gives_the_current_tracks_then_only_newer_ones() -> None:
     # after the current one, duplicates and stragglers of the tracker followed are skipped too
     client.receiver = Queue([[make_tracks(1, seq=s, tracker="tracker-b") for s in (6, 6, 4, 7)]])
     assert [t.seq for t in client.stream(timeout_s=0.05, poll_s=0.001)] == [5, 6, 7]
-    # a recording played again (`roadside play`: its tracker, seq from 0 again) is followed from its start
-    client.receiver = Queue([[make_tracks(1, seq=s, tracker="tracker-b") for s in (6, 7, 0, 1, 1, 2)]])
+    # a recording played again (`roadside play`: its tracker, seq and capture time from their start again) is
+    # followed from its start; a stale message a few ticks old is not a replay
+    s_ns = 10**9
+
+    def tick(seq, t_s):
+        return make_tracks(1, seq=seq, tracker="tracker-b", t_capture_ns=T0 + round(t_s * s_ns))
+
+    client.latest = lambda timeout_s=2.0: tick(5, 60.5)
+    client.receiver = Queue([[tick(3, 60.3), tick(6, 60.6), tick(7, 60.7), tick(0, 0.0), tick(1, 0.1), tick(1, 0.1),
+                              tick(2, 0.2)]])
     assert [t.seq for t in client.stream(timeout_s=0.05, poll_s=0.001)] == [5, 6, 7, 0, 1, 2]
 
 

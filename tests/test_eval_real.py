@@ -187,6 +187,10 @@ def test_tracks_are_interpolated_to_each_labelled_frame_and_scored_like_detectio
         (t1 - 50 * ms, [(1, 109.0, 0.0), (2, 90.0, 0.0)]), (t1 + 150 * ms, [(1, 113.0, 0.0), (3, 100.0, 10.0)])])
     r2 = evaluate_tracks_real(site / "labels", shifted, site / "masks", GeoFrame(ll[0], ll[1], 0.0))
     assert (r2["overall"]["true_positives"], r2["overall"]["detections"]) == (1, 2)
+    # tracks of another time (a simulated run's): nothing to score, said so rather than precision None
+    other = _tracks_file(tmp_path / "other.jsonl", [(t1 - 3600 * 10**9, [(1, 9.0, 0.0)])])
+    with pytest.raises(ValueError, match=r"other\.jsonl: no tracks within 250 ms of any labelled frame \(2 frames\)"):
+        evaluate_tracks_real(site / "labels", other, site / "masks")
     with pytest.raises(ValueError, match=r"tracks\.jsonl: line 1: missing key 'tracks'"):
         (tmp_path / "tracks.jsonl").write_text(json.dumps({"t_ns": 1, "tracker": "t"}) + "\n")
         evaluate_tracks_real(site / "labels", tmp_path / "tracks.jsonl", site / "masks")

@@ -309,6 +309,14 @@ def test_roadside_counts_writes_csv_and_appends_a_cabinets_file(tmp_path, capsys
     assert "--csv or --json" in capsys.readouterr().err
     assert main(["counts", str(f), "--site", str(site), "--out", str(tmp_path)]) == 2
     assert "a folder, not a file" in capsys.readouterr().err
+    # a file with no tracks line is no count of zero; another site's tracks are not this junction's
+    (tmp_path / "junk.jsonl").write_text("not json\n")
+    assert main(["counts", str(tmp_path / "junk.jsonl"), "--site", str(site), "--csv"]) == 2
+    assert "no tracks line in" in capsys.readouterr().err
+    other = tmp_path / "other.jsonl"
+    other.write_text(f.read_text().replace('"site": "se"', '"site": "elm"'))
+    assert main(["counts", str(other), "--site", str(site)]) == 2
+    assert "the tracks are of site elm" in capsys.readouterr().err
 
 
 # --- against the truth ----------------------------------------------------------------------------------------------

@@ -7,6 +7,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -244,3 +245,23 @@ def _bus(port_base: int):
     from shared.settings import BusSettings
 
     return BusSettings(port_base=port_base)
+
+
+@pytest.mark.slow
+def test_a_vehicle_asking_for_another_site_is_told_which_sites_the_bus_has(tmp_path):
+    """`roadside tracks --site` of a site nobody publishes: no silence for ever, but the sites that are there."""
+    path = recording(tmp_path / "tracks.jsonl", range(20))
+    port_base = free_port_base()
+    proc = subprocess.Popen([sys.executable, "-m", "roadside", "play", str(path), "--pace", "4", "--loop",
+                             "--port-base", str(port_base)], cwd=REPO, env=service_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    try:
+        time.sleep(2.0)
+        asked = subprocess.run([sys.executable, "-m", "roadside", "tracks", "--site", "elm", "--port-base",
+                                str(port_base), "--timeout", "2", "--wait", "20"], cwd=REPO, env=service_env(),
+                               capture_output=True, text=True, timeout=120)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=30)
+    assert asked.returncode == 1 and asked.stdout == ""
+    assert "no tracks of site elm on this bus; it has site se (--site)" in asked.stderr, asked.stderr
