@@ -6,7 +6,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench-sim bench-calibration clean
+.PHONY: demo test lint bench-sim bench-calibration example-site clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -29,6 +29,17 @@ bench-sim: $(STAMP)
 
 bench-calibration: $(STAMP)
 	$(BIN)/roadside bench calibration
+
+# The example site's recording and masks (made here, not shipped; deploy/sites/example/site.yaml names them), which
+# `docker compose up` on the example site needs.
+EXAMPLE := deploy/sites/example
+EXAMPLE_ORIGIN := 42.22939632,-83.73899854,265.0
+example-site: $(STAMP)
+	$(BIN)/roadside sim --site state_ellsworth --cameras NE,T_SW --seconds 60 --out $(EXAMPLE)/recording
+	$(BIN)/roadside calibrate --landmarks $(EXAMPLE)/recording/landmarks/NE.json --kind fisheye \
+	    --origin $(EXAMPLE_ORIGIN) --out $(EXAMPLE)/masks/NE.npz
+	$(BIN)/roadside calibrate --landmarks $(EXAMPLE)/recording/landmarks/T_SW.json --kind pinhole \
+	    --origin $(EXAMPLE_ORIGIN) --out $(EXAMPLE)/masks/T_SW.npz
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .ruff_cache

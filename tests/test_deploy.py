@@ -588,3 +588,16 @@ def test_image_models_exist():
     """compose.yaml points detect at /app/models/detector_fp{32,16}.onnx, copied from models/."""
     missing = [p for p in ("detector_fp32.onnx", "detector_fp16.onnx") if not (ROOT / "models" / p).is_file()]
     assert not missing, f"models/ lacks {missing}: the images cannot be built without them"
+
+
+def test_make_example_site_makes_what_the_example_site_names():
+    """`docker compose up` on the example site needs its recording and masks, which `make example-site` makes (not
+    shipped): the files the Makefile writes are the ones site.yaml names."""
+    makefile = (ROOT / "Makefile").read_text()
+    body = makefile.split("\nexample-site:", 1)[1].split("\n\n", 1)[0]
+    example = re.search(r"^EXAMPLE := (\S+)$", makefile, re.M).group(1)
+    made = {(ROOT / out.replace("$(EXAMPLE)", example)).resolve() for out in re.findall(r"--out (\S+)", body)}
+    settings = load_settings(EXAMPLE_SITE)
+    named = {settings.path(c.masks).resolve() for c in settings.cameras} | {settings.path(settings.ingest.source)
+                                                                           .resolve()}
+    assert named == made, (named, made)
