@@ -435,6 +435,11 @@ def load_settings(path: str | Path, **overrides) -> Settings:
             data[key] = {**base, **value}
         else:
             data[key] = value
+    unknown = unknown_environment()
+    if unknown:
+        raise ValueError(f"{path}: the environment: {', '.join(unknown)} {'is' if len(unknown) == 1 else 'are'} no "
+                         "setting (ROADSIDE_<FIELD> or ROADSIDE_<SECTION>__<FIELD>, e.g. ROADSIDE_FUSE_TRACK__RECORD; "
+                         "deploy/sites/README.md)")
     try:
         return Settings(**data)
     except ValidationError as exc:
@@ -445,6 +450,28 @@ def load_settings(path: str | Path, **overrides) -> Settings:
     except SettingsError as exc:  # an environment variable that is not the JSON its field needs
         names = sorted(k for k in os.environ if k.upper().startswith("ROADSIDE_"))
         raise ValueError(f"{path}: the environment: {exc} (ROADSIDE_ variables set: {', '.join(names)})") from None
+
+
+def unknown_environment() -> list[str]:
+    """The ROADSIDE_ environment variables that name no setting (a misspelt one would be ignored: a cabinet's
+    recording silently off): the part after the prefix must be a field, and after a section's `__` one of its."""
+    import typing
+
+    bad = []
+    for name in sorted(os.environ):
+        if not name.upper().startswith("ROADSIDE_"):
+            continue
+        parts = name[len("ROADSIDE_"):].lower().split("__")
+        field = Settings.model_fields.get(parts[0])
+        if field is None or parts[0] == "site_dir":
+            bad.append(name)
+            continue
+        if len(parts) > 1:
+            models = [t for t in (field.annotation, *typing.get_args(field.annotation))
+                      if isinstance(t, type) and issubclass(t, BaseModel)]
+            if not models or parts[1] not in models[0].model_fields:
+                bad.append(name)
+    return bad
 
 
 def _given_by(loc: list[str], overrides: dict) -> str:

@@ -636,6 +636,20 @@ def test_environment_override_is_validated(tmp_path, monkeypatch) -> None:
         load_settings(write_site(tmp_path, SITE_YAML))
 
 
+@pytest.mark.parametrize("name", ["ROADSIDE_FUSE_TRACK_RECORD", "ROADSIDE_FUSETRACK__RECORD", "ROADSIDE_SITE_DIR",
+                                  "ROADSIDE_BUS__MDOE", "ROADSIDE_LOG_LEVEL__X"])
+def test_an_environment_variable_that_names_no_setting_is_refused(tmp_path, monkeypatch, name) -> None:
+    """A misspelt ROADSIDE_ variable would be ignored (a cabinet's recording silently off): it is named."""
+    monkeypatch.setenv(name, "/data/tracks.jsonl")
+    with pytest.raises(ValueError, match=f"the environment: {name} is no setting"):
+        load_settings(write_site(tmp_path, SITE_YAML))
+    monkeypatch.delenv(name)
+    monkeypatch.setenv("ROADSIDE_FUSE_TRACK__RECORD", "/data/tracks.jsonl")
+    monkeypatch.setenv("roadside_log_level", "debug")  # the names are case-insensitive, as pydantic-settings reads them
+    settings = load_settings(write_site(tmp_path, SITE_YAML))
+    assert str(settings.fuse_track.record) == "/data/tracks.jsonl" and settings.log_level == "DEBUG"
+
+
 @pytest.mark.parametrize("pace", ["0", "-1", "fast", "nan", "", "1e-7", "inf", "5000x"])
 def test_bad_pace_is_refused(tmp_path, pace: str) -> None:
     with pytest.raises(ValueError, match=r"ingest\.pace: .*pace must be a speed factor from 0\.01 to 1000"):
