@@ -7,6 +7,7 @@ import json
 import math
 import os
 import sys
+import time
 from pathlib import Path
 
 from roadside.argtypes import (
@@ -23,6 +24,8 @@ from roadside.cli_bus import add_bus_jobs
 from roadside.cli_model import add_model_jobs
 from roadside.cli_site import add_site_jobs
 from shared.jsonio import dumps
+
+HEARTBEAT_S = 5.0  # `counts --live --heartbeat`: the file is touched at most this often
 
 
 def _add_sim(sub) -> None:
@@ -405,6 +408,9 @@ def _add_counts(sub) -> None:
                    help="with --live: a track unseen this long (capture time) has left (default 10)")
     p.add_argument("--close-after-s", type=positive_float, default=120.0,
                    help="with --live: a bin is printed this long after its end (default 120)")
+    p.add_argument("--heartbeat", type=Path,
+                   help="with --live: touch this file (at most every 5 s) while Tracks messages arrive: its age says "
+                   "whether the counter is counting (compose's healthcheck)")
     p.add_argument("--count", type=positive_int, help="with --live: stop after this many bins")
     p.add_argument("--timeout", type=positive_float,
                    help="with --live: stop after this many seconds without a Tracks message (fuse_track sends one a "
@@ -494,6 +500,9 @@ def _run_counts(args) -> int:
         if args.tracks:
             raise ValueError("counts --live counts the bus's tracks, not files: give one or the other")
         return _run_counts_live(args, settings, junction)
+    for flag in ("connect", "heartbeat", "count", "timeout"):
+        if getattr(args, flag):
+            raise ValueError(f"--{flag} goes with --live")
     if not args.tracks:
         raise ValueError("counts needs tracks files (or --live)")
     read = read_tracks(args.tracks)
@@ -561,7 +570,11 @@ def _run_counts_live(args, settings, junction) -> int:
         with TrackClient(settings.site, args.connect or None, asking_bus(settings.bus)) as client:
             print(f"counting the live tracks of site {settings.site} in {args.bin_s:g} s bins", file=sys.stderr,
                   flush=True)
+            beat = -math.inf
             for tracks in client.stream(timeout_s=args.timeout, stop=stop):
+                if args.heartbeat is not None and time.monotonic() - beat >= HEARTBEAT_S:
+                    args.heartbeat.touch()
+                    beat = time.monotonic()
                 if show(live.update(tracks)):
                     return 0
         show(live.flush())

@@ -362,7 +362,8 @@ def test_the_metrics_serve_the_sites_services_through_the_router_on_a_published_
 
 def test_the_counts_append_the_example_sites_junction_to_a_volume_through_the_router(monkeypatch, tmp_path):
     """The counts service counts the live tracks of the mounted site's junction through the router's socket and
-    appends its CSV to a named volume of its own; its healthcheck looks for that file."""
+    appends its CSV to a named volume of its own; its healthcheck reads the age of the file it touches as tracks
+    arrive."""
     import argparse
 
     from roadside.cli import _add_counts
@@ -385,7 +386,7 @@ def test_the_counts_append_the_example_sites_junction_to_a_volume_through_the_ro
     data = {v.split(":")[1]: v.split(":")[0] for v in svc["volumes"]}
     assert args.out.parent.as_posix() in data and data[args.out.parent.as_posix()] in doc["volumes"]
     assert data[args.out.parent.as_posix()] != "tracks"  # its own volume: fuse_track's rotation never touches it
-    assert args.out.as_posix() in " ".join(svc["healthcheck"]["test"])
+    assert args.heartbeat.as_posix() in " ".join(svc["healthcheck"]["test"])  # counting: tracks arrive
 
 
 @pytest.mark.parametrize("name", SERVICES)

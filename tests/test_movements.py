@@ -309,6 +309,8 @@ def test_roadside_counts_writes_csv_and_appends_a_cabinets_file(tmp_path, capsys
     assert "--csv or --json" in capsys.readouterr().err
     assert main(["counts", str(f), "--site", str(site), "--out", str(tmp_path)]) == 2
     assert "a folder, not a file" in capsys.readouterr().err
+    assert main(["counts", str(f), "--site", str(site), "--heartbeat", str(tmp_path / "hb")]) == 2
+    assert "--heartbeat goes with --live" in capsys.readouterr().err
     # a file with no tracks line is no count of zero; another site's tracks are not this junction's
     (tmp_path / "junk.jsonl").write_text("not json\n")
     assert main(["counts", str(tmp_path / "junk.jsonl"), "--site", str(site), "--csv"]) == 2
@@ -445,7 +447,7 @@ def test_roadside_counts_live_counts_a_played_recording_as_the_files_are_counted
     rec.close()
     counts = subprocess.Popen([sys.executable, "-m", "roadside", "counts", "--live", "--site", str(site), "--json",
                                "--bin-s", "60", "--close-after-s", "120", "--timeout", "10", "--out",
-                               str(tmp_path / "live.csv")], cwd=REPO,
+                               str(tmp_path / "live.csv"), "--heartbeat", str(tmp_path / "alive")], cwd=REPO,
                               env=service_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         player = subprocess.run([sys.executable, "-m", "roadside", "play", str(f), "--pace", "10", "--port-base",
@@ -470,6 +472,7 @@ def test_roadside_counts_live_counts_a_played_recording_as_the_files_are_counted
     with open(offline, "w") as handle, contextlib.redirect_stdout(handle):
         assert main(["counts", str(f), "--site", str(site), "--csv", "--bin-s", "60"]) == 0
     assert (tmp_path / "live.csv").read_text() == offline.read_text()  # the cabinet's file: the same rows
+    assert (tmp_path / "alive").is_file()  # touched as the tracks came
     assert files[0]["complete_total"] == 3 and files[0]["complete"][2][2] == 1  # a U-turn at the south leg
 
 
