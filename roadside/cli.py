@@ -133,7 +133,7 @@ def _add_calibrate(sub) -> None:
         "--roi-center", type=_floats(2), help="ROI centre LAT,LON (default: the camera, 25 m fisheye / 200 m; a "
         "negative latitude needs the = form: --roi-center=-33.86,151.21)"
     )
-    p.add_argument("--roi-radius", type=finite_float, default=25.0, help="ROI radius in metres (with --roi-center)")
+    p.add_argument("--roi-radius", type=positive_float, help="ROI radius in metres (with --roi-center; default 25)")
     p.add_argument("--plot", type=Path, help="draw residual arrows to this PNG")
     p.add_argument("--image", type=Path, help="camera frame to draw the plot on")
     p.add_argument("--shared-ground", type=_shared_ground, action="append", default=[],
@@ -157,7 +157,10 @@ def _shared_ground(text: str) -> tuple[Path, str, tuple[float, float, float] | N
 def _run_calibrate(args) -> int:
     from calibration.run import CalibrateJob, run_calibration
 
-    roi = {"center_latlon": list(args.roi_center), "radius_m": args.roi_radius} if args.roi_center else None
+    if args.roi_radius is not None and not args.roi_center:
+        raise ValueError("--roi-radius goes with --roi-center (without it the ROI is the camera's default)")
+    roi = ({"center_latlon": list(args.roi_center), "radius_m": args.roi_radius or 25.0} if args.roi_center
+           else None)
     job = CalibrateJob(
         landmarks=args.landmarks,
         kind=args.kind,
@@ -767,6 +770,9 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
         print(f"roadside {args.job}: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # the reader went away (`| head`): nothing more to say, and nowhere to say it
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # what is left in its buffer goes nowhere
+        return 0
     except OSError as exc:  # a file it cannot read or write: a folder where a file belongs, no permission, a full disk
         print(f"roadside {args.job}: error: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 2

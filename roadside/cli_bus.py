@@ -83,6 +83,8 @@ def asking_bus(base=None, connect: list[str] | None = None, port_base: int | Non
     """The bus of a process that only asks (listening nowhere): `base` (a site's bus; default the embedded
     default's) in client mode to `connect` if given, or in peer mode on `port_base`'s embedded ports; the `tls`
     files over the base's."""
+    from pydantic import ValidationError
+
     from shared.settings import BusSettings
 
     flags: dict = {"listen": [], **(tls or {})}
@@ -90,7 +92,10 @@ def asking_bus(base=None, connect: list[str] | None = None, port_base: int | Non
         flags.update(mode="client", connect=list(connect))
     elif port_base is not None:
         flags.update(mode="peer", port_base=port_base, connect=[])
-    return BusSettings.model_validate({**(base or BusSettings()).model_dump(), **flags})
+    try:
+        return BusSettings.model_validate({**(base or BusSettings()).model_dump(), **flags})
+    except ValidationError as exc:  # e.g. --cert without --key: the rule's own words, not pydantic's report
+        raise ValueError(exc.errors()[0]["msg"].removeprefix("Value error, ")) from None
 
 
 def _add_tracks(sub) -> None:

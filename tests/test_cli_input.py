@@ -211,3 +211,27 @@ def test_a_missing_tls_ca_is_named_before_any_connection(tmp_path, capsys):
     missing = tmp_path / "cabinet-ca.pem"
     assert main(["tracks", "--connect", "tls/localhost:7448", "--ca", str(missing), "--wait", "1"]) == 2
     assert f"bus.tls_root_ca: CA certificate not found: {missing}" in capsys.readouterr().err
+
+
+def test_a_certificate_without_its_key_and_a_roi_radius_without_its_centre_are_one_line_errors(capsys):
+    assert main(["tracks", "--cert", "vehicle.pem", "--connect", "tcp/127.0.0.1:7447"]) == 2
+    err = capsys.readouterr().err
+    assert err == ("roadside tracks: error: bus.tls_certificate is given without bus.tls_private_key: mutual TLS needs "
+                   "both\n")
+    assert main(["calibrate", "--landmarks", "l.json", "--kind", "fisheye", "--out", "m.npz", "--roi-radius", "5"]) == 2
+    assert "--roi-radius goes with --roi-center" in capsys.readouterr().err
+
+
+def test_output_read_by_a_reader_that_goes_away_ends_quietly(tmp_path):
+    """`roadside counts ... | head -1`: no error line when head closes the pipe."""
+    import subprocess
+    import sys
+
+    tracks = tmp_path / "tracks.jsonl"
+    tracks.write_text("".join(json.dumps({"site": "state_ellsworth", "seq": k, "t_ns": 1_703_001_600_000_000_000
+                                          + k * 10**8, "tracker": "t", "tracks": []}) + "\n" for k in range(50)))
+    site = ROOT / "deploy" / "sites" / "state_ellsworth"
+    run = subprocess.run(f"{sys.executable} -m roadside counts {tracks} --site {site} --csv --bin-s 1 | head -1",
+                         shell=True, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert run.stdout == "start,end,observed_s,from,to,turn,vehicles\n", run.stdout
+    assert "error" not in run.stderr and "Broken" not in run.stderr, run.stderr
