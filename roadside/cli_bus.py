@@ -137,12 +137,13 @@ def _run_tracks(args) -> int:
     _site(args)
     n = 0
     with TrackClient(args.site, None, _bus(args), wait_s=args.wait or None) as client:
-        if client.latest() is None:  # no fuse_track of this site answers: is the bus another site's?
+        current = client.latest()
+        if current is None:  # no fuse_track of this site answers: is the bus another site's?
             others = client.sites() - {args.site}
             if others:
                 print(f"roadside tracks: no tracks of site {args.site} on this bus; it has site"
                       f"{'s' * (len(others) > 1)} {', '.join(sorted(others))} (--site)", file=sys.stderr, flush=True)
-        for tracks in client.stream(timeout_s=args.timeout):
+        for tracks in client.stream(timeout_s=args.timeout, current=current):
             if args.now:
                 tracks = tracks.predicted(time.time_ns())
             elif args.ahead_ms:

@@ -105,16 +105,18 @@ class TrackClient:
         return found
 
     def stream(self, timeout_s: float | None = None, poll_s: float = 0.1,
-               stop: threading.Event | None = None) -> Iterator[Tracks]:
+               stop: threading.Event | None = None, current: Tracks | object | None = ...) -> Iterator[Tracks]:
         """The current tracks at once, then every new message; stops after `timeout_s` without one, or within
         `poll_s` of `stop` being set (e.g. by a signal handler: the caller's loop then ends normally).
         Messages of the same tracker not newer than the last one given (queued when the current one was asked
         for, duplicates, out of order) are skipped; a restarted fuse_track (another tracker id, seq from 0) is
         followed at once, and so is a recording played again (`roadside play`: the same tracker, its seq and
         capture time back to their start, more than REPLAYED_NS before the last message given).
-        `timeout_s` counts from the last message received, skipped ones too."""
+        `timeout_s` counts from the last message received, skipped ones too. `current`: the answer of a `latest()`
+        the caller already asked (None: none came), instead of asking again."""
         last: tuple[str, int, int] | None = None  # tracker, seq, capture time of the last message given
-        current = self.latest()
+        if current is ...:
+            current = self.latest()
         if current is not None:
             last = (current.tracker, current.seq, current.t_capture_ns)
             yield current

@@ -357,7 +357,10 @@ class Settings(BaseSettings):
     @field_validator("log_level", mode="before")
     @classmethod
     def _log_level(cls, v: object) -> object:
-        return v.upper() if isinstance(v, str) else v  # debug is DEBUG; anything else is named by the Literal
+        if not isinstance(v, str):
+            return v
+        v = v.upper()  # debug is DEBUG; logging's other names of two levels are theirs; anything else is refused
+        return {"WARN": "WARNING", "FATAL": "CRITICAL"}.get(v, v)
 
     @field_validator("origin")
     @classmethod
@@ -467,8 +470,10 @@ def unknown_environment() -> list[str]:
             bad.append(name)
             continue
         if len(parts) > 1:
-            models = [t for t in (field.annotation, *typing.get_args(field.annotation))
-                      if isinstance(t, type) and issubclass(t, BaseModel)]
+            types = (field.annotation, *typing.get_args(field.annotation))
+            models = [t for t in types if isinstance(t, type) and issubclass(t, BaseModel)]
+            if any(typing.get_origin(t) is dict for t in types):
+                continue  # a mapping (origin: ROADSIDE_ORIGIN__ALT_M) takes any key
             if not models or parts[1] not in models[0].model_fields:
                 bad.append(name)
     return bad

@@ -645,9 +645,11 @@ def test_an_environment_variable_that_names_no_setting_is_refused(tmp_path, monk
         load_settings(write_site(tmp_path, SITE_YAML))
     monkeypatch.delenv(name)
     monkeypatch.setenv("ROADSIDE_FUSE_TRACK__RECORD", "/data/tracks.jsonl")
-    monkeypatch.setenv("roadside_log_level", "debug")  # the names are case-insensitive, as pydantic-settings reads them
-    settings = load_settings(write_site(tmp_path, SITE_YAML))
-    assert str(settings.fuse_track.record) == "/data/tracks.jsonl" and settings.log_level == "DEBUG"
+    monkeypatch.setenv("roadside_log_level", "warn")  # the names are case-insensitive, as pydantic-settings reads them
+    monkeypatch.setenv("ROADSIDE_ORIGIN__ALT_M", "12.5")  # a mapping's key
+    settings = load_settings(write_site(tmp_path, {**SITE_YAML, "origin": {"lat_deg": 42.2, "lon_deg": -83.7}}))
+    assert str(settings.fuse_track.record) == "/data/tracks.jsonl" and settings.log_level == "WARNING"
+    assert settings.origin["alt_m"] == 12.5
 
 
 @pytest.mark.parametrize("pace", ["0", "-1", "fast", "nan", "", "1e-7", "inf", "5000x"])

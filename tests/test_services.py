@@ -690,8 +690,8 @@ def test_a_frame_inferred_before_an_older_one_of_its_camera_waits_for_it():
 
     older, newer, other = item("NE", 1, False), item("NE", 2, True), item("SW", 0, False)
     assert behind(newer, [older, newer, other]) and not behind(older, [older, newer, other])
-    older[0].set_result(None)
-    assert not behind(newer, [older, newer, other])
+    older[0].set_result(None)  # done a moment ago, not yet published: still first
+    assert behind(newer, [older, newer, other]) and not behind(newer, [newer, other])
 
 
 def test_detect_keeps_the_newest_frames_per_camera_oldest_first():

@@ -216,10 +216,10 @@ def main(settings: Settings, stopper: Stopper) -> int:
 
 
 def behind(item: tuple[Future, Frame, int], running: list[tuple[Future, Frame, int]]) -> bool:
-    """Whether an older frame of `item`'s camera is still in inference: `item` is published after it."""
+    """Whether an older frame of `item`'s camera is still running, in inference or done and not yet published:
+    `item` is published after it. (Done or not: one that finished a moment ago is published first, being older.)"""
     frame = item[1]
-    return any(f.camera == frame.camera and f.t_capture_ns < frame.t_capture_ns and not fut.done()
-               for fut, f, _ in running)
+    return any(f.camera == frame.camera and f.t_capture_ns < frame.t_capture_ns for _, f, _ in running)
 
 
 def newest_per_camera(waiting: list[tuple[int, Frame]], ring: int) -> list[tuple[int, Frame]]:
