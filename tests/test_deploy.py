@@ -331,24 +331,30 @@ def test_common_parts_come_from_an_extension_anchor():
     assert len(re.findall(r"<<: \*roadside-service", text)) == len(SERVICES) + 2  # and the metrics and counts
 
 
-def test_the_metrics_serve_the_sites_services_through_the_router_on_a_published_port(monkeypatch):
-    """The metrics service asks the site of the mounted site.yaml through the router's socket (its compose
-    environment, as the four services'), serves every interface inside its container on the published port, and its
-    healthcheck scrapes that port."""
+def _parsed_in_its_environment(svc: dict, add_jobs, monkeypatch):
+    """A `roadside` service's command line parsed (the example site for /site) with its compose environment set
+    and nothing else of ROADSIDE_'s."""
     import argparse
 
-    from roadside.cli_bus import _bus, _site, add_bus_jobs
-
-    svc = _compose()["services"][METRICS]
-    command = svc["command"]
-    assert command[:2] == ["roadside", "metrics"]
     for key in [k for k in os.environ if k.startswith("ROADSIDE_")]:
         monkeypatch.delenv(key)
     for key, value in _service_env(svc).items():
         monkeypatch.setenv(key, value)
     parser = argparse.ArgumentParser()
-    add_bus_jobs(parser.add_subparsers(dest="job"))
-    args = parser.parse_args([str(EXAMPLE_SITE) if a == SITE_FILE else a for a in command[1:]])
+    add_jobs(parser.add_subparsers(dest="job"))
+    return parser.parse_args([str(EXAMPLE_SITE) if a == SITE_FILE else a for a in svc["command"][1:]])
+
+
+def test_the_metrics_serve_the_sites_services_through_the_router_on_a_published_port(monkeypatch):
+    """The metrics service asks the site of the mounted site.yaml through the router's socket (its compose
+    environment, as the four services'), serves every interface inside its container on the published port, and its
+    healthcheck scrapes that port."""
+
+    from roadside.cli_bus import _bus, _site, add_bus_jobs
+
+    svc = _compose()["services"][METRICS]
+    assert svc["command"][:2] == ["roadside", "metrics"]
+    args = _parsed_in_its_environment(svc, add_bus_jobs, monkeypatch)
     assert (args.host, args.port) == ("0.0.0.0", METRICS_PORT)
     _site(args)
     bus = _bus(args)
@@ -364,7 +370,6 @@ def test_the_counts_append_the_example_sites_junction_to_a_volume_through_the_ro
     """The counts service counts the live tracks of the mounted site's junction through the router's socket and
     appends its CSV to a named volume of its own; its healthcheck reads the age of the file it touches as tracks
     arrive."""
-    import argparse
 
     from roadside.cli import _add_counts
     from roadside.cli_bus import asking_bus
@@ -372,13 +377,7 @@ def test_the_counts_append_the_example_sites_junction_to_a_volume_through_the_ro
     doc = _compose()
     svc = doc["services"][COUNTS]
     assert svc["profiles"] == [COUNTS] and svc["command"][:3] == ["roadside", "counts", "--live"]
-    for key in [k for k in os.environ if k.startswith("ROADSIDE_")]:
-        monkeypatch.delenv(key)
-    for key, value in _service_env(svc).items():
-        monkeypatch.setenv(key, value)
-    parser = argparse.ArgumentParser()
-    _add_counts(parser.add_subparsers(dest="job"))
-    args = parser.parse_args([str(EXAMPLE_SITE) if a == SITE_FILE else a for a in svc["command"][1:]])
+    args = _parsed_in_its_environment(svc, _add_counts, monkeypatch)
     settings = load_settings(args.site)
     assert settings.movements is not None and len(settings.movements.junction().names) >= 3
     bus = asking_bus(settings.bus)

@@ -206,6 +206,13 @@ def test_roadside_play_refuses_missing_files_and_a_bad_pace(tmp_path, capsys):
 # --- on the bus --------------------------------------------------------------------------------------------------
 
 
+def looping_player(path: Path, port_base: int) -> subprocess.Popen:
+    """`roadside play --loop` of a tracks file at 4 x its pace, as its own process on the embedded ports."""
+    return subprocess.Popen([sys.executable, "-m", "roadside", "play", str(path), "--pace", "4", "--loop",
+                             "--port-base", str(port_base)], cwd=REPO, env=service_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+
+
 @pytest.mark.slow
 def test_a_vehicle_reads_a_played_recording_as_it_reads_a_cabinet(tmp_path):
     """`roadside play --loop` as its own process in fuse_track's place: a TrackClient gets the newest message at once
@@ -215,9 +222,7 @@ def test_a_vehicle_reads_a_played_recording_as_it_reads_a_cabinet(tmp_path):
 
     path = recording(tmp_path / "tracks.jsonl", range(20))
     port_base = free_port_base()
-    proc = subprocess.Popen([sys.executable, "-m", "roadside", "play", str(path), "--pace", "4", "--loop",
-                             "--port-base", str(port_base)], cwd=REPO, env=service_env(), stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+    proc = looping_player(path, port_base)
     try:
         with TrackClient("se", bus=_bus(port_base), wait_s=30.0) as client:
             answers: list[Tracks] = []  # fuse_track's query for a vehicle that joins late, once the player has begun
@@ -252,9 +257,7 @@ def test_a_vehicle_asking_for_another_site_is_told_which_sites_the_bus_has(tmp_p
     """`roadside tracks --site` of a site nobody publishes: no silence for ever, but the sites that are there."""
     path = recording(tmp_path / "tracks.jsonl", range(20))
     port_base = free_port_base()
-    proc = subprocess.Popen([sys.executable, "-m", "roadside", "play", str(path), "--pace", "4", "--loop",
-                             "--port-base", str(port_base)], cwd=REPO, env=service_env(), stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+    proc = looping_player(path, port_base)
     try:
         time.sleep(2.0)
         asked = subprocess.run([sys.executable, "-m", "roadside", "tracks", "--site", "elm", "--port-base",
