@@ -3,9 +3,12 @@
 Starts fuse_track, localize, detect, then ingest (`python -m services.<name> --site ... --set ...`),
 each with its own process group. A service that dies is restarted after `restart_delay_s` (like
 compose's `restart: unless-stopped`), the delay doubling (up to `max_restart_delay_s`) while it keeps dying
-within `stable_s` of its start, so that one that cannot run does not spin; ingest finishing its source (exit 0)
-ends the run: the others get `drain_s` to finish the frames in flight, then SIGTERM. Ctrl-C, SIGTERM or SIGHUP
-(a closed terminal) stops everything cleanly (SIGTERM, then SIGKILL after `stop_timeout_s`).
+within `stable_s` of its start, so that one that cannot run does not spin; the others are watched (and restarted)
+meanwhile. A configuration error (exit 2) ends the run, its reason shown from the service's log. Ingest finishing
+its source (exit 0; told to stop, it exits 143) ends the run: the others get `drain_s` to finish the frames in
+flight, then SIGTERM. Ctrl-C, SIGTERM or SIGHUP (a closed terminal) stops everything cleanly (SIGTERM, then SIGKILL
+after `stop_timeout_s`); on Linux the services are also told to stop (SIGTERM) when the launcher itself dies
+without that (SIGKILL, the OOM killer), rather than left holding the bus's ports.
 """
 
 from __future__ import annotations
@@ -19,6 +22,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 ORDER = ("fuse_track", "localize", "detect", "ingest")
+PR_SET_PDEATHSIG = 1  # prctl(2): the signal a child gets when its parent dies
+
+
+def _stop_with_parent() -> None:  # runs in the child between fork and exec
+    """Linux: this process gets SIGTERM when the launcher dies, however it dies."""
+    import ctypes
+
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    except (OSError, AttributeError):  # not Linux: nothing to do
+        pass
 
 
 @dataclass
@@ -78,7 +92,8 @@ class Launcher:
             err = open(self.cfg.log_dir / f"{service}.log", "a")
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         try:
-            proc = subprocess.Popen(self.command(service), stdout=err, stderr=err, env=env, start_new_session=True)
+            proc = subprocess.Popen(self.command(service), stdout=err, stderr=err, env=env, start_new_session=True,
+                                    preexec_fn=_stop_with_parent if sys.platform == "linux" else None)
         finally:
             if err is not None:
                 err.close()  # the child has its own copy; the parent would leak one per (re)start
@@ -95,10 +110,15 @@ class Launcher:
         return min(self.cfg.restart_delay_s * 2 ** max(self.quick_failures[service] - 1, 0),
                    self.cfg.max_restart_delay_s)
 
-    def wait_unless_stopping(self, seconds: float) -> None:
-        end = time.monotonic() + seconds
-        while not self.stopping and time.monotonic() < end:
-            time.sleep(min(0.1, max(end - time.monotonic(), 0)))
+    def last_log_line(self, service: str) -> str | None:
+        """The last line of the service's log (with `log_dir`): the reason it gave for a configuration error."""
+        if self.cfg.log_dir is None:
+            return None
+        try:
+            lines = (self.cfg.log_dir / f"{service}.log").read_text(errors="replace").strip().splitlines()
+        except OSError:
+            return None
+        return lines[-1] if lines else None
 
     def stop(self, service: str) -> int | None:
         proc = self.procs.get(service)
@@ -128,6 +148,7 @@ class Launcher:
         # sessions) running and holding the bus ports
         old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
         status = 0
+        due: dict[str, float] = {}  # services that died: when each is started again
         try:
             for s in self.cfg.services:
                 self.start(s)
@@ -135,9 +156,14 @@ class Launcher:
             while not self.stopping:
                 time.sleep(0.2)
                 self.sample_memory()
+                for s in [s for s, t in due.items() if t <= time.monotonic()]:
+                    del due[s]
+                    self.restarts[s] += 1
+                    self.start(s)
+                    log(f"[up] restarted {s} (pid {self.procs[s].pid}, restart {self.restarts[s]})")
                 for s, proc in list(self.procs.items()):
                     rc = proc.poll()
-                    if rc is None:
+                    if rc is None or s in due:
                         continue
                     if s == "ingest" and rc == 0:
                         log(f"[up] ingest finished its source; draining {self.cfg.drain_s:g} s")
@@ -147,18 +173,16 @@ class Launcher:
                     log(f"[up] {s} exited with status {rc}")
                     if not self.cfg.restart or rc == 2:
                         # status 2: a configuration error (missing model, masks, source); restarting will not help
+                        reason = self.last_log_line(s) if rc == 2 else None
+                        if reason:
+                            log(f"[up] {s}: a configuration error, not restarted: {reason}")
                         status = rc or 1
                         self.stopping = True
                         break
                     delay = self.restart_delay(s)
                     if delay > self.cfg.restart_delay_s:
                         log(f"[up] {s} keeps dying soon after it starts: next start in {delay:g} s")
-                    self.wait_unless_stopping(delay)
-                    if self.stopping:  # Ctrl-C during the wait: no new process to kill at once
-                        break
-                    self.restarts[s] += 1
-                    self.start(s)
-                    log(f"[up] restarted {s} (pid {self.procs[s].pid}, restart {self.restarts[s]})")
+                    due[s] = time.monotonic() + delay  # the others are watched meanwhile
         finally:
             self.stop_all()
             for s, h in old.items():

@@ -242,14 +242,16 @@ def declare_alive(session: zenoh.Session, site: str, service: str, instances: It
     return [session.liveliness().declare_token(alive_key(site, service, i)) for i in instances]
 
 
-def wait_for_peers(session: zenoh.Session, key: str, want: int, timeout_s: float) -> int:
-    """Wait until `want` distinct liveliness tokens match `key` (or the timeout); returns how many were seen.
+def wait_for_peers(session: zenoh.Session, key: str, want: int, timeout_s: float,
+                   stopper: Stopper | None = None) -> int:
+    """Wait until `want` distinct liveliness tokens match `key` (or the timeout, or `stopper` set: a service told to
+    stop while it waits stops at once); returns how many were seen.
 
     Distinct keys: a session in client mode gets its own tokens twice (its own and the router's answer), so a plain
     count let ingest at the cabinet start before the last services were ready."""
     deadline = time.monotonic() + timeout_s
     seen = 0
-    while time.monotonic() < deadline:
+    while time.monotonic() < deadline and not (stopper is not None and stopper.is_set()):
         seen = len({str(r.ok.key_expr) for r in session.liveliness().get(key, timeout=1.0) if r.ok is not None})
         if seen >= want:
             break

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import shutil
 import signal
@@ -1335,10 +1336,90 @@ def test_a_service_that_keeps_dying_is_restarted_ever_more_slowly(tmp_path):
     assert [launcher.restart_delay("detect") for _ in range(5)] == [1.0, 2.0, 4.0, 5.0, 5.0]
     launcher.started_at["detect"] = time.monotonic() - 60  # it ran a minute before it died
     assert launcher.restart_delay("detect") == 1.0
-    launcher.stopping = True
-    t0 = time.monotonic()
-    launcher.wait_unless_stopping(30.0)
-    assert time.monotonic() - t0 < 1.0
+
+
+FAKE_SERVICES = '''
+import sys, time
+from pathlib import Path
+from roadside.launcher import Launcher, UpConfig
+
+class Fake(Launcher):  # stand-ins for the services: detect dies at once, the others run until stopped
+    def command(self, service):
+        code = {"detect": "import sys; sys.exit(1)",
+                "localize": "import sys; print('localize: error: lookup masks not found: m.npz', file=sys.stderr); "
+                            "sys.exit(2)"}.get(service, "import time; time.sleep(120)")
+        return [sys.executable, "-c", code]
+'''
+
+
+def _fake_launcher(tmp_path, **cfg):
+    (tmp_path / "site.yaml").write_text("site: x\n")
+    scope: dict = {}
+    exec(FAKE_SERVICES, scope)  # the stand-ins, shared with the launcher run in a process of its own below
+    return scope["Fake"](scope["UpConfig"](site=tmp_path, **cfg))
+
+
+def test_a_service_waiting_to_be_restarted_does_not_hold_up_the_others(tmp_path):
+    """detect keeps dying (its next start ever later); fuse_track killed meanwhile is restarted at once."""
+    import threading
+
+    launcher = _fake_launcher(tmp_path, restart_delay_s=0.2, max_restart_delay_s=30.0, stable_s=10.0,
+                              services=("fuse_track", "detect"))
+    lines: list[str] = []
+    seen: dict[str, float] = {}
+
+    def kill_fuse_track_while_detect_waits() -> None:
+        try:
+            assert wait_until(lambda: any("next start in 3.2 s" in line for line in lines), 30)
+            os.kill(launcher.procs["fuse_track"].pid, signal.SIGKILL)
+            t0 = time.monotonic()
+            if wait_until(lambda: any("restarted fuse_track" in line for line in lines), 10):
+                seen["restart_s"] = time.monotonic() - t0
+        finally:
+            launcher.stopping = True
+
+    helper = threading.Thread(target=kill_fuse_track_while_detect_waits)
+    helper.start()
+    assert launcher.run(log=lines.append) == 0
+    helper.join()
+    assert seen.get("restart_s", 99) < 2.5, lines  # within its own 0.2 s delay, not after detect's 3.2 s
+
+
+def test_a_configuration_error_ends_the_run_with_its_reason(tmp_path):
+    launcher = _fake_launcher(tmp_path, services=("fuse_track", "localize"), log_dir=tmp_path / "logs")
+    lines: list[str] = []
+    assert launcher.run(log=lines.append) == 2
+    assert "[up] localize: a configuration error, not restarted: localize: error: lookup masks not found: m.npz" \
+        in lines, lines
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="PR_SET_PDEATHSIG is Linux's")
+def test_the_services_stop_when_the_launcher_is_killed(tmp_path):
+    """SIGKILL (the OOM killer) gives the launcher no chance to stop its services: they are told by the kernel."""
+    import subprocess
+
+    (tmp_path / "site.yaml").write_text("site: x\n")
+    script = FAKE_SERVICES + f'''
+launcher = Fake(UpConfig(site=Path({str(tmp_path)!r}), services=("fuse_track",)))
+launcher.run(log=lambda line: print(line, flush=True))
+'''
+    proc = subprocess.Popen([sys.executable, "-c", script], cwd=REPO, stdout=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()  # [up] started fuse_track (pid N)
+        child = int(line.split("pid ")[1].rstrip(")\n"))
+        os.kill(child, 0)  # running
+        proc.kill()
+        proc.wait(10)
+
+        def gone() -> bool:  # no such process, or a zombie its new parent has not reaped yet
+            try:
+                return Path(f"/proc/{child}/stat").read_text().split(") ")[1][0] == "Z"
+            except (FileNotFoundError, IndexError):
+                return True
+
+        assert wait_until(gone, 10), f"service {child} outlived its launcher"
+    finally:
+        proc.kill()
 
 
 def test_paths_given_to_roadside_up_are_not_read_as_yaml(tmp_path, monkeypatch):

@@ -166,3 +166,25 @@ def test_a_recording_without_frames_for_a_camera_is_named(tmp_path, small_record
         f.unlink()
     with pytest.raises(ValueError, match=f"has no frames for camera {camera}"):
         RecordingSource(copy)
+
+
+def test_a_restarted_ingest_goes_on_after_the_tracks_fuse_track_holds(tmp_path):
+    """The latest tracks' capture time inside the files' own times: resumed after it; outside them (another
+    recording), nothing answering, or a source without files: from the start."""
+    from types import SimpleNamespace
+
+    from test_movements import tracks_message
+
+    from services.ingest.__main__ import resume_point
+    from shared.codec import encode
+
+    def session(*t_ns):
+        replies = [SimpleNamespace(ok=SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda t=t: encode(
+            tracks_message(t, []))))) for t in t_ns]
+        return SimpleNamespace(get=lambda key, timeout: iter(replies))
+
+    files = SimpleNamespace(items=[(100, "NE", "a"), (200, "NE", "b"), (300, "NE", "c")])
+    assert resume_point(session(250), "se", files) == 250
+    assert resume_point(session(50), "se", files) is None and resume_point(session(300), "se", files) is None
+    assert resume_point(session(), "se", files) is None
+    assert resume_point(session(250), "se", SimpleNamespace()) is None  # a stream: no files to skip

@@ -20,16 +20,18 @@ import numpy as np
 
 from services.ingest.sources import SourceFrame, open_source
 from shared.bus import BadInput, Receiver, Stopper, declare_alive, open_session, wait_for_peers
-from shared.codec import encode
+from shared.codec import DecodeError, decode, encode
 from shared.jpeg import decode_grey, jpeg_size
-from shared.keys import all_alive_key, all_cameras_key, camera_key
-from shared.messages import Detections, Frame
+from shared.keys import all_alive_key, all_cameras_key, camera_key, latest_tracks_key
+from shared.messages import Detections, Frame, Tracks
 from shared.service import run
 from shared.settings import CameraSettings, Settings
 from shared.status import StatusReporter
 
 log = logging.getLogger("roadside.ingest")
 PIPELINE_WAIT_S = 60.0
+RESUME_ASK_S = 1.0  # how long a starting ingest waits for fuse_track's latest tracks
+STOPPED = 128 + 15  # the exit status of an ingest told to stop (SIGTERM, Ctrl-C) before its source ended
 REDUCED = {1: cv2.IMREAD_GRAYSCALE, 2: cv2.IMREAD_REDUCED_GRAYSCALE_2, 4: cv2.IMREAD_REDUCED_GRAYSCALE_4}
 
 
@@ -126,6 +128,25 @@ class Acks:
         self.pending[(camera, seq)] = time.monotonic()
 
 
+def resume_point(session, site: str, source) -> int | None:
+    """Where a restarted ingest playing recorded files (a recording, image folders) goes on: the capture time of the
+    newest tracks fuse_track holds (its latest-tracks query), when that lies within the files' own times; None
+    otherwise (a first start, a live or video source, another recording), when it plays from the start. Without
+    it a restart would play the files from their start again, every frame late for fuse_track's closed ticks."""
+    items = getattr(source, "items", None)
+    if not items:
+        return None
+    for reply in session.get(latest_tracks_key(site), timeout=RESUME_ASK_S):
+        if reply.ok is None:
+            continue
+        try:
+            t = decode(reply.ok.payload.to_bytes(), Tracks).t_capture_ns
+        except DecodeError:
+            return None
+        return t if items[0][0] <= t < items[-1][0] else None
+    return None
+
+
 def main(settings: Settings, stopper: Stopper) -> int:
     cfg = settings.ingest
     cams = {c.name: c for c in settings.cameras}
@@ -146,11 +167,14 @@ def main(settings: Settings, stopper: Stopper) -> int:
         tokens = declare_alive(session, settings.site, "ingest", list(cams))
         status = StatusReporter(session, settings.site, "ingest", bad, settings.bus.status_period_s)
         seen = wait_for_peers(session, all_alive_key(settings.site), len(cams) * 3 + 1 + cfg.wait_extra_peers,
-                              PIPELINE_WAIT_S)
+                              PIPELINE_WAIT_S, stopper)
         log.info("source %s, %d cameras, pace %s; %d liveliness tokens on the bus", cfg.source, len(cams),
                  cfg.pace, seen)
         scales = {c: decode_scale_for(cam.width, cam.height, cfg.decode_long_side) for c, cam in cams.items()}
         log.info("decoded at 1/n of full size, n per camera: %s", scales)
+        resume_ns = resume_point(session, settings.site, source)
+        if resume_ns is not None:
+            log.info("fuse_track's tracks reach %d: resuming the files after it", resume_ns)
         pacer = Pacer(cfg.pace, stopper)
         seq = dict.fromkeys(cams, 0)
         published = 0
@@ -167,6 +191,8 @@ def main(settings: Settings, stopper: Stopper) -> int:
                         break
                     continue
                 t = sf.t_capture_ns + offset_ns
+                if resume_ns is not None and loop_idx == 0 and t <= resume_ns:
+                    continue  # played before this restart: fuse_track has closed its tick
                 first = t if first is None else first
                 last = t
                 pacer.wait(t)
@@ -204,7 +230,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
         del tokens
     finally:
         session.close()
-    return 0
+    return STOPPED if stopper.is_set() else 0  # 0: the source ended (`roadside up` ends the run), else told to stop
 
 
 if __name__ == "__main__":
