@@ -93,7 +93,8 @@ def set_shared_memory(conf, enabled: bool) -> None:
 def ports_in_use(bus: BusSettings, wait_s: float = 0.0) -> list[str]:
     """Peer mode: the services' endpoints on this machine that something already listens on ("localize
     tcp/127.0.0.1:7453"), after waiting up to `wait_s` for them to be freed (a pipeline that is stopping). A port
-    in TIME_WAIT is free, as it is to Zenoh, which reuses addresses; client mode listens nowhere: []."""
+    in TIME_WAIT is free, as it is to Zenoh, which reuses addresses; client mode listens nowhere: []. ValueError
+    for a `bus.host` that is no address of this machine."""
     if bus.mode != "peer":
         return []
     deadline = time.monotonic() + wait_s
@@ -106,7 +107,10 @@ def ports_in_use(bus: BusSettings, wait_s: float = 0.0) -> list[str]:
                 try:
                     s.bind((bus.host, port))
                 except OSError as exc:
-                    if exc.errno == errno.EADDRINUSE:  # other errors (a host not of this machine): the service says
+                    if exc.errno == errno.EADDRNOTAVAIL:  # no restart would mend it
+                        raise ValueError(f"bus.host {bus.host} is not an address of this machine: the services "
+                                         "cannot listen there (127.0.0.1 for one machine)") from None
+                    if exc.errno == errno.EADDRINUSE:  # other errors: the service says
                         busy.append(f"{service} {bus.service_endpoint(service)}")
         if not busy or time.monotonic() >= deadline:
             return busy

@@ -1265,6 +1265,9 @@ def test_roadside_up_refuses_a_bus_whose_ports_another_pipeline_holds(site, port
         assert main(["up", "--site", str(site), "--set", f"bus.port_base={port_base}", "--no-restart"]) == 2
     err = capsys.readouterr().err
     assert f"the bus's ports are in use: localize tcp/127.0.0.1:{port_base + 2}; is another pipeline running" in err
+    # a host that is no address of this machine: every service would die on it and be restarted for ever
+    assert main(["up", "--site", str(site), "--set", f"bus.port_base={port_base}", "--set", "bus.host=192.0.2.7"]) == 2
+    assert "bus.host 192.0.2.7 is not an address of this machine" in capsys.readouterr().err
 
 
 @pytest.mark.slow
