@@ -21,6 +21,8 @@ import numpy as np
 from shared.geo import GeoFrame
 
 FAR_FROM_OTHERS_M = 2000.0
+MIN_SPREAD_M = 2.0  # landmarks narrower than this (the standard deviation across their spread) fix no camera
+MIN_SPREAD_PX = 10.0
 
 
 @dataclass(frozen=True)
@@ -165,14 +167,21 @@ def validate_landmarks(
         d = float(np.hypot(*p))
         if d > FAR_FROM_OTHERS_M:
             raise ValueError(f"landmark {lid!r} is {d / 1000:.1f} km from the others (a typo or swapped lat/lon?)")
-    _check_spread(lm.ids, xy, "map")
-    _check_spread(lm.ids, lm.uv, "image")
+    _check_spread(lm.ids, xy, "map", MIN_SPREAD_M, "m")
+    _check_spread(lm.ids, lm.uv, "image", MIN_SPREAD_PX, "px")
 
 
-def _check_spread(ids: tuple[str, ...], pts: np.ndarray, where: str) -> None:
+def _check_spread(ids: tuple[str, ...], pts: np.ndarray, where: str, least: float, unit: str) -> None:
     centred = pts - pts.mean(axis=0)
     sv = np.linalg.svd(centred, compute_uv=False)
     if sv[0] == 0 or sv[1] / sv[0] < 0.02:
         raise ValueError(
             f"landmarks {', '.join(ids)} are (nearly) collinear in the {where}: they cannot fix a homography"
         )
+    spread = float(np.sqrt(sv[1] ** 2 / len(pts)))  # the narrower way's standard deviation
+    if spread < least:
+        raise ValueError(f"landmarks {', '.join(ids)} lie within {spread:.2g} {unit} of each other across their "
+                         f"narrower spread in the {where} (at least {least:g} {unit}): bunched at one spot, they "
+                         "cannot fix the camera; spread them over the ground it sees"
+                         + (" (or latitude and longitude swapped: they squeeze the map one way)" if unit == "m"
+                            else ""))

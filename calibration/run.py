@@ -17,6 +17,8 @@ from calibration.report import build_report, plot_residuals, summary_text
 from calibration.site_ground import calibrate_site
 from shared.geo import GeoFrame
 
+MIN_CAMERA_HEIGHT_M = 1.0  # a fit that puts the camera lower above its ground is a wrong file, not a camera
+
 
 @dataclass(frozen=True)
 class CalibrateJob:
@@ -79,14 +81,35 @@ def _near_landmarks(what: str, lat: float, lon: float, lm) -> None:
 
 
 def _writable_file(what: str, path: Path | None) -> None:
-    if path is not None and path.is_dir():
+    """ValueError, before the fit, for an output that cannot be written: a folder, or a file on the way to it."""
+    if path is None:
+        return
+    if path.is_dir():
         raise ValueError(f"{what} {path} is a folder, not a file")
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise ValueError(f"{what} {path}: {parent} is a file, not a folder")
+            break
+
+
+def camera_height_m(cal) -> float:
+    """How high the fitted camera is above the ground it lifts pixels onto, at its foot."""
+    pos = cal.camera.pose.position_m
+    if cal.ground is not None:
+        return float(pos[2] - cal.ground.height(pos[None, :2])[0])
+    return float(pos[2] - np.median(cal.planes[:, 0] * pos[0] + cal.planes[:, 1] * pos[1] + cal.planes[:, 2]))
 
 
 def run_calibration(job: CalibrateJob) -> dict:
     """Fit, then write the masks, the report and the plot; every input is checked before anything is written."""
     lm, header = load_landmarks(job.landmarks)
     _same_kind(job.landmarks, header, job.kind, "--kind ")
+    for flag, given, declared in (("--width", job.width, header.get("width")),
+                                  ("--height", job.height, header.get("height"))):
+        if given and declared and int(given) != int(declared):
+            raise ValueError(f"{flag} {given} but {job.landmarks} says its pixels are of a {header.get('width')}x"
+                             f"{header.get('height')} image: give the size the landmarks were clicked on")
     width = job.width or header.get("width")
     height = job.height or header.get("height")
     if not width or not height:
@@ -107,6 +130,11 @@ def run_calibration(job: CalibrateJob) -> dict:
     report_path = job.report or job.out.with_suffix(".report.json")
     for what, path in (("--out", job.out), ("--report", report_path), ("--plot", job.plot)):
         _writable_file(what, path)
+    if job.plot is not None:
+        import cv2
+
+        if not cv2.haveImageWriter(str(job.plot)):
+            raise ValueError(f"--plot {job.plot}: not an image file name OpenCV can write (.png or .jpg)")
     image = None
     if job.plot and job.image:
         import cv2
@@ -129,6 +157,11 @@ def run_calibration(job: CalibrateJob) -> dict:
     else:
         cal = calibrate(lm, cfg, geo)
     t_fit = time.perf_counter() - t0
+    height = camera_height_m(cal)
+    if height < MIN_CAMERA_HEIGHT_M:
+        raise ValueError(f"the fit puts the camera {height:.1f} m above the ground it sees, under it or on it: "
+                         "pixels mirrored (u counted from the right), u and v swapped, or the landmarks of another "
+                         "camera? A roadside camera looks down from a pole")
     if len(cal.rejected) >= 3 and 3 * len(cal.rejected) > len(lm):  # a third: not a few slips, a wrong file
         raise ValueError(f"{len(cal.rejected)} of {len(lm)} landmarks disagree with the rest beyond what clicking and "
                          f"map errors explain: latitude and longitude swapped, pixels from another camera or image "
@@ -163,5 +196,6 @@ def run_calibration(job: CalibrateJob) -> dict:
     report["report"] = str(report_path)
     report["summary"] = summary_text(report)
     if job.plot:
+        job.plot.parent.mkdir(parents=True, exist_ok=True)
         plot_residuals(cal, lm, image, str(job.plot))
     return report

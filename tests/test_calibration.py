@@ -323,9 +323,22 @@ def test_calibrate_checks_every_input_before_it_writes(tmp_path):
         ({"report": tmp_path / "folder"}, "--report .* is a folder"),
         ({"plot": tmp_path / "p.png", "image": tmp_path / "missing.png"}, "cannot read image"),
         ({"fov_deg": -5.0}, "fov_deg must be a field of view between 0 and 360"),
+        ({"width": 1920}, "--width 1920 but .*lm.json says its pixels are of a 1280x960 image"),
+        ({"plot": tmp_path / "p.pdf"}, r"--plot .*p\.pdf: not an image file name OpenCV can write"),
+        ({"out": tmp_path / "masks.npz" / "x.npz"}, r"--out .*: .*masks\.npz is a file, not a folder"),
     ]:
         with pytest.raises(ValueError, match=message):
             run_calibration(dataclasses.replace(job, **change))
+    # the image mirrored (u counted from the right): the fit puts the camera under the ground, refused
+    mirrored = [{**r, "u": 1279.0 - r["u"]} for r in rows]
+    path.write_text(json.dumps({"kind": "fisheye", "width": 1280, "height": 960, "landmarks": mirrored}))
+    with pytest.raises(ValueError, match="above the ground it sees, under it or on it: pixels mirrored"):
+        run_calibration(job)
+    bunched = [{**r, "lat": rows[0]["lat"] + 1e-6 * k, "lon": rows[0]["lon"] - 2e-6 * (k % 3)}
+               for k, r in enumerate(rows)]
+    path.write_text(json.dumps({"kind": "fisheye", "width": 1280, "height": 960, "landmarks": bunched}))
+    with pytest.raises(ValueError, match="bunched at one spot"):
+        run_calibration(job)
     swapped = [{**r, "lat": r["lon"], "lon": r["lat"]} for r in rows]  # in range, and still close together
     path.write_text(json.dumps({"kind": "fisheye", "width": 1280, "height": 960, "landmarks": swapped}))
     with pytest.raises(ValueError, match="latitude and longitude swapped"):
