@@ -7,7 +7,9 @@ Playback pace: `1` real time, `N` N x real time, `max` as fast as the pipeline t
 never more of one camera than detect's ring keeps; an acknowledgement that does not come within
 `ingest.ack_timeout_s` is given up, so a detect restart does not stall playback). With `loop`, the source
 repeats with capture times shifted so event time keeps increasing. A frame that cannot be decoded
-(corrupt JPEG) is counted, logged and skipped. Exits 0 when the source ends.
+(corrupt JPEG) is counted, logged and skipped. Exits 0 when the source ends, 143 when told to stop before (SIGTERM,
+Ctrl-C). Started again while fuse_track runs (a restart), it goes on from fuse_track's latest tracks in recorded
+files rather than from their start (`resume_point`).
 """
 
 from __future__ import annotations
