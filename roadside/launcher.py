@@ -25,14 +25,25 @@ ORDER = ("fuse_track", "localize", "detect", "ingest")
 PR_SET_PDEATHSIG = 1  # prctl(2): the signal a child gets when its parent dies
 
 
-def _stop_with_parent() -> None:  # runs in the child between fork and exec
-    """Linux: this process gets SIGTERM when the launcher dies, however it dies."""
+def _libc_prctl():
+    """libc's prctl, looked up here in the launcher: the child between fork and exec must import nothing (another
+    thread of the launcher, Zenoh's in `roadside demo`, may hold the import lock at the fork)."""
+    if sys.platform != "linux":
+        return None
     import ctypes
 
     try:
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
-    except (OSError, AttributeError):  # not Linux: nothing to do
-        pass
+        return ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+
+
+_PRCTL = _libc_prctl()
+
+
+def _stop_with_parent() -> None:  # runs in the child between fork and exec
+    """Linux: this process gets SIGTERM when the launcher dies, however it dies."""
+    _PRCTL(PR_SET_PDEATHSIG, int(signal.SIGTERM))
 
 
 @dataclass
@@ -93,7 +104,7 @@ class Launcher:
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         try:
             proc = subprocess.Popen(self.command(service), stdout=err, stderr=err, env=env, start_new_session=True,
-                                    preexec_fn=_stop_with_parent if sys.platform == "linux" else None)
+                                    preexec_fn=_stop_with_parent if _PRCTL is not None else None)
         finally:
             if err is not None:
                 err.close()  # the child has its own copy; the parent would leak one per (re)start
