@@ -174,6 +174,12 @@ def listen(site: str, connect: str, count: int, timeout_s: float, wait_s: float,
         for reply in session.get(f"roadside/{site}/tracks/latest", timeout=2.0):
             if reply.ok is not None:
                 show(reply.ok.payload.to_bytes())
+        if not printed:  # no tracks of this site: which sites are on the bus? (their services' liveliness tokens)
+            sites = {str(r.ok.key_expr).split("/")[1] for r in session.liveliness().get("roadside/*/alive/**",
+                                                                                         timeout=1.0) if r.ok}
+            if sites - {site}:
+                print(f"no tracks of site {site} on this bus; it has {', '.join(sorted(sites - {site}))} (--site)",
+                      file=sys.stderr, flush=True)
         quiet_since = time.monotonic()
         while not (count and printed >= count):
             sample = subscriber.try_recv()

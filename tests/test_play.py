@@ -263,8 +263,13 @@ def test_a_vehicle_asking_for_another_site_is_told_which_sites_the_bus_has(tmp_p
         asked = subprocess.run([sys.executable, "-m", "roadside", "tracks", "--site", "elm", "--port-base",
                                 str(port_base), "--timeout", "2", "--wait", "20"], cwd=REPO, env=service_env(),
                                capture_output=True, text=True, timeout=120)
+        listener = subprocess.run([sys.executable, str(REPO / "examples" / "vehicle_listener.py"), "--site", "elm",
+                                   "--connect", f"tcp/127.0.0.1:{port_base + 3}", "--timeout", "2"], cwd=REPO,
+                                  env=service_env(), capture_output=True, text=True, timeout=120)
     finally:
         proc.send_signal(signal.SIGTERM)
         proc.communicate(timeout=30)
     assert asked.returncode == 1 and asked.stdout == ""
     assert "no tracks of site elm on this bus; it has site se (--site)" in asked.stderr, asked.stderr
+    assert listener.stdout == "" and "no tracks of site elm on this bus; it has se (--site)" in listener.stderr, \
+        listener.stderr
