@@ -20,7 +20,8 @@ def test_hops_add_up_to_end_to_end_and_overhead_leaves_out_detector_wait_and_rin
     r = latency([obj], [tr])
     assert r["frames"] == 1
     assert r["end_to_end_p50"] == 62.0 and r["detector_p50"] == 30.0 and r["tick_wait_p50"] == 12.0
-    assert r["overhead_p50"] == 20.0  # 62 - 30 - 12: ring wait 10, decode/resize 5, localize 2, transport 1, track 2
+    assert r["overhead_p50"] == 32.0  # 62 - 30: everything but the inference
+    assert r["overhead_without_tick_wait_p50"] == 20.0  # 62 - 30 - 12: ring 10, decode 5, localize 2, hop 1, track 2
     assert r["overhead_without_queue_p50"] == 10.0
     assert r["hops_p50"] == dict(zip(HOPS, (10.0, 35.0, 2.0, 1.0, 12.0, 2.0), strict=True))
     assert sum(r["hops_p50"].values()) == pytest.approx(r["end_to_end_p50"])
@@ -50,6 +51,7 @@ def test_summary_table_renders_a_summary():
     from roadside.demo import summary_table
 
     lat = {k: 1.0 for k in ("end_to_end_p50", "end_to_end_p99", "detector_p50", "overhead_p50", "overhead_p99",
+                            "overhead_without_tick_wait_p50", "overhead_without_tick_wait_p99",
                             "overhead_without_queue_p50", "overhead_without_queue_p99", "tick_wait_p50",
                             "tick_wait_p99")}
     s = {"mota": 0.7, "idf1": 0.7, "id_switches": 4, "traj_err_in_roi_m": 0.5, "traj_err_best_single_camera_m": 0.4,
