@@ -188,6 +188,7 @@ def _count(acc: dict, d_xy: np.ndarray, l_xy: np.ndarray, foot: np.ndarray, d_co
                 continue
             if l_in[c]:
                 acc["tp"] += 1
+                acc["n_det"] += int(not d_in[r])  # a hit on a vehicle inside from just outside: a detection too
                 acc["errors"].append(cost[r, c])
                 if d_cov is not None and np.isfinite(d_cov[r]).all():
                     e = d_xy[r] - l_xy[c]

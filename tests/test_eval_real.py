@@ -80,6 +80,17 @@ def test_counts_hits_misses_false_alarms_and_the_band_outside_the_roi(tmp_path):
     assert r["overall"]["true_positives"] == 1
 
 
+def test_a_hit_from_just_outside_the_roi_on_a_vehicle_inside_counts_as_a_detection():
+    """A label at 24.6 m matched by a detection at 25.4 m: one true positive of one detection, precision 1, never
+    more (it used to be a true positive of no detection)."""
+    from eval.real import ROI_M, _count
+
+    assert ROI_M == 25.0
+    acc = {"tp": 0, "n_det": 0, "n_lab": 0, "errors": []}
+    _count(acc, np.array([[25.4, 0.0], [0.0, 10.0]]), np.array([[24.6, 0.0], [0.0, 10.2]]), np.zeros(2))
+    assert (acc["tp"], acc["n_det"], acc["n_lab"]) == (2, 2, 2)
+
+
 def test_the_curve_scores_every_threshold_from_one_detector_pass(tmp_path):
     site, footage = _site(tmp_path)
     _labels(site, {"2023-12-19 11-00-41-000000.jpg": [[200, 120]], "2023-12-19 11-00-43-000000.jpg": [[160, 140]]})

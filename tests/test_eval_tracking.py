@@ -342,7 +342,10 @@ def test_positions_beyond_the_gate_are_misses_and_false_positives(gt):
     r = evaluate_tracks(gt, make_rows(offset=lambda v, k: 2.0 * NORMAL[v] if v == 3 else 0.0))
     assert r["num_misses"] == N_FRAMES and r["num_false_positives"] == N_FRAMES
     assert r["mota"] == pytest.approx(0.5)
-    assert r["traj_err_in_roi_m"] == pytest.approx(0.0, abs=2e-3)  # only matched positions count
+    assert r["traj_err_in_roi_matched_m"] == pytest.approx(0.0, abs=2e-3)  # the matched positions: on their paths
+    # every position in the ROI counts in the trajectory error: vehicle 3's track, 2 m off its path, too
+    n, matched = r["traj_err_in_roi_n"], r["traj_err_in_roi_matched_n"]
+    assert n - matched == N_FRAMES and 0.1 < r["traj_err_in_roi_m"] <= 2.0 * N_FRAMES / n + 2e-3  # its nearest path
 
 
 def test_tracks_on_unscored_vehicles_or_outside_the_area_are_ignored(gt):
