@@ -293,10 +293,13 @@ class GroundTruth:
         return out
 
     def gt_objects(self, t_ns: int, cameras: Sequence[str], config: TrackingEvalConfig,
-                   positions: Mapping[Any, np.ndarray] | None = None) -> dict[Any, np.ndarray]:
-        """The GT objects at t_ns (see the module docstring) -> their bottom centres (3,)."""
+                   positions: Mapping[Any, np.ndarray] | None = None,
+                   seen_by: Sequence[str] | None = None) -> dict[Any, np.ndarray]:
+        """The GT objects at t_ns (see the module docstring) -> their bottom centres (3,): in the area of `cameras`,
+        seen by one of them (or of `seen_by`: a camera tracked alone is charged for every vehicle of its area that
+        any camera sees, as the fused tracks are)."""
         pos = self.positions_at(t_ns, config) if positions is None else positions
-        ids = [v for v in self.seen_by(t_ns, cameras, config) if v in pos]
+        ids = [v for v in self.seen_by(t_ns, seen_by or cameras, config) if v in pos]
         if not ids:
             return {}
         inside = self.in_area(np.array([pos[v][:2] for v in ids]), cameras, config)

@@ -227,8 +227,9 @@ class MatchResult:
 
 
 def match_tracks(ground_truth: GroundTruth, tracks: str | Path | Iterable, cameras: str | Sequence[str] | None = None,
-                 config: TrackingEvalConfig | None = None) -> MatchResult:
-    """Match the tracks to the GT objects of `cameras`, tick by tick (motmetrics accumulator + per-tick matches)."""
+                 config: TrackingEvalConfig | None = None, seen_by: Sequence[str] | None = None) -> MatchResult:
+    """Match the tracks to the GT objects of `cameras` (seen by one of `seen_by`, default `cameras`), tick by tick
+    (motmetrics accumulator + per-tick matches)."""
     cfg = config or TrackingEvalConfig()
     gt = ground_truth
     cams = gt.check_cameras(cameras)
@@ -254,7 +255,7 @@ def match_tracks(ground_truth: GroundTruth, tracks: str | Path | Iterable, camer
     hyp_index: dict[tuple[str, int], int] = {}
     for frame_id, (t, line) in enumerate(ticks):
         pos = gt.positions_at(t, cfg)
-        objs = gt.gt_objects(t, cams, cfg, pos)
+        objs = gt.gt_objects(t, cams, cfg, pos, seen_by)
         gids = list(objs)
         g_xy = np.array([objs[v][:2] for v in gids], float).reshape(-1, 2)
         if line is None:  # a silent tick: no tracks
@@ -440,9 +441,11 @@ def prediction_measure(gt: GroundTruth, cfg: TrackingEvalConfig, matched: Sequen
 
 
 def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows_or_path: str | Path | Iterable,
-                    cameras: str | Sequence[str] | None = None, config: TrackingEvalConfig | None = None) -> dict:
+                    cameras: str | Sequence[str] | None = None, config: TrackingEvalConfig | None = None,
+                    seen_by: Sequence[str] | None = None) -> dict:
     """Tracking accuracy of a tracks file (or rows) on a recording, over the GT objects of `cameras` (all by
-    default). Keys (see the module docstring for the policy):
+    default; those any camera of `seen_by` sees, by default `cameras`). Keys (see the module docstring for the
+    policy):
 
     - CLEAR MOT / ID (py-motmetrics): `mota`, `idf1`, `id_switches`, `precision`, `recall`, `num_frames` (ticks
       evaluated), `num_objects` (GT object instances), `num_matches`, `num_misses`, `num_false_positives`,
@@ -458,7 +461,7 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
     """
     cfg = config or TrackingEvalConfig()
     gt = _ground_truth(recording)
-    res = match_tracks(gt, tracks_rows_or_path, cameras, cfg)
+    res = match_tracks(gt, tracks_rows_or_path, cameras, cfg, seen_by)
     cams = res.cameras
     out: dict[str, Any] = {}
     if res.frames:
@@ -572,9 +575,11 @@ def evaluate_many(recording: Recording | GroundTruth | str | Path, sources: Mapp
     camera's own tracks: `evaluate_many(rec, {"fused": rows, "C_NE": rows_ne, ...})`.
 
     The cameras of a source: `source_cameras[name]` if given, else [name] when `name` is a camera of the
-    recording (one camera's tracks are scored on what that camera sees, in its own area), else `cameras` (all
-    by default). Returns {"sources": {name: evaluate_tracks result}, "traj_err_best_single_camera_m": the lowest
-    `traj_err_in_roi_m` among the single-camera sources (NaN if none), "best_single_camera": its name (None),
+    recording (one camera's tracks are scored in its own area on every vehicle there that any camera sees, as the
+    fused tracks are; until 2026-11-29 on the vehicles it saw itself, which left it the vehicles it misses), else
+    `cameras` (all by default). Returns {"sources": {name: evaluate_tracks result},
+    "traj_err_best_single_camera_m": the lowest `traj_err_in_roi_m` among the single-camera sources (NaN if none),
+    "best_single_camera": its name (None),
     "mota_best_single_camera" / "idf1_best_single_camera": the highest among the single-camera sources}."""
     cfg = config or TrackingEvalConfig()
     gt = _ground_truth(recording)
@@ -586,7 +591,8 @@ def evaluate_many(recording: Recording | GroundTruth | str | Path, sources: Mapp
             cams = [name]
         else:
             cams = gt.check_cameras(cameras)
-        results[name] = evaluate_tracks(gt, src, cams, cfg)
+        seen = gt.check_cameras(cameras) if len(cams) == 1 else None
+        results[name] = evaluate_tracks(gt, src, cams, cfg, seen)
     single = {n: r for n, r in results.items() if len(r["cameras"]) == 1}
 
     def best(key: str, lowest: bool) -> tuple[str | None, float]:

@@ -137,6 +137,16 @@ def test_gt_objects_policy(gt):
     assert gt.gt_objects(T0 + 10 * 10**9, ["A", "B"], cfg) == {}  # long after the clip
 
 
+def test_a_camera_alone_is_charged_for_the_vehicles_of_its_area_any_camera_sees(gt, monkeypatch):
+    """Vehicle 5 in A's area seen by B alone: a GT object of A's single-camera score with `seen_by` all cameras (as
+    evaluate_many scores a camera alone), not without."""
+    cfg = TrackingEvalConfig()
+    seen = {("A",): {1, 2}, ("A", "B"): {1, 2, 3, 5}}
+    monkeypatch.setattr(gt, "seen_by", lambda t_ns, cams, config: seen[tuple(cams)])
+    assert set(gt.gt_objects(tick(10), ["A"], cfg)) == {1, 2}
+    assert set(gt.gt_objects(tick(10), ["A"], cfg, seen_by=["A", "B"])) == {1, 2, 5}  # 3 is outside A's area
+
+
 def test_perfect_tracks(gt):
     r = evaluate_tracks(gt, make_rows())
     assert r["mota"] == 1.0 and r["idf1"] == 1.0 and r["id_switches"] == 0
@@ -443,7 +453,7 @@ def test_evaluate_many_fused_against_single_cameras(gt):
     out = evaluate_many(gt, {"fused": make_rows(), "A": single("A", 0.3), "B": single("B", 0.2)})
     fused, a, b = out["sources"]["fused"], out["sources"]["A"], out["sources"]["B"]
     assert fused["cameras"] == ["A", "B"] and a["cameras"] == ["A"] and b["cameras"] == ["B"]
-    assert a["gt_vehicles"] == 3 and b["gt_vehicles"] == 2  # GT restricted to what each camera sees
+    assert a["gt_vehicles"] == 3 and b["gt_vehicles"] == 2  # GT restricted to each camera's area
     assert a["mota"] == 1.0 and b["mota"] == 1.0
     assert out["traj_err_best_single_camera_m"] == pytest.approx(0.2, abs=2e-3)
     assert out["best_single_camera"] == "B"
