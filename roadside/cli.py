@@ -420,6 +420,13 @@ def _add_counts(sub) -> None:
                    "tick, empty ones too)")
 
 
+def _live_only(args, *flags: str) -> None:
+    """ValueError naming the first of these flags given without --live (they mean nothing to files)."""
+    for flag in flags:
+        if getattr(args, flag):
+            raise ValueError(f"--{flag.replace('_', '-')} goes with --live")
+
+
 def _board(b: dict, legs: list[str]) -> str:
     """A bin's counts (Counts.to_json with its start and end) as a table."""
     width = max(6, *(len(leg) for leg in legs)) + 1
@@ -503,9 +510,7 @@ def _run_counts(args) -> int:
         if args.tracks:
             raise ValueError("counts --live counts the bus's tracks, not files: give one or the other")
         return _run_counts_live(args, settings, junction)
-    for flag in ("connect", "heartbeat", "count", "timeout"):
-        if getattr(args, flag):
-            raise ValueError(f"--{flag} goes with --live")
+    _live_only(args, "connect", "heartbeat", "count", "timeout")
     if not args.tracks:
         raise ValueError("counts needs tracks files (or --live)")
     read = read_tracks(args.tracks)
@@ -658,9 +663,7 @@ def _run_viz(args) -> int:
         return _run_viz_live(args)
     if args.tracks is None:
         raise ValueError("viz needs a tracks file, or --live to subscribe to the live tracks")
-    for flag in ("connect", "viewer", "count", "timeout"):
-        if getattr(args, flag):
-            raise ValueError(f"--{flag} goes with --live")
+    _live_only(args, "connect", "viewer", "count", "timeout")
     origin = junction = None
     if args.site:
         from shared.settings import load_settings
