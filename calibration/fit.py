@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 from scipy.optimize import OptimizeResult, least_squares
 
-from calibration.landmarks import Landmarks
+from calibration.landmarks import MAX_SEGMENTS, Landmarks
 from shared.cameras import Camera, Pose
 from shared.geo import GeoFrame
 
@@ -34,6 +34,11 @@ MIN_LANDMARKS = 5  # below this a gross mistake cannot be told from the rest
 MAX_VIEW_ANGLE_DEG = 86.0  # fisheye pixels further off axis than this look at the horizon
 PLANE_PRIOR_WEIGHT = 2.0  # pull of the global plane on a segment's plane (in landmark units)
 HIDDEN_MISTAKE_M = 3.0  # warn when a map mistake this large at a landmark would pass the outlier test
+SEGMENT_BLEND_M = 2.0  # segments a user labelled blend over this much ground across their borders
+POLYGON_SLACK_M = 2.0  # a landmark labelled with a segment may lie this far outside its polygon (map error)
+SEGMENT_SLOPE_SIGMA = 0.1  # how far a named segment's plane may tilt from the global plane (grade)...
+SEGMENT_HEIGHT_SIGMA_M = 1.0  # ... and rise or fall from it at the landmarks' centre
+FAR_POLYGON_M = 200.0  # a segment polygon further than this from every landmark is another site's
 
 
 @dataclass(frozen=True)
@@ -103,12 +108,17 @@ class Calibration:
     # a site-wide ground surface (`calibration.site_ground`, anything with `height((N, 2) xy) -> (N,)`): pixels are
     # lifted onto it instead of the planes
     ground: Any = None
+    # segments the user labelled (the landmark file's segment column, or polygons): where each lies on the ground
+    labelled: LabelledSegments | None = None
 
     def weights(self, uv: np.ndarray, dirs: np.ndarray | None = None) -> np.ndarray:
         """(N, P) blending weights of the segments at pixels uv (rows sum to 1)."""
         p = len(self.planes)
         if p == 1:
             return np.ones((len(uv), 1))
+        if self.labelled is not None:
+            dirs = dirs if dirs is not None else self.camera.unproject(uv)[0]
+            return self.labelled.weights(_onto_plane(self.camera.pose.position_m, dirs, self.planes.mean(axis=0)))
         if len(self.band_edges_m):
             return _band_weights(self._range_m(dirs if dirs is not None else self.camera.unproject(uv)[0]),
                                  self.band_edges_m)
@@ -118,13 +128,18 @@ class Calibration:
         w = np.clip(1.0 - (d - half * 0.6) / (half * 0.8), 0.0, 1.0)
         return w / np.maximum(w.sum(axis=1, keepdims=True), 1e-12)
 
+    @property
+    def segment_polygons(self) -> dict[int, np.ndarray] | None:
+        """The polygons (site metres) the user gave for named segments, by label (`calibrate`'s argument)."""
+        if self.labelled is None:
+            return None
+        return {k: p for k, p in zip(self.labelled.labels, self.labelled.polygons_xy, strict=True) if p is not None}
+
     def _range_m(self, dirs: np.ndarray) -> np.ndarray:
         """Ground distance from the camera's foot along each ray, on the mean of the planes."""
-        a, b, c = self.planes.mean(axis=0)
-        o = self.camera.pose.position_m
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = (a * o[0] + b * o[1] + c - o[2]) / (dirs[:, 2] - a * dirs[:, 0] - b * dirs[:, 1])
-        return np.where(t > 0, t * np.linalg.norm(dirs[:, :2], axis=1), np.inf)
+        xy = _onto_plane(self.camera.pose.position_m, dirs, self.planes.mean(axis=0))
+        r = np.linalg.norm(xy - self.camera.pose.position_m[:2], axis=1)
+        return np.where(np.isfinite(r), r, np.inf)
 
     def pixel_to_xy(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(N, 2) pixels -> ((N, 2) site metres, (N,) valid)."""
@@ -166,6 +181,67 @@ class Calibration:
         xy = o[:2] + t[:, None] * d[:, :2]
         h, _ = cv2.findHomography(q, xy, 0)
         return h
+
+
+def _onto_plane(o: np.ndarray, dirs: np.ndarray, plane: np.ndarray) -> np.ndarray:
+    """(N, 2) points where rays from o along dirs meet the plane z = a x + b y + c (NaN where they do not)."""
+    a, b, c = plane
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (a * o[0] + b * o[1] + c - o[2]) / (dirs[:, 2] - a * dirs[:, 0] - b * dirs[:, 1])
+    t = np.where((t > 0) & np.isfinite(t), t, np.nan)
+    return o[:2] + t[:, None] * dirs[:, :2]
+
+
+@dataclass(frozen=True)
+class LabelledSegments:
+    """Ground segments a user named: `labels` (P,) as in the landmark file, and where each lies: its polygon
+    (site metres) where one was given, otherwise its landmarks' ground positions (a point belongs to the segment
+    of the landmark nearest to it). Segments blend linearly over `SEGMENT_BLEND_M` across their borders."""
+
+    labels: tuple[int, ...]
+    landmarks_xy: tuple[np.ndarray, ...]
+    polygons_xy: tuple[np.ndarray | None, ...]
+    of_landmark: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # (N,) each landmark's segment label
+
+    def distances(self, xy: np.ndarray) -> np.ndarray:
+        """(N, P) ground distance (m) from each point to each segment (0 inside a segment's polygon)."""
+        out = np.empty((len(xy), len(self.labels)))
+        for k, (pts, poly) in enumerate(zip(self.landmarks_xy, self.polygons_xy, strict=True)):
+            if poly is not None:
+                out[:, k] = polygon_distance(xy, poly)
+            else:
+                d = np.full(len(xy), np.inf)
+                for p in pts:
+                    d = np.minimum(d, np.hypot(xy[:, 0] - p[0], xy[:, 1] - p[1]))
+                out[:, k] = d
+        return out
+
+    def weights(self, xy: np.ndarray) -> np.ndarray:
+        """(N, P) blending weights of the segments at ground points xy (equal where a point is NaN)."""
+        d = self.distances(np.nan_to_num(xy, nan=0.0))
+        w = np.clip(1.0 - (d - d.min(axis=1, keepdims=True)) / SEGMENT_BLEND_M, 0.0, 1.0)
+        w[~np.all(np.isfinite(xy), axis=1)] = 1.0
+        return w / w.sum(axis=1, keepdims=True)
+
+    def segment_of(self, xy: np.ndarray) -> np.ndarray:
+        """(N,) index (into `labels`) of the segment nearest to each point."""
+        return np.argmin(self.distances(xy), axis=1)
+
+
+def polygon_distance(xy: np.ndarray, poly: np.ndarray) -> np.ndarray:
+    """(N,) distance from points to a polygon's area (0 inside; even-odd rule)."""
+    x, y = xy[:, 0], xy[:, 1]
+    d = np.full(len(xy), np.inf)
+    inside = np.zeros(len(xy), bool)
+    for (ax, ay), (bx, by) in zip(poly, np.roll(poly, -1, axis=0), strict=True):
+        ex, ey = bx - ax, by - ay
+        t = np.clip(((x - ax) * ex + (y - ay) * ey) / max(ex * ex + ey * ey, 1e-12), 0.0, 1.0)
+        d = np.minimum(d, np.hypot(x - ax - t * ex, y - ay - t * ey))
+        crosses = (ay > y) != (by > y)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x_cross = ax + (y - ay) * ex / ey
+        inside ^= crosses & (x < x_cross)
+    return np.where(inside, 0.0, d)
 
 
 def _onto_surface(ground: Any, o: np.ndarray, dirs: np.ndarray, start_plane: np.ndarray,
@@ -277,39 +353,87 @@ def fit_camera(
     if p0 is None:
         p0, _ = (_initial_fisheye if cfg.kind == "fisheye" else _initial_pinhole)(uv, obj, cfg)
     n = len(uv)
-    f0 = p0[0]
-    span = 0.15 * (cfg.circle[2] if cfg.kind == "fisheye" else max(cfg.width, cfg.height) / 2)
-    lo = np.array([0.4 * f0, p0[1] - span, p0[2] - span, -0.5, -0.3, *[-np.inf] * 6, *[-np.inf] * (2 * n)])
-    hi = np.array([2.5 * f0, p0[1] + span, p0[2] + span, 0.5, 0.3, *[np.inf] * 6, *[np.inf] * (2 * n)])
+    lo_cam, hi_cam = _camera_bounds(p0, cfg)
+    lo = np.concatenate([lo_cam, np.full(2 * n, -np.inf)])
+    hi = np.concatenate([hi_cam, np.full(2 * n, np.inf)])
     x0 = np.clip(np.concatenate([p0, np.zeros(2 * n)]), lo + 1e-9, hi - 1e-9)
-
-    # Priors that a user knows: the fisheye image circle's radius at half the field of view,
-    # the principal point near the circle (or image) centre, small higher-order distortion.
-    ccx, ccy, crad = cfg.circle
-    theta_edge = math.radians(cfg.fov_deg / 2)
-    centre_sigma = 3.0 if cfg.kind == "fisheye" else 12.0
-    k2_sigma = 0.01 if cfg.kind == "fisheye" else 0.05
-    k1_sigma = 0.25  # pinhole: keeps k1 from wandering when few landmarks reach the image corners
 
     def resid(x):
         p, dxy = x[:11], x[11:].reshape(n, 2)
-        cam = camera_from_params(p, cfg)
         pts = obj.copy()
         pts[:, :2] += dxy
-        proj, ok = cam.project(pts)
-        r = np.where(ok[:, None], proj - uv, 1e3).ravel() / cfg.pixel_sigma_px
-        prior = [(p[1] - ccx) / centre_sigma, (p[2] - ccy) / centre_sigma, p[4] / k2_sigma]
-        if cfg.kind == "pinhole":
-            prior.append(p[3] / k1_sigma)
-        if cfg.kind == "fisheye":
-            t2 = theta_edge**2
-            r_edge = p[0] * theta_edge * (1 + p[3] * t2 + p[4] * t2 * t2)
-            prior.append((r_edge - crad) / 2.0)
-        return np.concatenate([r, dxy.ravel() / cfg.map_sigma_m, np.array(prior)])
+        return np.concatenate([_pixel_residuals(p, pts, uv, cfg), dxy.ravel() / cfg.map_sigma_m,
+                               _camera_priors(p, cfg)])
 
     loss = "soft_l1" if robust else "linear"
     sol = least_squares(resid, x0, bounds=(lo, hi), loss=loss, f_scale=2.5, x_scale="jac", max_nfev=800)
     return sol.x[:11], sol.x[11:].reshape(n, 2), sol
+
+
+def _camera_bounds(p0: np.ndarray, cfg: CalibConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of the 11 camera parameters around a start: focal length, principal point, distortion."""
+    f0 = p0[0]
+    span = 0.15 * (cfg.circle[2] if cfg.kind == "fisheye" else max(cfg.width, cfg.height) / 2)
+    return (np.array([0.4 * f0, p0[1] - span, p0[2] - span, -0.5, -0.3, *[-np.inf] * 6]),
+            np.array([2.5 * f0, p0[1] + span, p0[2] + span, 0.5, 0.3, *[np.inf] * 6]))
+
+
+def _pixel_residuals(p: np.ndarray, pts: np.ndarray, uv: np.ndarray, cfg: CalibConfig) -> np.ndarray:
+    """(2N,) where the camera p projects ground points pts, against the clicks uv, in units of the click's sigma."""
+    proj, ok = camera_from_params(p, cfg).project(pts)
+    return np.where(ok[:, None], proj - uv, 1e3).ravel() / cfg.pixel_sigma_px
+
+
+def _camera_priors(p: np.ndarray, cfg: CalibConfig) -> np.ndarray:
+    """Priors that a user knows, normalised: the fisheye image circle's radius at half the field of view, the
+    principal point near the circle (or image) centre, small higher-order distortion."""
+    ccx, ccy, crad = cfg.circle
+    centre_sigma = 3.0 if cfg.kind == "fisheye" else 12.0
+    k2_sigma = 0.01 if cfg.kind == "fisheye" else 0.05
+    prior = [(p[1] - ccx) / centre_sigma, (p[2] - ccy) / centre_sigma, p[4] / k2_sigma]
+    if cfg.kind == "pinhole":
+        prior.append(p[3] / 0.25)  # keeps k1 from wandering when few landmarks reach the image corners
+    else:
+        t2 = math.radians(cfg.fov_deg / 2) ** 2
+        r_edge = p[0] * math.sqrt(t2) * (1 + p[3] * t2 + p[4] * t2 * t2)
+        prior.append((r_edge - crad) / 2.0)
+    return np.array(prior)
+
+
+def fit_camera_on_segments(uv: np.ndarray, xy: np.ndarray, lab: np.ndarray, planes: np.ndarray,
+                           global_plane: np.ndarray, cfg: CalibConfig, p0: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, OptimizeResult]:
+    """The camera and the planes of segments the user named, fitted together: each landmark (lab: its segment)
+    lies on its segment's plane (z = a x + b y + c), so where the ground bends the camera is not bent to fit one
+    plane. The planes' mean is held to the global plane (the site's height and tilt trade with the camera's);
+    each plane is free within `SEGMENT_SLOPE_SIGMA` of it. Returns (camera parameters, (N, 2) ground
+    corrections, (P, 3) planes, the solver's result with `fit_camera`'s row layout: pixels, map corrections, then
+    the priors)."""
+    n, k = len(uv), len(planes)
+    lo_cam, hi_cam = _camera_bounds(p0, cfg)
+    lo = np.concatenate([lo_cam, np.full(3 * k + 2 * n, -np.inf)])
+    hi = np.concatenate([hi_cam, np.full(3 * k + 2 * n, np.inf)])
+    x0 = np.clip(np.concatenate([p0, planes.ravel(), np.zeros(2 * n)]), lo + 1e-9, hi - 1e-9)
+    centre = xy.mean(axis=0)
+
+    def about_centre(pl: np.ndarray) -> np.ndarray:
+        """(..., 3) planes as slope x, slope y and height at the landmarks' centre."""
+        return np.stack([pl[..., 0], pl[..., 1], pl[..., 0] * centre[0] + pl[..., 1] * centre[1] + pl[..., 2]], -1)
+
+    g = about_centre(global_plane)
+    scale = np.array([SEGMENT_SLOPE_SIGMA, SEGMENT_SLOPE_SIGMA, SEGMENT_HEIGHT_SIGMA_M])
+
+    def resid(x):
+        p, pl, dxy = x[:11], x[11:11 + 3 * k].reshape(k, 3), x[11 + 3 * k:].reshape(n, 2)
+        g_xy = xy + dxy
+        z = pl[lab, 0] * g_xy[:, 0] + pl[lab, 1] * g_xy[:, 1] + pl[lab, 2]
+        local = about_centre(pl)
+        return np.concatenate([_pixel_residuals(p, np.column_stack([g_xy, z]), uv, cfg),
+                               dxy.ravel() / cfg.map_sigma_m, _camera_priors(p, cfg),
+                               ((local - g) / scale).ravel(), (local.mean(axis=0) - g) / (0.01 * scale)])
+
+    sol = least_squares(resid, x0, bounds=(lo, hi), x_scale="jac", max_nfev=800)
+    return sol.x[:11], sol.x[11 + 3 * k:].reshape(n, 2), sol.x[11:11 + 3 * k].reshape(k, 3), sol
 
 
 def _landmark_tests(sol: OptimizeResult, n: int, cfg: CalibConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -378,6 +502,59 @@ def _fit_plane(
     return np.array([a, b, c_local - a * centre[0] - b * centre[1]])
 
 
+def labelled_segments(lm: Landmarks, xy: np.ndarray, use: np.ndarray, polygons: dict[int, np.ndarray] | None
+                      ) -> LabelledSegments | None:
+    """The segments a user named (`calibrate`), or None when the landmarks name none and no polygons are given.
+    A landmark without a segment takes the one it lies in or is nearest to; a segment's landmarks are its usable
+    ones (all of them when none is usable)."""
+    labels = tuple(sorted({int(s) for s in lm.segment if s >= 0} | set(polygons or {})))
+    if not labels:
+        return None
+    polys = tuple(None if not polygons or k not in polygons else np.asarray(polygons[k], float) for k in labels)
+    seg = lm.segment.copy()
+    named = seg >= 0
+    if not named.all():
+        by_label = LabelledSegments(labels, tuple(xy[seg == k] for k in labels), polys)
+        seg[~named] = np.asarray(labels)[by_label.segment_of(xy[~named])]
+    pts = tuple(xy[(seg == k) & use] if ((seg == k) & use).any() else xy[seg == k] for k in labels)
+    return LabelledSegments(labels, pts, polys, seg)
+
+
+def check_segments(lm: Landmarks, xy: np.ndarray, polygons_xy: dict[int, np.ndarray] | None,
+                   min_per_segment: int = MIN_PER_SEGMENT) -> None:
+    """ValueError naming the segment and its landmarks for segments the user named that cannot be fitted: more
+    than `MAX_SEGMENTS`, fewer than `min_per_segment` landmarks, a polygon without area or far from the landmarks,
+    a landmark lying well outside its own segment's polygon. xy: the landmarks in site metres, polygons too."""
+    named = labelled_segments(lm, xy, np.ones(len(lm), bool), polygons_xy)
+    if named is None:
+        return
+    if len(named.labels) > MAX_SEGMENTS:
+        raise ValueError(f"the landmarks name {len(named.labels)} segments; at most {MAX_SEGMENTS}")
+    for label, poly in (polygons_xy or {}).items():
+        e = poly - poly.mean(axis=0)
+        area = 0.5 * abs(float(np.sum(e[:, 0] * np.roll(e[:, 1], -1) - e[:, 1] * np.roll(e[:, 0], -1))))
+        if area < 1.0:
+            raise ValueError(f"segment {label}'s polygon encloses {area:.2g} m2: no ground")
+        far = float(np.min(polygon_distance(xy, poly)))
+        if far > FAR_POLYGON_M:
+            raise ValueError(f"segment {label}'s polygon is {far:.0f} m from the nearest landmark (latitude and "
+                             "longitude swapped, or another site's?)")
+    for k, label in enumerate(named.labels):
+        mine = np.nonzero(named.of_landmark == label)[0]
+        ids = ", ".join(lm.ids[i] for i in mine) or "none"
+        if len(mine) < min_per_segment:
+            raise ValueError(f"segment {label} has {len(mine)} landmark(s) ({ids}); a segment's plane needs at "
+                             f"least {min_per_segment}: add landmarks on it, or merge it with its neighbour")
+        poly = named.polygons_xy[k]
+        if poly is None:
+            continue
+        for i in mine:
+            d = float(polygon_distance(xy[i : i + 1], poly)[0])
+            if lm.segment[i] >= 0 and d > POLYGON_SLACK_M:
+                raise ValueError(f"landmark {lm.ids[i]!r} is labelled segment {label} but lies {d:.1f} m outside "
+                                 f"that segment's polygon: a wrong segment, or a wrong map point")
+
+
 def _sectors(uv: np.ndarray, nadir: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarray]:
     """Sector centres (P,) balancing landmarks across sectors, and each landmark's sector (N,)."""
     ang = np.arctan2(uv[:, 1] - nadir[1], uv[:, 0] - nadir[0])
@@ -391,17 +568,32 @@ def _sectors(uv: np.ndarray, nadir: np.ndarray, p: int) -> tuple[np.ndarray, np.
     return start + (np.arange(p) + 0.5) * 2 * math.pi / p, lab
 
 
-def calibrate(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame) -> Calibration:
-    """Fit one camera's pixel -> ground model. Gross mistakes are rejected and reported."""
+def calibrate(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame,
+              segment_polygons: dict[int, np.ndarray] | None = None) -> Calibration:
+    """Fit one camera's pixel -> ground model. Gross mistakes are rejected and reported.
+
+    The ground segments are automatic (fisheye sectors around the nadir, pinhole range bands) unless the user
+    names them: by the landmarks' segment column, or by `segment_polygons` (label -> (M, 2) polygon in site
+    metres; landmarks without a segment then take the polygon they lie in or nearest). Either way each segment's
+    plane is fitted to its own landmarks (`labelled_segments`)."""
     xy = lm.to_local(geo)
     n = len(lm)
     obj = np.column_stack([xy, np.zeros(n)])
     p, dxy, _ = fit_camera(lm.uv, obj, cfg)  # robust: a start that gross mistakes do not drag far
     use = np.ones(n, bool)
+    # Segments the user named: the camera and their planes are fitted together from the start, so that a landmark
+    # where the ground bends is not taken for a mistake against one plane.
+    named = labelled_segments(lm, xy, use, segment_polygons)
+    seg = np.searchsorted(named.labels, named.of_landmark) if named is not None and len(named.labels) > 1 else None
+    named_planes = np.zeros((len(named.labels), 3)) if seg is not None else None
     # Reject the landmark with the worst outlier test while it fails, refitting each time.
     warnings: list[str] = []
     while True:
-        p_ls, dxy_ls, sol = fit_camera(lm.uv[use], obj[use], cfg, p, robust=False)
+        if seg is None:
+            p_ls, dxy_ls, sol = fit_camera(lm.uv[use], obj[use], cfg, p, robust=False)
+        else:
+            p_ls, dxy_ls, planes_ls, sol = fit_camera_on_segments(lm.uv[use], xy[use], seg[use], named_planes,
+                                                                  np.zeros(3), cfg, p)
         stat, mdb_map, mdb_px = _landmark_tests(sol, int(use.sum()), cfg)
         worst = int(np.argmax(stat))
         if use.sum() <= MIN_LANDMARKS:  # too few to tell a mistake from the rest: keep the robust fit
@@ -412,12 +604,24 @@ def calibrate(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame) -> Calibration:
                 )
             break
         p, dxy = p_ls, dxy_ls
+        if seg is not None:
+            named_planes = planes_ls
         if stat[worst] <= cfg.outlier_sigma:
             break
         use[np.nonzero(use)[0][worst]] = False
     test_sigma, detectable_map, detectable_px = (np.full(n, np.nan) for _ in range(3))
     test_sigma[use], detectable_map[use], detectable_px[use] = stat, mdb_map, mdb_px
     cam = camera_from_params(p, cfg)
+    if seg is not None:
+        labelled = labelled_segments(lm, xy, use, segment_polygons)  # where each segment lies: its usable landmarks
+        for k, label in enumerate(labelled.labels):
+            if (seg[use] == k).sum() < MIN_PER_SEGMENT:
+                warnings.append(f"segment {label} keeps {int((seg[use] == k).sum())} usable landmark(s), fewer "
+                                f"than {MIN_PER_SEGMENT}: its plane leans on the others; add landmarks there")
+        nadir_px = cam.project(cam.pose.position_m[None] - [0.0, 0.0, 10.0])[0][0]
+        return _finish(Calibration(cfg, geo, cam, named_planes, np.zeros(len(named_planes)), nadir_px,
+                                   inliers=use, test_sigma=test_sigma, detectable_map_m=detectable_map,
+                                   detectable_pixel_px=detectable_px, labelled=labelled), lm, obj, xy, warnings)
     # Ground planes: a global one, then one per segment around the nadir.
     z, w = implied_heights(cam, lm.uv[use], xy[use], cfg.pixel_sigma_px, cfg.map_sigma_m)
     centre = xy[use].mean(axis=0)
@@ -459,6 +663,12 @@ def calibrate(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame) -> Calibration:
         edges, planes = np.zeros(0), global_plane[None]
     cal = Calibration(cfg, geo, cam, planes, centres, nadir_px, edges, use,
                       test_sigma=test_sigma, detectable_map_m=detectable_map, detectable_pixel_px=detectable_px)
+    return _finish(cal, lm, obj, xy, warnings)
+
+
+def _finish(cal: Calibration, lm: Landmarks, obj: np.ndarray, xy: np.ndarray, warnings: list[str]) -> Calibration:
+    """`calibrate`'s report on a fitted camera: the rejected landmarks and why, and where a mistake could hide."""
+    cfg, cam, use, detectable_map = cal.config, cal.camera, cal.inliers, cal.detectable_map_m
     proj, _ = cam.project(obj)
     res_px = np.linalg.norm(proj - lm.uv, axis=1)
     ground, _ = cal.pixel_to_xy(lm.uv)

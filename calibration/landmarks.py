@@ -4,7 +4,10 @@ Two formats are read:
 - JSON: `{"camera": ..., "width": W, "height": H, "landmarks": [{"id", "u", "v", "lat", "lon",
   "segment"?}, ...]}` (the simulator's landmark files are this format; extra keys are ignored);
 - CSV with a header row `id,u,v,lat,lon[,segment]`.
-Pixels (u, v) are in the original image, (0, 0) the centre of the top-left pixel.
+Pixels (u, v) are in the original image, (0, 0) the centre of the top-left pixel. A segment is a whole number >= 0
+naming the piece of planar ground the landmark lies on (a ramp, a bridge deck); left out, the calibration splits
+the ground itself. Segment polygons (`--segment-polygons`) are a JSON object from segment number to the
+polygon's [lat, lon] vertices: `{"1": [[42.2301, -83.7391], ...], "2": [...]}`.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from shared.geo import GeoFrame
 FAR_FROM_OTHERS_M = 2000.0
 MIN_SPREAD_M = 2.0  # landmarks narrower than this (the standard deviation across their spread) fix no camera
 MIN_SPREAD_PX = 10.0
+MAX_SEGMENTS = 8
 
 
 @dataclass(frozen=True)
@@ -109,6 +113,9 @@ def landmarks_from_rows(rows: list[dict], where: str) -> Landmarks:
             seg.append(-1 if s in (None, "") else _whole(s))
         except (TypeError, ValueError):
             raise ValueError(f"{where}: landmark {lid!r}: segment must be a whole number, got {s!r}") from None
+        if seg[-1] < -1 or (seg[-1] == -1 and s not in (None, "")):
+            raise ValueError(f"{where}: landmark {lid!r}: segment must be a whole number >= 0 (or left empty), "
+                             f"got {s!r}")
     return Landmarks(
         tuple(ids), np.array(uv, float).reshape(-1, 2), np.array(latlon, float).reshape(-1, 2), np.array(seg, int)
     )
@@ -185,3 +192,39 @@ def _check_spread(ids: tuple[str, ...], pts: np.ndarray, where: str, least: floa
                          "cannot fix the camera; spread them over the ground it sees"
                          + (" (or latitude and longitude swapped: they squeeze the map one way)" if unit == "m"
                             else ""))
+
+
+def load_segment_polygons(path: str | Path) -> dict[int, np.ndarray]:
+    """Read a segment polygon file (the module's docstring) -> {segment: (M, 2) [lat, lon] vertices}."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"segment polygon file not found: {path}")
+    try:
+        doc = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path}: not a JSON file ({e})") from None
+    if not isinstance(doc, dict) or not doc:
+        raise ValueError(f'{path}: expected a JSON object from segment number to [lat, lon] vertices, e.g. '
+                         '{"1": [[42.23, -83.74], [42.24, -83.74], [42.24, -83.73]]}')
+    out: dict[int, np.ndarray] = {}
+    for key, verts in doc.items():
+        try:
+            label = _whole(key)
+            if label < 0:
+                raise ValueError(label)
+        except (TypeError, ValueError):
+            raise ValueError(f"{path}: segment {key!r}: segment numbers are whole numbers >= 0") from None
+        try:
+            poly = np.array(verts, float)
+        except (TypeError, ValueError):
+            raise ValueError(f"{path}: segment {label}: vertices must be [lat, lon] pairs of numbers") from None
+        if poly.ndim != 2 or poly.shape[1] != 2 or len(poly) < 3:
+            raise ValueError(f"{path}: segment {label}: a polygon needs at least 3 [lat, lon] vertices")
+        if not np.isfinite(poly).all() or (np.abs(poly[:, 0]) > 90).any() or (np.abs(poly[:, 1]) > 180).any():
+            raise ValueError(f"{path}: segment {label}: a vertex is not a latitude and longitude")
+        if label in out:
+            raise ValueError(f"{path}: segment {label} is given twice")
+        out[label] = poly
+    if len(out) > MAX_SEGMENTS:
+        raise ValueError(f"{path}: {len(out)} segments; at most {MAX_SEGMENTS}")
+    return out

@@ -154,7 +154,7 @@ def build_masks(cal: Calibration, landmarks_hash: str, area: dict, extra_meta: d
         ll = cal.geo.to_geodetic(np.column_stack([xy[ok], np.zeros(int(ok.sum()))]))
         lat[ok], lon[ok] = ll[:, 0], ll[:, 1]
     segments = []
-    sectors = len(cal.planes) > 1 and not len(cal.band_edges_m)
+    sectors = len(cal.planes) > 1 and not len(cal.band_edges_m) and cal.labelled is None
     edges = [0.0, *map(float, cal.band_edges_m), None]
     bands = [[edges[k], edges[k + 1]] for k in range(len(edges) - 1)]
     for k, plane in enumerate(cal.planes):
@@ -164,6 +164,10 @@ def build_masks(cal: Calibration, landmarks_hash: str, area: dict, extra_meta: d
                 "plane_abc": [float(x) for x in plane],
                 "sector_center_rad": float(cal.sector_centres[k]) if sectors else None,
                 "band_m": bands[k] if len(cal.band_edges_m) else None,  # [from, to) ground distance, m
+                # a segment the user named: its label, and its polygon (site metres) when one was given
+                "label": cal.labelled.labels[k] if cal.labelled is not None else None,
+                "polygon_m": (cal.labelled.polygons_xy[k].tolist()
+                              if cal.labelled is not None and cal.labelled.polygons_xy[k] is not None else None),
                 "homography_undistorted_to_xy": [[float(x) for x in row] for row in hmat],
             }
         )

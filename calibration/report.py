@@ -44,7 +44,7 @@ def build_report(cal: Calibration, lm: Landmarks, cfg: CalibConfig, roi: dict, l
             keep[i] = False
             try:
                 if cal.ground is None:
-                    sub = calibrate(lm.subset(np.nonzero(keep)[0]), cfg, cal.geo)
+                    sub = calibrate(lm.subset(np.nonzero(keep)[0]), cfg, cal.geo, cal.segment_polygons)
                 else:  # on the site's surface: this camera refitted on it without the landmark (the surface keeps it)
                     sub = refit_on_surface(cal, lm, cfg, cal.ground, keep & cal.inliers)
             except ValueError:
@@ -54,10 +54,9 @@ def build_report(cal: Calibration, lm: Landmarks, cfg: CalibConfig, roi: dict, l
                 loo[i] = float(np.linalg.norm(p[0] - xy[i]))
     inl = cal.inliers
     warnings = list(cal.warnings)
-    if (lm.segment >= 0).any():
-        warnings.append("the landmarks' segment column is not used: the ground segments are "
-                        + ("sectors around the nadir" if cfg.kind == "fisheye" else "range bands from the camera")
-                        + " (--segments sets how many)")
+    if (lm.segment >= 0).any() and cal.ground is not None:
+        warnings.append("the landmarks' segment column is not used: the site's ground surface (--shared-ground) "
+                        "replaces this camera's planes")
     gap = angular_coverage_deg(xy[inl & in_roi], np.asarray(roi.get("center_m", xy[inl].mean(0))))
     if "radius_m" in roi and gap > 150:
         warnings.append(
@@ -85,6 +84,8 @@ def build_report(cal: Calibration, lm: Landmarks, cfg: CalibConfig, roi: dict, l
         "landmarks_used": int(inl.sum()),
         "landmarks_total": len(lm),
         "segments": len(cal.planes),
+        # the segments the user named (the segment column, --segment-polygons), or null for automatic ones
+        "segment_labels": list(cal.labelled.labels) if cal.labelled is not None else None,
         "roi": roi,
         "residual_in_roi": _stats(res[inl & in_roi]),
         "residual_out_roi": _stats(res[inl & ~in_roi]),
@@ -96,6 +97,7 @@ def build_report(cal: Calibration, lm: Landmarks, cfg: CalibConfig, roi: dict, l
             {
                 "id": lid,
                 "inlier": bool(inl[k]),
+                "segment": int(cal.labelled.of_landmark[k]) if cal.labelled is not None else None,
                 "in_roi": bool(in_roi[k]),
                 "residual_m": None if np.isnan(res[k]) else round(float(res[k]), 4),
                 "reprojection_px": None if np.isnan(res_px[k]) else round(float(res_px[k]), 2),
@@ -118,7 +120,8 @@ def summary_text(report: dict) -> str:
     lines = [
         f"{report['camera_kind']} camera: {report['landmarks_used']}/{report['landmarks_total']} landmarks used, "
         + (f"the site's ground surface (fitted to the landmarks of {len(ground['cameras'])} cameras; leave-one-out: "
-           "the camera refitted on it without the landmark)" if shared else f"{report['segments']} ground segment(s)"),
+           "the camera refitted on it without the landmark)" if shared else f"{report['segments']} ground segment(s)"
+           + (f" named {', '.join(map(str, report['segment_labels']))}" if report.get("segment_labels") else "")),
         f"  residual      in-ROI  {fmt(report['residual_in_roi'])}",
         f"  residual      out-ROI {fmt(report['residual_out_roi'])}",
         f"  leave-one-out in-ROI  {fmt(report['leave_one_out_in_roi'])}",

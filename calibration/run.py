@@ -10,8 +10,15 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.fit import CalibConfig, calibrate
-from calibration.landmarks import FAR_FROM_OTHERS_M, load_landmarks, median_frame, median_latlon, validate_landmarks
+from calibration.fit import CalibConfig, calibrate, check_segments
+from calibration.landmarks import (
+    FAR_FROM_OTHERS_M,
+    load_landmarks,
+    load_segment_polygons,
+    median_frame,
+    median_latlon,
+    validate_landmarks,
+)
 from calibration.masks import build_masks, calibrated_area, default_roi
 from calibration.report import build_report, plot_residuals, summary_text
 from calibration.site_ground import calibrate_site
@@ -37,6 +44,7 @@ class CalibrateJob:
     image: Path | None = None
     # the site's other cameras (landmark file, kind, fisheye image circle): fit one ground surface to all
     shared_ground: tuple[tuple[Path, str, tuple[float, float, float] | None], ...] = ()
+    segment_polygons: Path | None = None  # the ground segments' polygons (calibration/landmarks.py)
 
 
 def _roi_local(roi: dict | None, geo: GeoFrame) -> dict | None:
@@ -127,6 +135,21 @@ def run_calibration(job: CalibrateJob) -> dict:
         _near_landmarks("the ROI centre", *map(float, job.roi["center_latlon"]), lm)
         if not (math.isfinite(job.roi["radius_m"]) and job.roi["radius_m"] > 0):
             raise ValueError(f"the ROI radius must be > 0 m, got {job.roi['radius_m']}")
+    polygons_xy = None
+    if job.segment_polygons is not None:
+        polygons_xy = {k: geo.to_enu(p[:, 0], p[:, 1], geo.alt0_m)[:, :2]
+                       for k, p in load_segment_polygons(job.segment_polygons).items()}
+    if (lm.segment >= 0).any() or polygons_xy:
+        if job.segments is not None:
+            named_by = [w for w, given in (("the landmarks' segment column", (lm.segment >= 0).any()),
+                                           ("--segment-polygons", bool(polygons_xy))) if given]
+            raise ValueError(f"--segments {job.segments}, but the segments are named ({', '.join(named_by)}): "
+                             "leave --segments out")
+        if job.shared_ground and polygons_xy:
+            raise ValueError("--segment-polygons with --shared-ground: the site's ground surface replaces this "
+                             "camera's planes, so its segments would not be used")
+        if not job.shared_ground:  # (the report says a segment column is then unused)
+            check_segments(lm, lm.to_local(geo), polygons_xy)
     report_path = job.report or job.out.with_suffix(".report.json")
     for what, path in (("--out", job.out), ("--report", report_path), ("--plot", job.plot)):
         _writable_file(what, path)
@@ -155,7 +178,7 @@ def run_calibration(job: CalibrateJob) -> dict:
             _near_landmarks(f"--shared-ground {path} (its landmarks' median)", float(far[0]), float(far[1]), lm)
         cal = calibrate_site([(str(job.landmarks), lm, cfg), *others], geo)[str(job.landmarks)]
     else:
-        cal = calibrate(lm, cfg, geo)
+        cal = calibrate(lm, cfg, geo, polygons_xy)
     t_fit = time.perf_counter() - t0
     height = camera_height_m(cal)
     if height < MIN_CAMERA_HEIGHT_M:

@@ -123,7 +123,11 @@ def _add_calibrate(sub) -> None:
     p.add_argument("--height", type=positive_int, help="image height (default: from the landmark file)")
     p.add_argument("--report", type=Path, help="report JSON (default: next to --out)")
     p.add_argument("--segments", type=positive_int,
-                   help="ground segments (default 2 pinhole range bands, 4 fisheye sectors)")
+                   help="ground segments when the landmarks name none (default 2 pinhole range bands, 4 fisheye "
+                        "sectors)")
+    p.add_argument("--segment-polygons", type=Path,
+                   help='the named ground segments\' outlines: JSON {"SEGMENT": [[LAT, LON], ...], ...}; landmarks '
+                        "without a segment take the polygon they lie in")
     p.add_argument("--image-circle", type=_floats(3), help="fisheye image circle CX,CY,RADIUS in pixels")
     p.add_argument("--fov-deg", type=finite_float, default=188.0,
                    help="fisheye field of view at the image circle's edge")
@@ -176,6 +180,7 @@ def _run_calibrate(args) -> int:
         plot=args.plot,
         image=args.image,
         shared_ground=tuple(args.shared_ground),
+        segment_polygons=args.segment_polygons,
     )
     report = run_calibration(job)
     print(report["summary"])
