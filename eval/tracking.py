@@ -14,9 +14,10 @@ Every tracks line (one tick, at its capture time `t_ns`) is one motmetrics frame
 with gate `match_gate_m` (max_d2 = gate^2, `motmetrics.distances.norm2squared_matrix`). A track's identity is
 (tracker, id): ids are unique per tracker instance, so a restart is an identity change. Lines are taken in
 capture-time order; lines outside the recording's time span are skipped. With `fill_silent_ticks` (default),
-every frame time of the first chosen camera with no tracks line within half a frame interval becomes an empty
-frame: a silent (or dead, or restarting) tracker misses every GT object then, and an empty tracks file scores
-MOTA 0 rather than nothing.
+a frame time of the first chosen camera with no tracks line within half the tracker's own tick (the median
+spacing of its lines, at least a frame interval) becomes an empty frame, one per tick it missed: a silent (or
+dead, or restarting) tracker misses every GT object then, and an empty tracks file scores MOTA 0 rather than
+nothing.
 
 `traj_err_in_roi_m` is the paper's trajectory error: for each tracked position scored inside the ROI (within the
 ROI radius of a chosen camera), the distance to the ground-truth trajectory (the polyline of its samples within
@@ -57,7 +58,6 @@ after it (in the new region's), and kept when both matches are the same (tracker
 
 from __future__ import annotations
 
-import itertools
 import json
 import math
 from collections.abc import Iterable, Mapping, Sequence
@@ -237,17 +237,29 @@ def match_tracks(ground_truth: GroundTruth, tracks: str | Path | Iterable, camer
     iv = gt.frame_interval_ns
     lo_t, hi_t = gt.t_min_ns - iv, gt.t_max_ns + iv
     kept = [ln for ln in lines if lo_t <= ln.t_ns <= hi_t]
+    if lines and not kept:
+        raise ValueError(f"none of the {len(lines)} tracks lines is within the recording's time span "
+                         f"({gt.t_min_ns} to {gt.t_max_ns} ns): the tracks of another run?")
     res = MatchResult(mm.MOTAccumulator(auto_id=False), [], cams, lines=len(lines),
                       lines_outside_recording=len(lines) - len(kept))
     ticks: list[tuple[int, TrackLine | None]] = [(ln.t_ns, ln) for ln in kept]
     if cfg.fill_silent_ticks:
         times = np.sort(np.array([ln.t_ns for ln in kept], np.int64))
+        # The tracker's own cadence: a tracker that ticks every 200 ms over 100 ms frames is not silent between its
+        # ticks; where it is silent, one empty tick is charged per tick it missed, not per camera frame.
+        gaps = np.diff(np.unique(times))
+        step = max(iv, int(np.median(gaps))) if len(gaps) else iv
+        last_filled = None
         for r in gt.cameras[cams[0]].t_ns:
             k = int(np.searchsorted(times, r))
             near = [times[j] for j in (k - 1, k) if 0 <= j < len(times)]
-            if not near or min(abs(int(x) - int(r)) for x in near) > iv // 2:
-                ticks.append((int(r), None))
-                res.silent_ticks_filled += 1
+            if near and min(abs(int(x) - int(r)) for x in near) <= step // 2:
+                continue
+            if last_filled is not None and int(r) - last_filled < step - iv // 2:
+                continue
+            ticks.append((int(r), None))
+            last_filled = int(r)
+            res.silent_ticks_filled += 1
     ticks.sort(key=lambda x: (x[0], x[1].line if x[1] is not None else -1))
 
     gate2 = float(cfg.match_gate_m) ** 2
@@ -490,7 +502,10 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
             for k, xy, roi in zip(unmatched, u_xy, gt.in_roi(u_xy, cams, cfg), strict=True):
                 if not roi:
                     continue
-                d = min((gt.trajectories[v].distance_to_path(xy, fm.t_ns, window, gap) for v in gt.trajectories),
+                # against the vehicles there then: a trajectory that ended (or starts) beyond the window is not
+                present = (tr for tr in gt.trajectories.values()
+                           if tr.t_ns[0] <= fm.t_ns + window and tr.t_ns[-1] >= fm.t_ns - window)
+                d = min((tr.distance_to_path(xy, fm.t_ns, window, gap) for tr in present),
                         key=lambda x: x if math.isfinite(x) else math.inf, default=math.nan)
                 if math.isfinite(d):
                     err_unmatched.append(d)
@@ -612,13 +627,30 @@ def evaluate_many(recording: Recording | GroundTruth | str | Path, sources: Mapp
     }
 
 
+def _settled_crossings(t_ns: list[int], regions: list[int], settle_ns: int) -> int:
+    """Region changes of one track (positions at t_ns in `regions`), leaving out stays shorter than settle_ns
+    between its first and its last region stay."""
+    runs: list[list[int]] = []  # [region, first t, last t]
+    for t, r in zip(t_ns, regions, strict=True):
+        if runs and runs[-1][0] == r:
+            runs[-1][2] = t
+        else:
+            runs.append([r, t, t])
+    if len(runs) > 2:
+        inner = [run for run in runs[1:-1] if run[2] - run[1] >= settle_ns]
+        runs = [runs[0], *inner, runs[-1]]
+    merged = [run[0] for k, run in enumerate(runs) if k == 0 or run[0] != runs[k - 1][0]]
+    return len(merged) - 1
+
+
 def handoff_without_truth(tracks: str | Path | Iterable, camera_xy_m: Mapping[str, Sequence[float]],
-                          max_gap_s: float = 1.5, join_m: float = 4.0) -> dict:
+                          max_gap_s: float = 1.5, join_m: float = 4.0, settle_s: float = 0.5) -> dict:
     """Identity kept across camera regions in a tracks file with no ground truth (real footage).
 
     A region is the set of ground points nearest to one camera. A crossing is kept when one track identity
-    (tracker, id) moves from one region to another. It is broken when a track ends in one region and, within
-    `max_gap_s`, a new track starts in another region within `join_m` of where the ended track would be at
+    (tracker, id) moves from one region to another; a stay shorter than `settle_s` between two other regions (a
+    track along a region border, flickering across it) is no crossing. It is broken when a track ends in one region
+    and, within `max_gap_s`, a new track starts in another region within `join_m` of where the ended track would be at
     that time (its last position extrapolated with its last velocity from two positions): the same vehicle
     under a new id. Ended and started tracks are paired one to one, nearest first.
     Returns crossings kept and broken and `handoff_kept_fraction` (NaN without any crossing)."""
@@ -635,9 +667,10 @@ def handoff_without_truth(tracks: str | Path | Iterable, camera_xy_m: Mapping[st
 
     kept = 0
     ends, starts = [], []
+    settle = round(settle_s * 1e9)
     for key, pts in paths.items():
         regions = [region(p) for _, p in pts]
-        kept += sum(a != b for a, b in itertools.pairwise(regions))
+        kept += _settled_crossings([t for t, _ in pts], regions, settle)
         (t0, p0), (t1, p1) = pts[0], pts[-1]
         v = np.zeros(2)
         if len(pts) >= 2 and pts[-1][0] > pts[-2][0]:

@@ -383,6 +383,19 @@ def test_silent_ticks_and_lines_outside_the_recording(gt):
     r = evaluate_tracks(gt, rows)
     assert r["lines_outside_recording"] == 1 and r["silent_ticks_filled"] == 10
     assert r["recall"] == pytest.approx(0.75)
+    with pytest.raises(ValueError, match="none of the 1 tracks lines is within the recording's time span"):
+        evaluate_tracks(gt, rows[-1:])  # another run's tracks: not scored as a tracker that saw nothing
+
+
+def test_a_tracker_slower_than_the_cameras_is_silent_only_where_it_misses_its_own_ticks(gt):
+    """A tracker ticking every 200 ms over 100 ms frames is not silent between its ticks; where it stops, one empty
+    tick is charged per tick of its own it missed (not one per camera frame)."""
+    slow = make_rows()[::2]  # 20 lines, 200 ms apart
+    r = evaluate_tracks(gt, slow)
+    assert r["silent_ticks_filled"] == 0 and r["mota"] == 1.0 and r["num_frames"] == N_FRAMES // 2
+    stalled = slow[:10]  # then 2 s without a line: 10 of its ticks missed
+    r = evaluate_tracks(gt, stalled)
+    assert r["silent_ticks_filled"] == 10 and r["num_frames"] == 20 and r["recall"] == pytest.approx(0.5)
 
 
 @pytest.mark.parametrize(
@@ -492,6 +505,10 @@ def test_handoff_without_truth_counts_kept_and_broken_crossings():
     assert r["crossings_broken"] == 0
     # nor one that starts too late
     assert handoff_without_truth(rows, cams, max_gap_s=0.3)["crossings_broken"] == 0
+    # a track along the border, flickering across it for 0.1-0.2 s at a time, and once into the east for 1 s
+    flicker = [_line(k * 0.1, [(7, 0.2 if k in (5, 6, 20, 31) or 40 <= k < 50 else -0.2, 0.0)]) for k in range(60)]
+    assert handoff_without_truth(flicker, cams)["crossings_kept"] == 2  # the settled stay: in and out again
+    assert handoff_without_truth(flicker, cams, settle_s=0.0)["crossings_kept"] == 8
     with pytest.raises(ValueError, match="cameras' ground positions"):
         handoff_without_truth(rows, {})
     with pytest.raises(ValueError, match="no tracks to measure"):  # not a NaN fraction of nothing
