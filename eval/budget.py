@@ -59,8 +59,9 @@ OBJECT_KEYS = ("camera", "seq", "t_ns", "xy", "yaw", "size_lwh", "vtype", "score
 TRUTH_SCORE = 0.9  # the score of a `truth` object: above any threshold a site uses
 
 
-def read_objects(path: str | Path) -> list[dict]:
-    """The rows of an objects file (JSON lines, `roadside demo`'s `objects.jsonl`); ValueError naming the line."""
+def read_objects(path: str | Path, cameras: Sequence[str] | None = None) -> list[dict]:
+    """The rows of an objects file (JSON lines, `roadside demo`'s `objects.jsonl`); ValueError naming the line
+    (and a row of a camera not among `cameras`, when given)."""
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"objects file not found: {path}")
@@ -80,6 +81,10 @@ def read_objects(path: str | Path) -> list[dict]:
         n = len(row["score"])
         if any(len(row[k]) != n for k in ("xy", "yaw", "size_lwh", "vtype")):
             raise ValueError(f"{path}:{i}: xy, yaw, size_lwh, vtype and score must have one entry per object")
+        if isinstance(row["t_ns"], bool) or not isinstance(row["t_ns"], int) or row["t_ns"] < 0:
+            raise ValueError(f"{path}:{i}: t_ns must be a whole number of nanoseconds >= 0, got {row['t_ns']!r}")
+        if cameras is not None and row["camera"] not in cameras:
+            raise ValueError(f"{path}:{i}: camera {row['camera']!r} is not one of the site's ({', '.join(cameras)})")
         rows.append(row)
     return rows
 
@@ -259,7 +264,7 @@ def budget(demo_dir: str | Path, scenarios: Sequence[str] = SCENARIOS, gate_m: f
         rec_dir = next((p for p in (Path(rec), demo / Path(rec).name) if p.is_dir()), Path(rec))
     recording = Recording(rec_dir)
     rows = [_select(r, np.asarray(r["score"], np.float64) >= settings.detect.score_thr,
-                    np.asarray(r["xy"], np.float64).reshape(-1, 2)) for r in read_objects(demo / "objects.jsonl")]
+                    np.asarray(r["xy"], np.float64).reshape(-1, 2)) for r in read_objects(demo / "objects.jsonl", cams)]
     if localize_rule:
         if not settings.localize.footprint_overlap > 0:
             raise ValueError(f"localize_rule: localize.footprint_overlap is {settings.localize.footprint_overlap} "

@@ -131,6 +131,13 @@ def test_read_objects_names_the_bad_line(tmp_path: Path):
         read_objects(path)
     with pytest.raises(ValueError, match="objects file not found"):
         read_objects(tmp_path / "missing.jsonl")
+    path.write_text(json.dumps({**row([[0.0, 0.0]]), "t_ns": "1703001600000000000"}) + "\n")
+    with pytest.raises(ValueError, match=r"objects.jsonl:1: t_ns must be a whole number of nanoseconds"):
+        read_objects(path)
+    path.write_text(json.dumps(row([[0.0, 0.0]], camera="XX")) + "\n")
+    assert len(read_objects(path)) == 1  # the site is not known here
+    with pytest.raises(ValueError, match=r"objects.jsonl:1: camera 'XX' is not one of the site's \(A, B\)"):
+        read_objects(path, ["A", "B"])
 
 
 @pytest.fixture(scope="module")
