@@ -1,6 +1,8 @@
 """Detector accuracy on a simulator recording, per camera kind and overall.
 
-- `ap50`: VOC07 average precision (11-point interpolation) at IoU 0.5 on 2D boxes. Ground truth follows
+- `ap50`: VOC07 average precision (11-point interpolation) at IoU 0.5 on 2D boxes, the detections matched to the
+  boxes as COCO's evaluation matches them (`match_frame`: a detection whose best box is taken may take the next
+  free one it overlaps by 0.5; VOC would count it a duplicate). Ground truth follows
   the training label policy (`training.data.vehicle_weight`): positives must be found; a detection on
   an "ignore" vehicle (tiny, mostly hidden) is neither a hit nor a false alarm (VOC's "difficult").
 - For the detections matched to a positive (IoU >= 0.5): `loc_err_m`, the ground distance between the
@@ -84,8 +86,10 @@ def voc07_ap(scores: np.ndarray, hits: np.ndarray, n_pos: int) -> float:
 
 def match_frame(det: Detections, box: np.ndarray, weight: np.ndarray,
                 min_iou: float = IOU_MATCH) -> tuple[np.ndarray, np.ndarray]:
-    """Greedy VOC matching by score: per detection, its matched positive (index, -1 none) and whether
-    it counts at all (False when it only overlaps an ignore vehicle); a match overlaps by `min_iou` or more."""
+    """Greedy matching by score, as COCO's evaluation matches (not VOC's): each detection, highest score first, takes
+    the positive it overlaps most among those still free, by `min_iou` or more; a detection that matches no free
+    positive but overlaps an ignore vehicle by `min_iou` does not count. Per detection: its matched positive
+    (index, -1 none) and whether it counts at all."""
     gt_of = -np.ones(len(det), int)
     counts = np.ones(len(det), bool)
     if len(det) == 0 or len(box) == 0:
@@ -191,11 +195,12 @@ def near_frame(det_xy: np.ndarray, label_xy: np.ndarray, positive: np.ndarray, c
 
 def evaluate(recording: str | Path, detect: Callable[[np.ndarray], Detections], every: int = 1,
              cameras: list[str] | None = None, log=None, fisheye_area_deg: float | None = None,
-             near_m: float = NEAR_M, near_score: float = BREAKDOWN_SCORE) -> dict:
+             near_m: float = NEAR_M, near_score: float = BREAKDOWN_SCORE, detections_score_thr: float = 0.0) -> dict:
     """Score `detect(grey image) -> Detections` (original pixels) on every `every`-th frame. With
     `fisheye_area_deg`, fisheye frames are detected as `detect(grey, area_px=...)` inside the image circle up to
     that angle off axis (`Camera.image_area_px`), as a site's `detect_area_px` has the detect service do.
-    `near_m`, `near_score`: the near-camera metrics (module docstring)."""
+    `near_m`, `near_score`: the near-camera metrics (module docstring). `detections_score_thr`: the score `detect`
+    keeps detections from; a figure counted at a lower score is at this one, and says so."""
     if not near_m > 0:
         raise ValueError(f"near_m must be > 0, got {near_m!r}")
     rec = Recording(recording)
@@ -284,7 +289,8 @@ def evaluate(recording: str | Path, detect: Callable[[np.ndarray], Detections], 
             "size_err_l2_m": stat(pool["size_l2"], np.nanmean),
             "type_acc": stat(pool["type"], np.nanmean),
             **best_f1(scores, hits, n_pos),
-            "breakdown_score_thr": BREAKDOWN_SCORE,
+            "detections_score_thr": detections_score_thr,
+            "breakdown_score_thr": max(BREAKDOWN_SCORE, detections_score_thr),
             "false_alarms": {k: sum(a["alarms"][k] for a in accs) for k in ("box", "duplicate", "background")},
             "recall_by_size": by_size(accs),
             **near_summary(accs),
@@ -297,7 +303,8 @@ def evaluate(recording: str | Path, detect: Callable[[np.ndarray], Detections], 
         loc = [x for a in accs for x in a["near_loc"]]
         recall = n["found"] / n["positives"] if n["positives"] else None
         precision = n["true"] / n["detections"] if n["detections"] else None
-        f1 = 2 * precision * recall / (precision + recall) if recall and precision else None
+        f1 = None if recall is None or precision is None else \
+            2 * precision * recall / (precision + recall) if precision + recall else 0.0
         vtype = np.array([x for a in accs for x in a["near_type"]], np.int64)
         dist = np.array([x for a in accs for x in a["near_dist"]], float)
         by_type = {}
@@ -310,7 +317,8 @@ def evaluate(recording: str | Path, detect: Callable[[np.ndarray], Detections], 
             by_type[t] = {
                 "positives": len(d), "recall": round(len(found) / len(d), 4),
                 "loc_err_median_m": round(float(np.median(found)), 4) if len(found) else None}
-        return {"near_m": near_m, "near_score_thr": near_score, "near_positives": n["positives"],
+        return {"near_m": near_m, "near_score_thr": max(near_score, detections_score_thr),
+                "near_positives": n["positives"],
                 "near_recall": None if recall is None else round(recall, 4),
                 "near_precision": None if precision is None else round(precision, 4),
                 "near_f1": None if f1 is None else round(f1, 4),

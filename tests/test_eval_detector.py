@@ -113,6 +113,16 @@ def test_an_oracle_detector_scores_perfectly(small_recording):
     assert evaluate(small_recording, oracle, near_m=1e-3)["overall"]["near_positives"] == 0
     with pytest.raises(ValueError, match="near_m must be > 0"):
         evaluate(small_recording, oracle, near_m=0.0)
+    # detections kept from 0.6 up: the figures "at 0.3" are at 0.6, and say so
+    high = evaluate(small_recording, oracle, detections_score_thr=0.6)["overall"]
+    assert high["breakdown_score_thr"] == high["near_score_thr"] == high["detections_score_thr"] == 0.6
+
+    def off_target(grey: np.ndarray) -> Detections:  # every detection 400 px off its vehicle
+        d = oracle(grey)
+        return Detections(d.score, d.uv + 400.0, d.box + 400.0, d.heading_uv, d.size_lwh, d.vtype, d.vtype_prob)
+
+    off = evaluate(small_recording, off_target)["overall"]
+    assert off["near_recall"] == 0.0 and off["near_precision"] == 0.0 and off["near_f1"] == 0.0  # none, not unknown
 
 
 def test_false_alarm_breakdown_by_kind():
