@@ -65,6 +65,12 @@ def _run_sim(args) -> int:
         type_weights=args.type_weights,
         overwrite=args.overwrite,
     )
+    if args.contact_sheet:  # checked before the clip is simulated, not after
+        import cv2
+
+        if args.contact_sheet.is_dir() or not cv2.haveImageWriter(str(args.contact_sheet)):
+            raise ValueError(f"--contact-sheet {args.contact_sheet}: not an image file name OpenCV can write "
+                             "(.png or .jpg)")
     summary = simulate_clip(cfg, log=lambda s: print(f"[sim] {s}", file=sys.stderr))
     if args.contact_sheet:
         contact_sheet(args.out, args.contact_sheet)
@@ -276,7 +282,9 @@ def _run_eval(args) -> int:
 
         if args.tracks is None:
             raise ValueError("eval handoff needs --tracks")
-        positions, _ = camera_positions(load_settings(args.site))
+        settings = load_settings(args.site)
+        _site_tracks([args.tracks], settings, args.site)
+        positions, _ = camera_positions(settings)
         print(dumps({"tracks_file": str(args.tracks), **handoff_without_truth(args.tracks, positions)}, indent=1))
         return 0
     if args.what == "real" and args.tracks is not None:
@@ -287,7 +295,9 @@ def _run_eval(args) -> int:
         from shared.geo import GeoFrame
         from shared.settings import load_settings
 
-        origin = load_settings(args.site).origin
+        settings = load_settings(args.site)
+        _site_tracks([args.tracks], settings, args.site)
+        origin = settings.origin
         result = evaluate_tracks_real(args.site / "labels", args.tracks, args.site / "masks",
                                       GeoFrame.from_dict(origin) if origin else None)
         line = ("{name:8s} tracks: precision {precision} recall {recall} ({labels} labels, {detections} tracks "
@@ -325,7 +335,7 @@ def _run_eval(args) -> int:
     det = OnnxDetector(args.model, threads=args.threads, score_thr=thr, mirror=args.mirror, votes=args.votes,
                        calibrated_heads=not args.raw_heads)
     result = evaluate(args.recording, det.detect, every=args.every, fisheye_area_deg=args.fisheye_area_deg,
-                      near_m=args.near_m, near_score=args.near_score)
+                      near_m=args.near_m, near_score=args.near_score, detections_score_thr=thr)
     # the model's calibrations as applied (none with --raw-heads, or for a model exported without them)
     result["heads_calibrated"] = {"boxes": det.box_calibration is not None, "sizes": det.size_calibration is not None}
     line = ("{name:8s} ap50 {ap50} loc {loc_err_m} m yaw {yaw_err_deg} deg size {size_err_m} m ({frames} frames); "
@@ -499,8 +509,23 @@ class _CountsCsv:
             self.file.close()
 
 
+def _site_tracks(paths: list[Path], settings, site: Path):
+    """The tracks files read (`shared.movements.read_tracks`); ValueError when they hold no tracks line, or tracks of
+    another site than `settings`' (a site file at `site`)."""
+    from shared.movements import read_tracks
+
+    read = read_tracks(paths)
+    if not read.times_ns:
+        why = f"; {read.bad[0]}" if read.bad else ""
+        raise ValueError(f"no tracks line in {', '.join(map(str, paths))} ({read.lines} lines{why})")
+    if read.sites - {settings.site}:
+        raise ValueError(f"the tracks are of site {', '.join(sorted(read.sites))}, {site} is site {settings.site}: "
+                         "give the tracks' own site")
+    return read
+
+
 def _run_counts(args) -> int:
-    from shared.movements import binned, movements, read_tracks
+    from shared.movements import binned, movements
     from shared.settings import load_settings
 
     if args.csv and args.json:
@@ -518,13 +543,7 @@ def _run_counts(args) -> int:
     _live_only(args, "connect", "heartbeat", "count", "timeout")
     if not args.tracks:
         raise ValueError("counts needs tracks files (or --live)")
-    read = read_tracks(args.tracks)
-    if not read.times_ns:
-        why = f"; {read.bad[0]}" if read.bad else ""
-        raise ValueError(f"no tracks line in {', '.join(map(str, args.tracks))} ({read.lines} lines{why})")
-    if read.sites - {settings.site}:
-        raise ValueError(f"the tracks are of site {', '.join(sorted(read.sites))}, {site} is site {settings.site}: "
-                         "give the tracks' own site (its junction)")
+    read = _site_tracks(args.tracks, settings, site)
     found = movements(read.positions, junction)
     bins = binned(found, args.bin_s, read.times_ns)
     legs = junction.names

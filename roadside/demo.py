@@ -436,7 +436,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
     wide = evaluate_tracks(gt, tracks_path, cams, TrackingEvalConfig(eval_radius_m=cfg.handoff_radius_m))
     # the fused tracks in each camera's own ROI, against that camera tracked alone there (the same ground): the
     # best single camera above is the easiest ROI, not the same ground as the fused figure
-    fused_in = {c: evaluate_tracks(gt, tracks_path, [c])["traj_err_in_roi_m"] for c in cams}
+    fused_in = {c: evaluate_tracks(gt, tracks_path, [c], seen_by=cams)["traj_err_in_roi_m"] for c in cams}
 
     mv = evaluate_movements(gt, tracks_path, settings.movements.junction(), cams)
     log("writing the Rerun recording")

@@ -46,6 +46,13 @@ def test_flags_out_of_range_are_refused_by_name(argv, message, capsys):
     assert message in capsys.readouterr().err
 
 
+def test_sim_checks_its_contact_sheet_name_before_the_clip(tmp_path, capsys):
+    out = tmp_path / "clip"
+    argv = ["sim", "--site", "intersection", "--seconds", "0.1", "--out", str(out)]
+    assert main([*argv, "--contact-sheet", str(tmp_path / "sheet.txt")]) == 2
+    assert "--contact-sheet" in capsys.readouterr().err and not out.exists()
+
+
 @pytest.mark.parametrize(("flag", "message"), [
     (["--landmarks", "3"], "landmarks must be from 5 to 1000 per camera"),
     (["--landmarks", "-1"], "landmarks must be from 5 to 1000 per camera"),

@@ -320,6 +320,9 @@ def test_roadside_counts_writes_csv_and_appends_a_cabinets_file(tmp_path, capsys
     other.write_text(f.read_text().replace('"site": "se"', '"site": "elm"'))
     assert main(["counts", str(other), "--site", str(site)]) == 2
     assert "the tracks are of site elm" in capsys.readouterr().err
+    for job in (["eval", "handoff"], ["eval", "real"]):  # nor scored against this site's cameras or labels
+        assert main([*job, "--tracks", str(other), "--site", str(site)]) == 2
+        assert "the tracks are of site elm" in capsys.readouterr().err
 
 
 # --- against the truth ----------------------------------------------------------------------------------------------
