@@ -1,6 +1,7 @@
 """Simulate a clip: traffic, rendering through every camera, ground truth and landmarks, written
 as a recording. Output is written to a hidden sibling folder and renamed into place at the very
-end, so a failed or interrupted run never leaves a folder that looks complete.
+end, so a failed or interrupted run never leaves a folder that looks complete. Only a recording is
+ever replaced (with `overwrite`): never another folder, a file, a link or the working directory.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ import multiprocessing as mp
 import os
 import shutil
 import signal
+import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -75,6 +77,8 @@ class ClipConfig:
         check_type_weights(self.type_weights)
         if not 10 <= self.jpeg_quality <= 100:
             raise ValueError(f"--jpeg-quality must be in [10, 100], got {self.jpeg_quality}")
+        if not (math.isfinite(self.demand_scale) and self.demand_scale >= 0):
+            raise ValueError(f"--demand-scale must be a finite number >= 0, got {self.demand_scale}")
 
 
 def select_cameras(site: SiteSpec, which: str) -> list[Camera]:
@@ -175,10 +179,36 @@ def _worker(jobs, world, env, shadows, history, schedule, t0_ns, tmp, cfg, conn)
         conn.close()
 
 
-def _prepare_output(out: Path, overwrite: bool) -> Path:
+def _check_replaceable(out: Path) -> None:
+    """ValueError unless what is at `out` (an absolute path) is a recording that `overwrite` may replace: a folder,
+    not a link, holding a recording.json of the recording format, and neither the working directory nor above it."""
+    if out.is_symlink():
+        raise ValueError(f"--out {out} is a symbolic link; give the folder it points to, or another path")
+    if not out.is_dir():
+        raise ValueError(f"--out {out} is a file, not a folder")
+    cwd = Path.cwd().resolve()
+    if out == cwd or out in cwd.parents:
+        raise ValueError(f"--overwrite will not replace {out}: it is the working directory or a folder above it")
+    try:
+        fmt = json.loads((out / META_FILE).read_text()).get("format")
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError):
+        fmt = None
+    if fmt != FORMAT:
+        raise ValueError(f"--overwrite replaces only a simulator recording, and {out} is not one (no {META_FILE} of "
+                         f"format {FORMAT!r}); remove it yourself or choose another --out")
+
+
+def _prepare_output(out: Path, overwrite: bool) -> tuple[Path, Path]:
+    """Check the output folder `out` and make the hidden sibling that the recording is written to. Returns (`out`
+    resolved, that sibling). ValueError when `out` is a link or a file, exists without `overwrite`, or exists and is
+    not a recording that `overwrite` may replace (`_check_replaceable`)."""
+    if out.is_symlink():
+        raise ValueError(f"--out {out} is a symbolic link; give the folder it points to, or another path")
     out = out.resolve()
-    if out.exists() and not overwrite:
-        raise ValueError(f"output folder already exists: {out} (pass --overwrite to replace it)")
+    if out.exists():
+        if out.is_dir() and not overwrite:
+            raise ValueError(f"output folder already exists: {out} (pass --overwrite to replace it)")
+        _check_replaceable(out)
     parent = out.parent
     if not parent.is_dir():
         raise ValueError(f"output folder's parent does not exist: {parent}")
@@ -191,7 +221,42 @@ def _prepare_output(out: Path, overwrite: bool) -> Path:
         (tmp / "landmarks").mkdir()
     except OSError as exc:
         raise ValueError(f"cannot write to {parent}: {exc.strerror}") from None
-    return tmp
+    return out, tmp
+
+
+def _move_into_place(tmp: Path, out: Path, overwrite: bool) -> None:
+    """Rename the finished recording `tmp` to `out` (resolved). Something at `out` is replaced only with `overwrite`
+    and only if it is still a recording (`_check_replaceable`): it is renamed aside, the new recording renamed into
+    place, and the old one deleted last. Otherwise (say another run's recording appeared at `out` during this run)
+    nothing is replaced or deleted: ValueError saying where the new recording is."""
+    kept = f"nothing was replaced; the new recording is at {tmp}"
+    if not (out.exists() or out.is_symlink()):
+        try:
+            os.rename(tmp, out)  # fails if a folder with files appeared at `out` since the check
+        except OSError as exc:
+            raise ValueError(f"cannot move the recording to {out} ({exc.strerror}); {kept}") from None
+        return
+    if not overwrite:
+        raise ValueError(f"output folder {out} appeared during the run; {kept}")
+    try:
+        _check_replaceable(out)
+    except ValueError as exc:
+        raise ValueError(f"{exc} (it changed during the run); {kept}") from None
+    try:
+        old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+    except OSError as exc:
+        raise ValueError(f"cannot write to {out.parent} ({exc.strerror}); {kept}") from None
+    try:
+        os.rename(out, old)  # onto the empty folder just made
+    except OSError as exc:
+        old.rmdir()
+        raise ValueError(f"cannot move the old recording {out} aside ({exc.strerror}); {kept}") from None
+    try:
+        os.rename(tmp, out)
+    except OSError as exc:
+        os.rename(old, out)
+        raise ValueError(f"cannot move the recording to {out} ({exc.strerror}); {kept}") from None
+    shutil.rmtree(old, ignore_errors=True)
 
 
 def simulate_clip(cfg: ClipConfig, log: Callable[[str], None] = lambda s: None) -> dict:
@@ -215,8 +280,7 @@ def _simulate_clip(cfg: ClipConfig, log: Callable[[str], None]) -> dict:
     site = load_site(cfg.site)
     cams = select_cameras(site, cfg.cameras)
     env = sample_environment(np.random.default_rng([cfg.seed, 31]), cfg.weather)
-    out = Path(cfg.out)
-    tmp = _prepare_output(out, cfg.overwrite)
+    out, tmp = _prepare_output(Path(cfg.out), cfg.overwrite)
     wall0 = time.perf_counter()
     try:
         log(f"building the {site.name} world")
@@ -311,16 +375,14 @@ def _simulate_clip(cfg: ClipConfig, log: Callable[[str], None]) -> dict:
             "site_spec": site.model_dump(mode="json"),
         }
         (tmp / META_FILE).write_text(json.dumps(meta, indent=1))
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(tmp, out.resolve())
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    _move_into_place(tmp, out, cfg.overwrite)  # on failure the finished recording stays at tmp, and it says so
     wall = time.perf_counter() - wall0
     frames = sum(s["frames"] for s in stats)
     return {
-        "out": str(out),
+        "out": str(cfg.out),
         "frames": frames,
         "cameras": len(cams),
         "wall_s": wall,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import cv2
@@ -66,6 +67,12 @@ def contact_sheet(recording: str | Path, out_png: str | Path, moments: int = 3) 
     sheet = np.vstack([cv2.copyMakeBorder(r, 0, 2, 0, width - r.shape[1], cv2.BORDER_CONSTANT) for r in rows])
     out = Path(out_png)
     out.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(out), sheet):
+    try:
+        written = cv2.imwrite(str(out), sheet)
+    except cv2.error as exc:  # an extension OpenCV has no encoder for, among others
+        reason = str(exc).strip().splitlines()[-1]
+        m = re.search(r"error: \([^)]*\) (.*?)(?: in function .*)?$", reason)  # OpenCV's own message, bare
+        raise ValueError(f"cannot write contact sheet {out}: {m.group(1) if m else reason}") from None
+    if not written:
         raise ValueError(f"cannot write contact sheet {out}")
     return out

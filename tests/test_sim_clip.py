@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -17,7 +18,7 @@ from sim.contact_sheet import contact_sheet
 from sim.groundtruth import frame_ground_truth
 from sim.recording import Recording
 from sim.render import CameraRenderer, ShadowCaster, build_world, sample_environment
-from sim.site import load_site
+from sim.site import known_sites, load_site
 from sim.traffic import simulate_traffic
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -149,6 +150,11 @@ def test_contact_sheet_draws_every_camera(clips, tmp_path):
     assert img.std() > 20
 
 
+def test_contact_sheet_names_a_path_it_cannot_write(clips, tmp_path):
+    with pytest.raises(ValueError, match=r"cannot write contact sheet .*sheet\.xyz"):
+        contact_sheet(clips["a"], tmp_path / "sheet.xyz", moments=1)
+
+
 def _cli(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run(
         [sys.executable, "-m", "roadside", *args], capture_output=True, text=True, cwd=ROOT, timeout=300
@@ -238,6 +244,8 @@ def test_bad_clip_config_values_are_named():
         ({"seed": -1}, "--seed"),
         ({"workers": 0}, "--workers"),
         ({"type_weights": {"bus": -2.0}}, "type weight for bus"),
+        ({"demand_scale": -0.5}, "--demand-scale must be a finite number >= 0, got -0.5"),
+        ({"demand_scale": float("nan")}, "--demand-scale"),
     ]:
         cfg = ClipConfig(**{"site": "state_ellsworth", "out": Path("/tmp/unused"), "seconds": 1.0, **kwargs})
         with pytest.raises(ValueError, match=word):
@@ -268,3 +276,135 @@ def test_a_site_file_whose_cameras_would_write_elsewhere_or_whose_clock_is_local
     (tmp_path / "site.yaml").write_text(yaml.safe_dump(spec))
     with pytest.raises(ValueError, match=message):
         load_site(tmp_path / "site.yaml")
+
+
+def _site_file(tmp_path: Path, change) -> Path:
+    """The intersection site's file with `change` applied to its parsed YAML, written to tmp_path."""
+    import yaml
+
+    spec = yaml.safe_load((Path(clip_mod.__file__).parent / "sites" / "intersection.yaml").read_text())
+    change(spec)
+    (tmp_path / "site.yaml").write_text(yaml.safe_dump(spec))
+    return tmp_path / "site.yaml"
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    (lambda s: s["approaches"][0].update(bearing_deg=float("nan")),
+     r"approaches\.0\.bearing_deg: Input should be a finite number"),
+    (lambda s: s["cameras"][1].update(yaw_deg=float("nan")), r"cameras\.1\.yaw_deg: Input should be a finite number"),
+    (lambda s: s["cameras"][0].update(pitch_deg=float("inf")), r"cameras\.0\.pitch_deg: Input should be a finite"),
+    (lambda s: s.update(extent_m=400.0), r"extent_m: extent_m must be at most 240 m, got 400: .*memory"),
+    (lambda s: s["terrain"]["bumps"][1].update(heigth_m=s["terrain"]["bumps"][1].pop("height_m")),
+     r"site\.yaml: terrain\.bumps\[1\]: unknown key 'heigth_m'"),
+    (lambda s: s["terrain"].update(slopex=0.01), r"site\.yaml: terrain: unknown key 'slopex'"),
+    (lambda s: s["terrain"].update(bumps=3), r"site\.yaml: terrain\.bumps must be a list"),
+    (lambda s: s["terrain"]["bumps"][0].pop("sigma_m"), r"site\.yaml: terrain\.bumps\[0\]: sigma_m is missing"),
+])
+def test_a_site_file_with_a_bad_number_or_terrain_entry_is_refused_naming_it(tmp_path, change, message):
+    path = _site_file(tmp_path, change)
+    with pytest.raises(ValueError, match=message):
+        load_site(path)
+
+
+def test_every_site_loads_and_the_largest_extent_is_accepted(tmp_path):
+    for name in known_sites():
+        assert load_site(name).ground.slope_x is not None  # the terrain section reads too
+    assert load_site(_site_file(tmp_path, lambda s: s.update(extent_m=240.0))).extent_m == 240.0
+
+
+def _fake_recording(path: Path, marker: str) -> None:
+    path.mkdir()
+    (path / "recording.json").write_text(json.dumps({"format": "roadside-recording", "version": 1}))
+    (path / "marker.txt").write_text(marker)
+
+
+def _tree(root: Path) -> dict[str, str]:
+    """Every entry under root (links not followed): file -> text, folder -> '/', link -> '-> target'."""
+    out = {}
+    for dirpath, dirnames, filenames in os.walk(root):
+        for name in dirnames + filenames:
+            p = Path(dirpath) / name
+            key = str(p.relative_to(root))
+            out[key] = f"-> {os.readlink(p)}" if p.is_symlink() else "/" if p.is_dir() else p.read_text()
+    return out
+
+
+@pytest.mark.parametrize(("kind", "message"), [
+    ("plain_folder", "replaces only a simulator recording"),
+    ("other_format", "replaces only a simulator recording"),
+    ("bad_json", "replaces only a simulator recording"),
+    ("file", "is a file, not a folder"),
+    ("link_to_recording", "is a symbolic link"),
+])
+def test_overwrite_refuses_anything_but_a_recording(tmp_path, kind, message):
+    target = tmp_path / "out"
+    if kind == "file":
+        target.write_text("notes")
+    elif kind == "link_to_recording":
+        _fake_recording(tmp_path / "rec", "kept")
+        target.symlink_to(tmp_path / "rec")
+    else:
+        target.mkdir()
+        meta = {"plain_folder": None, "other_format": json.dumps({"format": "something-else"}), "bad_json": "{"}[kind]
+        (target / ("thesis.tex" if meta is None else "recording.json")).write_text(meta or "chapter 1")
+    before = _tree(tmp_path)
+    with pytest.raises(ValueError, match=message):
+        clip_mod._prepare_output(target, overwrite=True)
+    assert _tree(tmp_path) == before
+
+
+def test_overwrite_refuses_the_working_directory_and_the_folders_above_it(tmp_path, monkeypatch):
+    _fake_recording(tmp_path / "rec", "kept")
+    (tmp_path / "rec" / "sub").mkdir()
+    before = _tree(tmp_path)
+    monkeypatch.chdir(tmp_path / "rec")
+    with pytest.raises(ValueError, match="is the working directory or a folder above it"):
+        clip_mod._prepare_output(Path("."), overwrite=True)
+    monkeypatch.chdir(tmp_path / "rec" / "sub")
+    with pytest.raises(ValueError, match="is the working directory or a folder above it"):
+        clip_mod._prepare_output(Path(".."), overwrite=True)
+    assert _tree(tmp_path) == before
+
+
+def test_overwrite_checks_come_before_the_world_is_built(tmp_path, monkeypatch):
+    def no_world(site):
+        raise AssertionError("the world was built")
+
+    monkeypatch.setattr(clip_mod, "build_world", no_world)
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep me")
+    with pytest.raises(ValueError, match="replaces only a simulator recording"):
+        simulate_clip(ClipConfig(site="state_ellsworth", out=tmp_path / "mine", seconds=0.5, overwrite=True))
+    (tmp_path / "link").symlink_to(tmp_path / "elsewhere")
+    with pytest.raises(ValueError, match="is a symbolic link"):
+        simulate_clip(ClipConfig(site="state_ellsworth", out=tmp_path / "link", seconds=0.5))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["link", "mine"]
+    assert (tmp_path / "mine" / "notes.txt").read_text() == "keep me"
+
+
+def test_overwrite_replaces_a_recording_and_leaves_nothing_else(tmp_path):
+    _fake_recording(tmp_path / "rec", "old")
+    out, tmp = clip_mod._prepare_output(tmp_path / "rec", overwrite=True)
+    assert out == (tmp_path / "rec").resolve() and tmp.parent == out.parent and tmp.name.startswith(".rec.partial-")
+    (tmp / "recording.json").write_text(json.dumps({"format": "roadside-recording", "version": 1}))
+    (tmp / "marker.txt").write_text("new")
+    clip_mod._move_into_place(tmp, out, overwrite=True)
+    assert (tmp_path / "rec" / "marker.txt").read_text() == "new"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rec"]
+
+
+@pytest.mark.parametrize("overwrite", [False, True])
+def test_a_folder_that_appears_during_the_run_is_left_alone(tmp_path, overwrite):
+    """Another run (without --overwrite) or a person (with it) put something at --out while this run rendered."""
+    out, tmp = clip_mod._prepare_output(tmp_path / "rec", overwrite=overwrite)
+    (tmp / "marker.txt").write_text("this run")
+    if overwrite:
+        (tmp_path / "rec").mkdir()
+        (tmp_path / "rec" / "notes.txt").write_text("not a recording")
+    else:
+        _fake_recording(tmp_path / "rec", "the other run")
+    before = _tree(tmp_path)
+    message = "appeared during the run" if not overwrite else "not one .* changed during the run"
+    with pytest.raises(ValueError, match=f"{message}.*nothing was replaced; the new recording is at .*partial"):
+        clip_mod._move_into_place(tmp, out, overwrite=overwrite)
+    assert _tree(tmp_path) == before
