@@ -7,7 +7,9 @@ share this model, so calibration is scored against the same surface the images w
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+import numbers
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
@@ -36,10 +38,10 @@ class Terrain:
         for name in ("slope_x", "slope_y"):
             v = getattr(self, name)
             if not np.isfinite(v) or abs(v) > 0.15:
-                raise ValueError(f"terrain {name} must be a finite grade within +-0.15, got {v}")
-        for b in self.bumps:
+                raise ValueError(f"terrain.{name} must be a finite grade within +-0.15, got {v}")
+        for i, b in enumerate(self.bumps):
             if not b.sigma_m > 0:
-                raise ValueError(f"terrain bump sigma_m must be > 0, got {b.sigma_m}")
+                raise ValueError(f"terrain.bumps[{i}].sigma_m must be > 0, got {b.sigma_m}")
 
     def height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Ground height (m) at site coordinates x, y (any matching shapes)."""
@@ -99,12 +101,50 @@ class Terrain:
 
     @classmethod
     def from_dict(cls, d: dict | None) -> Terrain:
-        d = d or {}
+        """The terrain of `to_dict`, or of a site file's `terrain:` section (every key optional, None: flat).
+        Raises ValueError naming the entry (`terrain.bumps[1].sigma_m`) that is unknown, missing or not a finite
+        number."""
+        if d is None:
+            d = {}
+        if not isinstance(d, dict):
+            raise ValueError(f"terrain must be a mapping of slope_x, slope_y and bumps, got {d!r}")
+        _check_keys("terrain", d, ("slope_x", "slope_y", "bumps"), ())
+        raw_bumps = d.get("bumps")
+        if raw_bumps is None:  # `bumps:` with nothing after it
+            raw_bumps = []
+        if not isinstance(raw_bumps, list | tuple):
+            raise ValueError(f"terrain.bumps must be a list of bumps (each x_m, y_m, sigma_m, height_m), "
+                             f"got {raw_bumps!r}")
+        names = tuple(f.name for f in fields(Bump))
+        bumps = []
+        for i, b in enumerate(raw_bumps):
+            where = f"terrain.bumps[{i}]"
+            if not isinstance(b, dict):
+                raise ValueError(f"{where} must be a mapping of {', '.join(names)}, got {b!r}")
+            _check_keys(where, b, names, names)
+            bumps.append(Bump(*(_number(f"{where}.{k}", b[k]) for k in names)))
         return cls(
-            float(d.get("slope_x", 0.0)),
-            float(d.get("slope_y", 0.0)),
-            tuple(Bump(**{k: float(v) for k, v in b.items()}) for b in d.get("bumps", [])),
+            _number("terrain.slope_x", d.get("slope_x", 0.0)),
+            _number("terrain.slope_y", d.get("slope_y", 0.0)),
+            tuple(bumps),
         )
+
+
+def _check_keys(where: str, d: dict, known: tuple[str, ...], required: tuple[str, ...]) -> None:
+    """ValueError naming the first key of `d` not in `known`, or the first of `required` missing."""
+    for k in d:
+        if k not in known:
+            raise ValueError(f"{where}: unknown key {k!r} (known: {', '.join(known)})")
+    for k in required:
+        if k not in d:
+            raise ValueError(f"{where}: {k} is missing")
+
+
+def _number(where: str, v: object) -> float:
+    """`v` as a float; ValueError naming `where` unless it is a finite real number (not a bool or a string)."""
+    if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v):
+        raise ValueError(f"{where} must be a finite number, got {v!r}")
+    return float(v)
 
 
 def ground_lookup(camera: Camera, terrain: Terrain, max_range_m: float = 1e3) -> tuple[np.ndarray, np.ndarray]:

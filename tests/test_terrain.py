@@ -203,3 +203,27 @@ def test_ground_lookup_fisheye_outside_circle_invalid() -> None:
     circle = cam.image_circle_radius_px()
     assert not valid[r > circle].any()
     assert valid[r < 0.9 * circle].all()
+
+
+@pytest.mark.parametrize(("section", "message"), [
+    ({"slopex": 0.01}, r"terrain: unknown key 'slopex'"),
+    ({"bumps": 3}, r"terrain\.bumps must be a list of bumps"),
+    ({"bumps": [{"x_m": 0, "y_m": 0, "sigma_m": 3, "heigth_m": 1}]}, r"terrain\.bumps\[0\]: unknown key 'heigth_m'"),
+    ({"bumps": [{"x_m": 0, "y_m": 0, "height_m": 1}]}, r"terrain\.bumps\[0\]: sigma_m is missing"),
+    ({"bumps": [{"x_m": 0, "y_m": 0, "sigma_m": 2, "height_m": 1}, [1, 2]]}, r"terrain\.bumps\[1\] must be a mapping"),
+    ({"bumps": [{"x_m": 0, "y_m": "north", "sigma_m": 2, "height_m": 1}]},
+     r"terrain\.bumps\[0\]\.y_m must be a finite number, got 'north'"),
+    ({"bumps": [{"x_m": 0, "y_m": 0, "sigma_m": float("nan"), "height_m": 1}]}, r"terrain\.bumps\[0\]\.sigma_m"),
+    ({"bumps": [{"x_m": 0, "y_m": 0, "sigma_m": 0, "height_m": 1}]}, r"terrain\.bumps\[0\]\.sigma_m must be > 0"),
+    ({"slope_y": True}, r"terrain\.slope_y must be a finite number, got True"),
+    ([0.01, 0.02], r"terrain must be a mapping"),
+])
+def test_from_dict_names_the_bad_entry(section: object, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        Terrain.from_dict(section)
+
+
+def test_from_dict_takes_an_empty_bump_list_and_whole_numbers() -> None:
+    assert Terrain.from_dict({"bumps": None}) == Terrain()
+    t = Terrain.from_dict({"slope_x": 0, "bumps": [{"x_m": 1, "y_m": 2, "sigma_m": 3, "height_m": 1}]})
+    assert t == Terrain(0.0, 0.0, (Bump(1.0, 2.0, 3.0, 1.0),))
