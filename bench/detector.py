@@ -53,15 +53,22 @@ class BenchSettings:
 
     @property
     def hw(self) -> tuple[int, int]:
-        return (self.height_px or self.size_px, self.size_px)
+        return (self.size_px if self.height_px is None else self.height_px, self.size_px)
 
     def __post_init__(self) -> None:
-        for name, v in (("size_px", self.size_px), ("height_px", self.height_px or 32)):
-            if v % 32 or v < 32:
-                raise ValueError(f"{name} must be a positive multiple of 32, got {v}")
+        """ValueError naming the setting and its flag."""
+        for name, flag in (("size_px", "--size"), ("height_px", "--height")):
+            v = getattr(self, name)
+            if v is not None and (v % 32 or v < 32):
+                raise ValueError(f"{name} ({flag}) must be a positive multiple of 32, got {v}")
         for name in ("threads", "runs", "workers"):
             if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+                raise ValueError(f"{name} (--{name}) must be >= 1, got {getattr(self, name)}")
+        if self.warmup < 0:
+            raise ValueError(f"warmup (--warmup) must be >= 0, got {self.warmup}")
+        if self.model_fp16 is not None and self.model is None:
+            raise ValueError("model_fp16 (--model-fp16) goes with model (--model): without a model an untrained one "
+                             "is exported and timed with its own fp16 copy")
 
 
 def time_session(session: ort.InferenceSession, image: np.ndarray, runs: int, warmup: int) -> dict:

@@ -17,6 +17,7 @@ figures are upper bounds; compare two variants within one run or back to back.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import platform
 import time
@@ -129,8 +130,10 @@ def main(argv: list[str] | None = None) -> int:
     for name in ("vehicles", "ticks"):
         if getattr(a, name) < 1:
             p.error(f"--{name} must be at least 1, got {getattr(a, name)}")
-    if a.warmup < 0 or not a.range_m > 0:
-        p.error(f"--warmup must be >= 0 and --range > 0, got {a.warmup} and {a.range_m}")
+    if a.warmup < 0:
+        p.error(f"--warmup must be >= 0, got {a.warmup}")
+    if not (math.isfinite(a.range_m) and a.range_m > 0):
+        p.error(f"--range must be a finite number > 0, got {a.range_m}")
     try:
         result = run(a.vehicles, a.ticks, a.warmup, a.range_m, a.seed)
     except ValueError as exc:

@@ -1,0 +1,60 @@
+"""Benchmark flags: impossible values are refused with the flag named, before any work; the simulator benchmark's
+target applies to the run it was set for."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from bench import fuse_track, sim_render
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--range", "inf"], "--range must be a finite number > 0, got inf"),
+    (["--range", "nan"], "--range must be a finite number > 0, got nan"),
+    (["--range", "0"], "--range must be a finite number > 0"),
+    (["--warmup", "-1"], "--warmup must be >= 0, got -1"),
+])
+def test_fuse_track_refuses_an_impossible_range_or_warmup(argv, message, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        fuse_track.main(["--ticks", "1", *argv])
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--height", "0"], r"height_px \(--height\) must be a positive multiple of 32, got 0"),
+    (["--height", "-64"], r"height_px \(--height\) must be a positive multiple of 32, got -64"),
+    (["--model-fp16", "detector_fp16.onnx"], r"model_fp16 \(--model-fp16\) goes with model \(--model\)"),
+    (["--warmup", "-5"], r"warmup \(--warmup\) must be >= 0, got -5"),
+])
+def test_detector_refuses_flags_it_would_misread_or_ignore(argv, message):
+    from bench import detector
+
+    with pytest.raises(ValueError, match=message):
+        detector._parse(argv)
+
+
+def test_detector_settings_read_height_and_warmup_as_given():
+    from bench import detector
+
+    settings = detector._parse(["--size", "1280", "--height", "960", "--warmup", "0"])
+    assert settings.hw == (960, 1280) and settings.warmup == 0
+    assert detector._parse(["--size", "256"]).hw == (256, 256)
+    both = detector._parse(["--model", "m.onnx", "--model-fp16", "m_fp16.onnx"])
+    assert (both.model, both.model_fp16) == (Path("m.onnx"), Path("m_fp16.onnx"))
+
+
+def test_sim_render_target_is_for_the_default_run_and_setup_is_apart_from_rendering():
+    default = sim_render.timings(sim_render.DEFAULT_FRAMES, 500.0, 20.0)
+    assert default["meets_target"] is True
+    assert default["setup_s"] == 20.0 and default["render_s"] == 480.0
+    assert default["render_frames_per_s"] == 10.0 and default["frames_per_s"] == 9.6
+    assert sim_render.timings(sim_render.DEFAULT_FRAMES, 700.0, 20.0)["meets_target"] is False
+    # A short run is not held to the default run's 600 s (nor passed by it).
+    short = sim_render.timings(80, 30.0, 14.0)
+    assert short["meets_target"] is None
+    assert short["render_frames_per_s"] == 5.0
+    unknown = sim_render.timings(80, 30.0, None)
+    assert unknown["setup_s"] is None and unknown["render_frames_per_s"] is None
