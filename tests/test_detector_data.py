@@ -19,6 +19,7 @@ from training.data import (
     MIN_VISIBLE_FRACTION,
     MIN_VISIBLE_PX,
     Batcher,
+    recording_labels,
     samples_from_coco,
     samples_from_recording,
     write_coco,
@@ -123,6 +124,47 @@ def test_recording_bad_input_names_the_file(recording, tmp_path):
     del bad["vehicles"][0]["box_visible"]
     gt_path.write_text("\n".join([json.dumps(bad), *lines[1:]]) + "\n")
     with pytest.raises(ValueError, match=r"T_SW\.jsonl:1: vehicle \d+ has no 'box_visible'"):
+        samples_from_recording(broken, cameras=["T_SW"])
+
+
+def _gt_vehicle(**change) -> dict:
+    """A recording's ground-truth vehicle that is a positive label, with `change` applied."""
+    vehicle = {"id": 7, "type": "car", "lwh": [4.5, 1.8, 1.5], "uv": [100.0, 80.0], "in_image": True,
+               "box_visible": [80, 50, 120, 82], "corners_uv": [[110, 85], [110, 75], [90, 75], [90, 85]],
+               "visible_px": 500, "visible_fraction": 0.9, "parked": False}
+    return {**vehicle, **change}
+
+
+def test_recording_ground_truth_that_is_not_finite_or_reversed_is_named(recording, tmp_path):
+    """A NaN in a recording's truth once became a positive label and stopped the training at its batch ("cannot
+    convert float NaN to integer", no file named): it is refused on loading, naming the line and the vehicle."""
+    labels, ids, _ = recording_labels([_gt_vehicle()], "gt/NE.jsonl:3")
+    assert ids == [7] and labels["weight"].tolist() == [1.0]
+    np.testing.assert_allclose(labels["box"][0], [79.5, 49.5, 120.5, 82.5])
+    nan = float("nan")
+    for change, message in [
+        ({"uv": [nan, 80.0]}, "uv must be finite"),
+        ({"box_visible": [80, nan, 120, 82]}, "box_visible must be finite"),
+        ({"box_visible": [120, 50, 80, 82]}, "box_visible must be .* with x1 <= x2 and y1 <= y2, got"),
+        ({"corners_uv": [[110, 85], [110, nan], [90, 75], [90, 85]]}, "corners_uv must be finite"),
+        ({"lwh": [4.5, float("inf"), 1.5]}, "lwh must be finite"),
+        ({"uv": [100.0]}, "uv must be 2 numbers"),
+    ]:
+        with pytest.raises(ValueError, match=rf"^gt/NE\.jsonl:3: vehicle 7: {message}"):
+            recording_labels([_gt_vehicle(**change)], "gt/NE.jsonl:3")
+    # an ignore vehicle whose bottom centre is outside the lens model: its corners are not used, whatever they are
+    labels, _, _ = recording_labels([_gt_vehicle(uv=None, in_image=False, corners_uv=[[nan, nan]] * 4)], "x")
+    assert labels["weight"].tolist() == [0.0] and np.isnan(labels["heading_uv"]).all()
+    # through the recording reader: the file and line are named
+    broken = tmp_path / "nan"
+    shutil.copytree(recording, broken)
+    gt_path = broken / "gt" / "T_SW.jsonl"
+    lines = gt_path.read_text().splitlines()
+    frame = json.loads(lines[1])
+    positive = next(v for v in frame["vehicles"] if v["uv"] is not None and v["visible_px"] >= MIN_VISIBLE_PX)
+    positive["uv"][0] = nan
+    gt_path.write_text("\n".join([lines[0], json.dumps(frame), *lines[2:]]) + "\n")  # json writes NaN
+    with pytest.raises(ValueError, match=rf"T_SW\.jsonl:2: vehicle {positive['id']}: uv must be finite"):
         samples_from_recording(broken, cameras=["T_SW"])
 
 

@@ -192,7 +192,8 @@ def vehicle_weight(vehicle: dict) -> float | None:
 
 def recording_labels(vehicles: list[dict], where: str) -> tuple[dict[str, np.ndarray], list[int], list[bool]]:
     """A recording frame's ground-truth vehicles -> (Sample label arrays, track ids, parked flags), with the
-    label policy of the module docstring (box_visible, ignores); ValueError naming `where` and the vehicle."""
+    label policy of the module docstring (box_visible, ignores); ValueError naming `where` and the vehicle when a
+    value is missing, not a number, not finite (a NaN) or out of order (a box's x2 < x1)."""
     labels = _empty_labels()
     ids, parked = [], []
     for v in vehicles:
@@ -200,18 +201,28 @@ def recording_labels(vehicles: list[dict], where: str) -> tuple[dict[str, np.nda
             weight = vehicle_weight(v)
             if weight is None:
                 continue
-            x1, y1, x2, y2 = (float(x) for x in v["box_visible"])
+            # a NaN would become a positive label and stop the training at its batch, naming no file
+            at = f"{where}: vehicle {v.get('id')}"
+            x1, y1, x2, y2 = _numbers(v["box_visible"], (4,), "box_visible", at)
+            if x2 < x1 or y2 < y1:
+                raise ValueError(f"{at}: box_visible must be [x1, y1, x2, y2] with x1 <= x2 and y1 <= y2, got "
+                                 f"{v['box_visible']!r}")
             box = [x1 - 0.5, y1 - 0.5, x2 + 0.5, y2 + 0.5]  # pixel bounds -> edges
-            uv = v["uv"] if v["uv"] is not None else [(box[0] + box[2]) / 2, box[3]]
-            heading = _rect_heading(np.asarray(v["corners_uv"], float).reshape(4, 2))
-            if v["uv"] is None:  # corners may be outside the lens model's valid range
+            if v["uv"] is not None:
+                uv = _numbers(v["uv"], (2,), "uv", at)
+                heading = _rect_heading(_numbers(v["corners_uv"], (4, 2), "corners_uv", at))
+            else:  # the corners may be outside the lens model's valid range
+                uv = [(box[0] + box[2]) / 2, box[3]]
                 heading = np.full(2, np.nan)
+            lwh = _numbers(v["lwh"], (3,), "lwh", at)
+            if (lwh <= 0).any():
+                raise ValueError(f"{at}: lwh must be positive metres, got {v['lwh']!r}")
             if v["type"] not in VEHICLE_TYPES:
-                raise ValueError(f"{where}: vehicle {v.get('id')} has unknown type {v['type']!r}")
+                raise ValueError(f"{at} has unknown type {v['type']!r}")
             labels["bottom_uv"].append([float(uv[0]), float(uv[1])])
-            labels["box"].append(box)
+            labels["box"].append([float(x) for x in box])
             labels["heading_uv"].append(heading)
-            labels["size_lwh"].append([float(x) for x in v["lwh"]])
+            labels["size_lwh"].append([float(x) for x in lwh])
             labels["vtype"].append(VEHICLE_TYPES.index(v["type"]))
             labels["weight"].append(weight)
             ids.append(int(v["id"]))
