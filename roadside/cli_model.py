@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 from roadside.argtypes import finite_float, positive_float, positive_int, type_weights
@@ -31,12 +32,13 @@ def _add_train(sub) -> None:
     p.add_argument("--out", required=True, help="output folder (model.pt, train_log.jsonl, train.json)")
     p.add_argument("--steps", type=positive_int, help="number of steps (default 4000, or as many as --minutes allows)")
     p.add_argument("--minutes", type=positive_float,
-                   help="time budget: the learning-rate schedule follows the clock to its end (with --steps too, "
-                        "whichever comes first ends the run)")
+                   help="time budget: the learning-rate schedule follows the clock to its end (with --steps too, it "
+                        "follows the clock or the steps, whichever is further along, and that one ends the run)")
     p.add_argument("--batch-size", type=int, default=16)
     p.add_argument("--crop", type=int, default=256)
     p.add_argument("--lr", type=positive_float, default=2e-3)
-    p.add_argument("--every", type=int, default=1, help="use every n-th frame")
+    p.add_argument("--every", type=int, default=1,
+                   help="use every n-th frame of each recording's camera and every n-th image of each COCO file")
     p.add_argument("--center", choices=["bottom", "box"], default="bottom", help="box: the 2D-box-centre ablation")
     p.add_argument("--no-topk", action="store_true", help="ablation: plain mean squared heat-map loss")
     p.add_argument("--heat-loss", choices=["mse", "focal"],
@@ -48,6 +50,9 @@ def _add_train(sub) -> None:
     p.add_argument("--resume", action="store_true",
                    help="continue the interrupted run in --out from its resume.pt (saved every 500 steps): the same "
                         "command again with --resume; the schedule and a --minutes budget go on from where it was")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the model.pt and resume.pt an earlier run left in --out (without it, or --resume, "
+                        "such a folder is refused)")
     p.add_argument("--axis-head", action="store_true",
                    help="predict the heading's axis too (training/model.py); with --init, adds it to that model")
     p.add_argument("--vote-head", action="store_true",
@@ -147,6 +152,7 @@ def _run_train(args) -> int:
                       steps=args.steps or (UNLIMITED_STEPS if args.minutes else 4000),
                       minutes=args.minutes, batch_size=args.batch_size, crop=args.crop, lr=args.lr, every=args.every,
                       center=args.center, seed=args.seed, init=args.init, resume=args.resume,
+                      overwrite=args.overwrite,
                       add_axis_head=args.axis_head, add_vote_head=args.vote_head,
                       input_long_side=args.input_long_side, device=args.device, workers=args.workers,
                       train_only=tuple(h.strip() for h in args.train_only.split(",") if h.strip()),
@@ -164,7 +170,7 @@ def _add_export(sub) -> None:
     p.add_argument("--calibration-recording", type=Path, action="append", default=[],
                    help="a training recording (repeat for more) on which to fit the box and size calibrations written "
                         "into both files' metadata (training/heads_calibration.py); never a held-out one")
-    p.add_argument("--calibration-every", type=int, default=4,
+    p.add_argument("--calibration-every", type=positive_int, default=4,
                    help="every N-th frame of those recordings (default 4)")
 
 
@@ -179,8 +185,11 @@ def _add_mix(sub) -> None:
 
 
 def _run_mix(args) -> int:
-    from training.mix import mix_detectors
-    from training.model import checkpoint_loss, load_detector, save_detector
+    try:
+        from training.mix import mix_detectors
+        from training.model import checkpoint_loss, load_detector, save_detector
+    except ImportError as exc:
+        raise RuntimeError(f"mix needs the train extra (pip install -e '.[train]'): {exc}") from exc
 
     mixed = mix_detectors(load_detector(args.base), load_detector(args.tuned), args.weight)
     args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -190,16 +199,37 @@ def _run_mix(args) -> int:
 
 
 def _run_export(args) -> int:
-    from training.export import export_onnx
-    from training.model import load_detector
+    try:
+        from onnxconverter_common import float16  # noqa: F401  (the fp16 copy needs it: checked before any work)
+
+        from training.export import export_onnx
+        from training.model import load_detector
+    except ImportError as exc:
+        raise RuntimeError(f"export needs the train extra (pip install -e '.[train]'): {exc}") from exc
 
     if not args.model.is_file():
         raise ValueError(f"model not found: {args.model}")
+    if args.calibration_recording:  # a typo found now, not after the export
+        from training.heads_calibration import check_recordings
+
+        check_recordings(args.calibration_recording, args.calibration_every)
+    model = load_detector(args.model)
     fp16 = args.out.with_name(args.out.stem + "_fp16" + args.out.suffix)
-    export_onnx(load_detector(args.model), args.out, fp16)
+    # written under other names and renamed into place only when everything succeeded: an export or calibration
+    # that fails leaves the files already at --out as they were
+    paths = [args.out, fp16]
+    partial = [p.with_name(f".{p.stem}.partial{p.suffix}") for p in paths]
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        export_onnx(model, partial[0], partial[1])
+        if args.calibration_recording:
+            _heads_calibration(partial, args.calibration_recording, args.calibration_every, shown=paths)
+        for tmp, path in zip(partial, paths, strict=True):
+            os.replace(tmp, path)
+    finally:
+        for tmp in partial:
+            tmp.unlink(missing_ok=True)
     print(f"fp32: {args.out}\nfp16: {fp16}")
-    if args.calibration_recording:
-        _heads_calibration([args.out, fp16], args.calibration_recording, args.calibration_every)
     return 0
 
 
@@ -223,11 +253,12 @@ def _run_calibrate_heads(args) -> int:
     return 0
 
 
-def _heads_calibration(paths: list[Path], recordings: list[Path], every: int) -> None:
+def _heads_calibration(paths: list[Path], recordings: list[Path], every: int, shown: list[Path] | None = None) -> None:
+    """Fit and write the calibrations into `paths`; the report names `shown` (the files they become) if given."""
     from training.heads_calibration import BOX_IOU, calibrate_files
 
     r = calibrate_files(paths, recordings, every, log=print)
-    print(f"box and size calibrations written into {', '.join(map(str, paths))}:\n"
+    print(f"box and size calibrations written into {', '.join(map(str, shown or paths))}:\n"
           f"  boxes: {r['boxes'].pairs} detections at IoU {BOX_IOU:g} or more with a vehicle, at IoU 0.5 or more "
           f"{r['box_pairs_at_iou50_before']:.3f} -> {r['box_pairs_at_iou50_after']:.3f} of them\n"
           f"  sizes: matched detections per type {list(r['sizes'].pairs)}, their mean size error "

@@ -253,3 +253,97 @@ def test_roadside_calibrate_heads_names_a_missing_model(tmp_path, capsys):
 
     assert main(["calibrate-heads", str(tmp_path / "nope.onnx"), "--recording", str(tmp_path)]) != 0
     assert "model not found" in capsys.readouterr().err
+
+
+def _tiny_checkpoint(path: Path) -> Path:
+    import torch
+
+    from training.model import Detector, DetectorConfig, save_detector
+
+    torch.manual_seed(0)
+    save_detector(Detector(DetectorConfig(width_mult=0.25, decoder_channels=16, head_channels=8, stride=4)), path)
+    return path
+
+
+def _fake_recording(path: Path) -> Path:
+    """A folder the recording reader opens (a camera listed): enough for the checks made before an export."""
+    import json
+
+    path.mkdir(parents=True)
+    (path / "recording.json").write_text(json.dumps({"format": "roadside-recording", "version": 1,
+                                                     "cameras": [{"name": "NE"}]}))
+    return path
+
+
+def test_export_with_a_calibration_that_cannot_be_made_leaves_the_files_at_out_as_they_were(tmp_path, monkeypatch,
+                                                                                          capsys):
+    """`export --calibration-recording` once wrote the ONNX files first and then failed on the recordings (a typo,
+    too few matched detections), leaving uncalibrated files in place of good ones. The recordings are checked
+    first, and the files are written under other names and renamed into place only when all succeeded."""
+    pytest.importorskip("torch")
+    import training.heads_calibration as heads
+    from roadside.cli import main
+
+    model = _tiny_checkpoint(tmp_path / "model.pt")
+    out = tmp_path / "new" / "sub" / "detector.onnx"  # its folder is made
+    assert main(["export", str(model), "--out", str(out)]) == 0
+    fp16 = out.with_name("detector_fp16.onnx")
+    assert OnnxDetector(out, threads=1).box_calibration is None and fp16.is_file()
+    good = {p: p.read_bytes() for p in (out, fp16)}
+
+    def export(*flags: str) -> int:
+        return main(["export", str(model), "--out", str(out), *flags])
+
+    assert export("--calibration-recording", str(tmp_path / "typo")) == 2
+    assert "not a recording" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        export("--calibration-recording", str(tmp_path / "typo"), "--calibration-every", "0")
+    assert "--calibration-every: must be a whole number >= 1" in capsys.readouterr().err
+
+    recording = _fake_recording(tmp_path / "rec")
+    seen = []
+
+    def too_few(paths, recordings, every, log=None):
+        seen.extend(paths)
+        assert all(p.is_file() for p in paths)  # the new export, under other names
+        raise ValueError("fit_box_calibration: 12 matched detections, fewer than 200")
+
+    monkeypatch.setattr(heads, "calibrate_files", too_few)
+    assert export("--calibration-recording", str(recording)) == 2
+    assert "fewer than 200" in capsys.readouterr().err
+    assert {p: p.read_bytes() for p in (out, fp16)} == good
+    assert len(seen) == 2 and not set(seen) & {out, fp16}
+    assert sorted(p.name for p in out.parent.iterdir()) == ["detector.onnx", "detector_fp16.onnx"]  # none left over
+
+    def fitted(paths, recordings, every, log=None):
+        heads.write_calibrations(paths, sizes=SizeCalibration.identity(5), boxes=BoxCalibration(np.zeros((22, 4)), 300))
+        return {"sizes": SizeCalibration.identity(5), "boxes": BoxCalibration(np.zeros((22, 4)), 300),
+                "box_pairs_at_iou50_before": 0.5, "box_pairs_at_iou50_after": 0.6, "size_error_before": 0.4,
+                "size_error_after": 0.3}
+
+    monkeypatch.setattr(heads, "calibrate_files", fitted)
+    assert export("--calibration-recording", str(recording)) == 0
+    assert f"written into {out}, {fp16}:" in capsys.readouterr().out
+    assert all(OnnxDetector(p, threads=1).box_calibration is not None for p in (out, fp16))
+    assert sorted(p.name for p in out.parent.iterdir()) == ["detector.onnx", "detector_fp16.onnx"]
+
+
+def test_export_and_calibrate_heads_without_their_packages_say_what_to_install(tmp_path, monkeypatch, capsys):
+    import sys
+
+    import onnx
+
+    from roadside.cli import main
+
+    (tmp_path / "m.onnx").write_bytes(b"x")
+    # calibrate-heads without onnx: said before the detector is run over the recordings, not after
+    monkeypatch.setitem(sys.modules, "onnx", None)  # as if not installed: importing it raises ImportError
+    assert main(["calibrate-heads", str(tmp_path / "m.onnx"), "--recording", str(tmp_path / "typo")]) == 2
+    assert "calibrating the heads needs onnx" in capsys.readouterr().err
+    # export without torch
+    monkeypatch.setitem(sys.modules, "onnx", onnx)
+    for name in ("training.export", "training.model"):
+        monkeypatch.delitem(sys.modules, name, raising=False)
+    monkeypatch.setitem(sys.modules, "torch", None)
+    assert main(["export", str(tmp_path / "model.pt"), "--out", str(tmp_path / "d.onnx")]) == 2
+    assert "export needs the train extra (pip install -e '.[train]')" in capsys.readouterr().err

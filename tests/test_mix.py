@@ -76,3 +76,24 @@ def test_roadside_mix_writes_a_checkpoint_with_the_base_loss(tmp_path: Path, cap
     assert "the base model has the vote head, the fine-tuned one does not" in capsys.readouterr().err
     assert main(["mix", str(base_pt), str(tmp_path / "none.pt"), "--weight", "0.5", "--out", str(out)]) == 2
     assert "model file not found" in capsys.readouterr().err
+
+
+def test_a_fine_tune_with_another_input_size_mixes_with_the_fine_tunes_input_size():
+    """--input-long-side is a preprocessing setting (the weights keep their shapes): a fine-tune that changed it
+    is still a fine-tune of its base, and the mix takes its input size."""
+    base, tuned = _model(BASE, 1), _model(replace(BASE, input_long_side=1280), 2)
+    mixed = mix_detectors(base, tuned, 0.5)
+    assert mixed.config == replace(BASE, input_long_side=1280)
+    key = "heads.heat.out.weight"
+    torch.testing.assert_close(mixed.state_dict()[key], 0.5 * base.state_dict()[key] + 0.5 * tuned.state_dict()[key])
+
+
+def test_roadside_mix_without_torch_says_what_to_install(tmp_path: Path, monkeypatch, capsys):
+    import sys
+
+    for name in ("training.mix", "training.model"):
+        monkeypatch.delitem(sys.modules, name, raising=False)
+    monkeypatch.setitem(sys.modules, "torch", None)  # as if not installed: importing it raises ImportError
+    argv = ["mix", str(tmp_path / "base.pt"), str(tmp_path / "tuned.pt"), "--weight", "0.5", "--out", str(tmp_path)]
+    assert main(argv) == 2
+    assert "mix needs the train extra (pip install -e '.[train]')" in capsys.readouterr().err

@@ -68,9 +68,15 @@ def test_train_writes_the_model_and_log_then_fine_tunes_from_it(small_recording,
         assert changed and all(k.startswith("heads.offset.") for k in changed)
         assert "training only the offset head" in " ".join(messages)
         with pytest.raises(ValueError, match=r"no head \['wheels'\]"):
-            train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "g"), steps=1, batch_size=2,
+            train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "h"), steps=1, batch_size=2,
                               crop=64, threads=1, init=str(tmp_path / "a" / "model.pt"), train_only=("wheels",)),
                   log=lambda _m: None)
+        # a head added to the starting model but left out of train_only would stay random, frozen, and be saved
+        with pytest.raises(ValueError, match=r"train_only \(offset\) leaves the new vote head random and frozen"):
+            train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "h"), steps=1, batch_size=2,
+                              crop=64, threads=1, init=str(tmp_path / "a" / "model.pt"), add_vote_head=True,
+                              train_only=("offset",)), log=lambda _m: None)
+        assert not (tmp_path / "h" / "model.pt").exists()
         with pytest.raises(ValueError, match="train_only needs a trained model"):
             TrainConfig(recordings=(str(small_recording),), train_only=("offset",))
         with pytest.raises(FileNotFoundError, match=r"init model not found: .*nope\.pt"):
@@ -315,11 +321,12 @@ def test_an_interrupted_run_resumes_on_its_schedule(small_recording, tmp_path):
             train(TrainConfig(out=str(out), resume=True, **{**base, "seed": 4}), log=lambda _m: None)
         # a fresh start that fails at its setup (a typo in --init) keeps the interrupted run's resume file
         with pytest.raises(FileNotFoundError, match="init model not found"):
-            train(TrainConfig(out=str(out), init=str(tmp_path / "typo.pt"), **base), log=lambda _m: None)
+            train(TrainConfig(out=str(out), init=str(tmp_path / "typo.pt"), overwrite=True, **base),
+                  log=lambda _m: None)
         assert torch.load(out / RESUME_FILE, weights_only=True)["step"] == 8
         # a fresh run in that folder, stopped before its first save, leaves no resume file of the old run behind
         with pytest.raises(Stop):
-            train(TrainConfig(out=str(out), **{**base, "save_every": 100}), log=stop_at_step_6)
+            train(TrainConfig(out=str(out), overwrite=True, **{**base, "save_every": 100}), log=stop_at_step_6)
         with pytest.raises(FileNotFoundError, match=r"resume: no .*cut.*resume\.pt"):
             train(TrainConfig(out=str(out), resume=True, **base), log=lambda _m: None)
         with pytest.raises(FileNotFoundError, match=r"resume: no .*new.*resume\.pt"):
@@ -330,3 +337,67 @@ def test_an_interrupted_run_resumes_on_its_schedule(small_recording, tmp_path):
             train(TrainConfig(out=str(tmp_path / "bad"), resume=True, **base), log=lambda _m: None)
     finally:
         torch.set_num_threads(threads)
+
+
+def test_a_run_refuses_a_folder_holding_an_earlier_run_unless_told_to_replace_it(small_recording, tmp_path, capsys):
+    """`train` into a folder with an earlier run's model.pt or resume.pt once deleted the one and overwrote the
+    other without a word: it needs --resume (continue that run) or --overwrite (replace it)."""
+    from roadside.cli import main
+    from training.train import RESUME_FILE
+
+    threads = torch.get_num_threads()
+    cfg = TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "a"), steps=1, batch_size=2, crop=64,
+                      model=TINY, threads=1)
+    try:
+        train(cfg, log=lambda _m: None)
+        kept = (tmp_path / "a" / "model.pt").read_bytes(), (tmp_path / "a" / RESUME_FILE).read_bytes()
+        with pytest.raises(ValueError, match=r"holds an earlier run's model\.pt and resume\.pt: give --resume .* or "
+                                             r"--overwrite"):
+            train(cfg, log=lambda _m: None)
+        assert ((tmp_path / "a" / "model.pt").read_bytes(), (tmp_path / "a" / RESUME_FILE).read_bytes()) == kept
+        (tmp_path / "a" / RESUME_FILE).unlink()  # a model alone is refused too
+        with pytest.raises(ValueError, match=r"holds an earlier run's model\.pt: give"):
+            train(cfg, log=lambda _m: None)
+        assert train(replace(cfg, overwrite=True, seed=1), log=lambda _m: None)["steps"] == 1
+        assert (tmp_path / "a" / "model.pt").read_bytes() != kept[0]
+        # on the command line
+        argv = ["train", "--recording", str(small_recording), "--init", str(tmp_path / "a" / "model.pt"), "--out",
+                str(tmp_path / "a"), "--steps", "1", "--batch-size", "2", "--crop", "64"]
+        assert main(argv) == 2
+        assert "--overwrite to replace it" in capsys.readouterr().err
+        assert main([*argv, "--overwrite"]) == 0
+    finally:
+        torch.set_num_threads(threads)
+
+
+def test_with_steps_and_minutes_the_schedule_ends_with_the_steps(small_recording, tmp_path):
+    """With both --steps and --minutes the learning rate followed the clock alone: a run that the steps ended first
+    stopped at a learning rate near its peak, and the log's estimate of the steps ignored --steps. The schedule
+    follows whichever is further along, and the estimate is at most the steps."""
+    from training.train import WARMUP_STEPS, _lr_at
+
+    threads = torch.get_num_threads()
+    steps = WARMUP_STEPS + 1
+    messages = []
+    try:
+        train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "a"), steps=steps, minutes=600,
+                          batch_size=2, crop=64, model=TINY, threads=1, log_every=1), log=messages.append)
+    finally:
+        torch.set_num_threads(threads)
+    lrs = [json.loads(line)["lr"] for line in (tmp_path / "a" / "train_log.jsonl").read_text().splitlines()]
+    assert lrs[1:] == pytest.approx([_lr_at(k / steps, 2e-3) for k in range(1, steps)], rel=1e-9)
+    assert max(lrs) > 0.9 * 2e-3 and lrs[-1] < 0.01 * 2e-3
+    assert any(f"about {steps} steps in 600 min (the {steps} steps end the run first)" in m for m in messages)
+
+
+def test_every_applies_to_coco_images_too(tmp_path):
+    import cv2
+    import numpy as np
+
+    for k in range(5):
+        cv2.imwrite(str(tmp_path / f"{k}.png"), np.full((48, 64), 90, np.uint8))
+    (tmp_path / "ann.json").write_text(json.dumps({
+        "images": [{"id": k, "file_name": f"{k}.png", "width": 64, "height": 48} for k in range(5)],
+        "categories": [{"id": 1, "name": "car"}], "annotations": []}))
+    refs = training_refs(TrainConfig(coco=(str(tmp_path / "ann.json"),), every=2))
+    assert [r.image_path.name for r in refs] == ["0.png", "2.png", "4.png"]

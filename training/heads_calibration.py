@@ -42,6 +42,20 @@ L1_ITERATIONS = 50
 L1_EPS = 1e-3  # residuals below this (log units) weigh as this in the reweighted least squares
 
 
+def check_recordings(recordings: Sequence[str | Path], every: int) -> None:
+    """ValueError naming the first recording that cannot be opened or has no camera, or an `every` below 1: what
+    would otherwise stop a calibration only after its detector has been loaded (or exported)."""
+    from sim.recording import Recording
+
+    if not (isinstance(every, int) and every >= 1):
+        raise ValueError(f"every must be a whole number >= 1, got {every!r}")
+    if not recordings:
+        raise ValueError("no recording to fit the calibrations on")
+    for path in recordings:
+        if not Recording(path).camera_names:
+            raise ValueError(f"recording {path} has no camera")
+
+
 def collect_frames(detect: Callable[[np.ndarray], Detections], recordings: Sequence[str | Path], every: int = 4,
                    log=None) -> list[tuple[Detections, object, tuple[int, int]]]:
     """(detections with the heads' own boxes and sizes, the frame's Sample without its image, (width, height)) for
@@ -187,12 +201,16 @@ def calibrate_files(paths: Sequence[str | Path], recordings: Sequence[str | Path
     """Fit both calibrations of the exported detector `paths[0]` (its heads' own outputs, at the eval's score
     threshold 0.05) on the training `recordings` and write them into every file of `paths` (the fp32 file and its
     fp16 copy). Returns what was fitted and how the fitted detections changed."""
+    try:
+        import onnx  # noqa: F401  (write_calibrations needs it: a missing onnx is found before the work, not after)
+    except ImportError as exc:
+        raise RuntimeError("calibrating the heads needs onnx (the train extra: pip install -e '.[train]'): "
+                           f"{exc}") from exc
     from shared.inference import OnnxDetector
 
     if not paths:
         raise ValueError("calibrate_files: no model file given")
-    if not recordings:
-        raise ValueError("calibrate_files: no recording to fit the calibrations on")
+    check_recordings(recordings, every)
     det = OnnxDetector(paths[0], score_thr=0.05, calibrated_heads=False)
     frames = collect_frames(det.detect, recordings, every, log=log)
     feats, targets = box_pairs(frames)

@@ -3,8 +3,9 @@
 Every image is shrunk so its longer side is at most `DetectorConfig.input_long_side` (the size the
 detect service feeds the network), then augmented random crops are trained with the paper's loss. The
 learning rate follows a one-cycle cosine schedule over the run; with `minutes` the schedule follows
-the clock (fraction of the budget spent), so a run on a busy machine still ends on time with the
-schedule complete. Writes `model.pt` (config + weights), `train_log.jsonl` (loss parts every `log_every`
+the clock (fraction of the budget spent) or the steps (fraction of `steps` taken), whichever is further along,
+so a run on a busy machine still ends on time with the schedule complete, and so does one that `steps` ends
+first. Writes `model.pt` (config + weights), `train_log.jsonl` (loss parts every `log_every`
 steps) and `train.json` (the settings, data and timing).
 
 `device` "cuda" trains on a GPU (the PyTorch installed must have CUDA; the `train` extra's pinned wheel is
@@ -15,8 +16,9 @@ to be kept busy. With workers the order in which their batches arrive is not rep
 Every `save_every` steps the run also writes `resume.pt` (weights, optimizer state, step, training time spent):
 the same settings again with `resume` continue an interrupted run where that file left it, on the same schedule
 (`train_log.jsonl` keeps its records up to that step). The batches drawn after a resume are not those the
-interrupted run would have drawn. A run started without `resume` removes an earlier run's `resume.pt` from its
-folder first, so that a resume never goes back to a run that is not the last one.
+interrupted run would have drawn. A run started without `resume` refuses a folder that holds an earlier run's
+`model.pt` or `resume.pt` unless `overwrite` is set; with it, it removes the earlier `resume.pt` first, so that a
+resume never goes back to a run that is not the last one.
 """
 
 from __future__ import annotations
@@ -58,7 +60,7 @@ class TrainConfig:
     crop: int = 256
     lr: float = 2e-3
     weight_decay: float = 1e-4
-    every: int = 1  # use every n-th frame of each camera
+    every: int = 1  # use every n-th frame of each recording's camera and every n-th image of each COCO file
     center: str = "bottom"  # "box": the 2D-box centre instead of the bottom centre (the paper's ablation)
     seed: int = 0
     init: str | None = None  # model.pt to start from (fine-tuning); its network config replaces `model`
@@ -71,6 +73,7 @@ class TrainConfig:
     log_every: int = 25
     save_every: int = 500  # steps between the saves of model.pt and resume.pt
     resume: bool = False  # continue the run in `out` from its resume.pt (the same settings; see the module doc)
+    overwrite: bool = False  # without `resume`: replace an earlier run's model.pt and resume.pt in `out`
     # heads to train, the rest frozen (weights and batch-norm statistics): e.g. ("offset",) sharpens the
     # localization of a trained model without touching what it detects; () trains everything
     train_only: tuple[str, ...] = ()
@@ -121,7 +124,7 @@ def training_refs(cfg: TrainConfig) -> list[SampleRef]:
             scale = input_scale(cam.width, cam.height, cfg.model.input_long_side)
             refs += samples_from_recording(path, [cam.name], every=cfg.every, scale=scale)
     for path in cfg.coco:
-        for ref in samples_from_coco(path):
+        for ref in samples_from_coco(path)[:: cfg.every]:
             h, w = ref.image_hw if ref.image_hw is not None else ref.load().shape
             refs.append(replace(ref, scale=input_scale(w, h, cfg.model.input_long_side)))
     if not refs:
@@ -309,6 +312,10 @@ def train(cfg: TrainConfig, log=print) -> dict:
     if device.type == "cuda" and not torch.cuda.is_available():
         raise RuntimeError(f"device {cfg.device}: this PyTorch has no CUDA (torch {torch.__version__})")
     out = Path(cfg.out)
+    earlier = [name for name in ("model.pt", RESUME_FILE) if (out / name).is_file()]
+    if earlier and not cfg.resume and not cfg.overwrite:
+        raise ValueError(f"{out} holds an earlier run's {' and '.join(earlier)}: give --resume to continue that run "
+                         "or --overwrite to replace it")
     out.mkdir(parents=True, exist_ok=True)
     given = _resume_settings(cfg)  # before a starting model or an input size changes cfg.model
     torch.manual_seed(cfg.seed)
@@ -327,6 +334,10 @@ def train(cfg: TrainConfig, log=print) -> dict:
             if unexpected or any(not k.startswith(tuple(f"heads.{name}." for name in new_heads)) for k in missing):
                 raise ValueError(f"{cfg.init}: weights do not fit the network with the new {' and '.join(new_heads)} "
                                  f"head (missing {missing}, unexpected {unexpected})")
+            untrained = [name for name in new_heads if cfg.train_only and name not in cfg.train_only]
+            if untrained:  # it would stay random, and be saved and exported so
+                raise ValueError(f"train_only ({', '.join(cfg.train_only)}) leaves the new {' and '.join(untrained)} "
+                                 f"head random and frozen: name it in train_only too")
             for name in new_heads:
                 log(f"[train] added {'an' if name[0] in 'aeiou' else 'a'} {name} head to the starting model")
         if cfg.input_long_side is not None and cfg.input_long_side != model.config.input_long_side:
@@ -386,7 +397,8 @@ def train(cfg: TrainConfig, log=print) -> dict:
     def lr_now() -> float:
         if budget_s is None:
             return _lr(step, total, cfg.lr)
-        return _lr_at((time.perf_counter() - t_start) / budget_s, cfg.lr)
+        # whichever of the clock and the steps ends the run: its last steps get the schedule's low end
+        return _lr_at(max(step / total, (time.perf_counter() - t_start) / budget_s), cfg.lr)
 
     def done() -> bool:
         return step >= total or (budget_s is not None and time.perf_counter() - t_start >= budget_s)
@@ -411,8 +423,10 @@ def train(cfg: TrainConfig, log=print) -> dict:
             if step - first_step == WARMUP_STEPS:
                 if budget_s is not None and resumed is None:
                     per_step = (time.perf_counter() - t_start) / WARMUP_STEPS
-                    log(f"[train] {per_step:.2f} s per step: about {int(budget_s / per_step)} steps "
-                        f"in {cfg.minutes:g} min (the schedule follows the clock)")
+                    in_budget = int(budget_s / per_step)
+                    ends = "the clock ends the run" if in_budget < total else f"the {total} steps end the run first"
+                    log(f"[train] {per_step:.2f} s per step: about {min(in_budget, total)} steps "
+                        f"in {cfg.minutes:g} min ({ends})")
             if step % cfg.log_every == 0 or done():
                 rec = {"step": step, "lr": lr, "s": time.perf_counter() - t_start,
                        **{k: round(v, 6) for k, v in parts.items()}}

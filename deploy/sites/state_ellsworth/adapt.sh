@@ -20,7 +20,7 @@ for c in NE NW SE SW; do COCO+=(--coco out/autolabel/$c/labels.json --coco out/a
 # Stage 1 (20 min, 1,274 steps for the shipped model), then stage 2 from its result at a lower learning rate
 # (1,800 steps, 28 min): 50 min in all.
 .venv/bin/roadside train --init models/detector.pt "${COCO[@]}" --recording "$SIM" \
-    --out out/train_state_ellsworth --minutes "$MINUTES" --batch-size 12 --lr 5e-4 --seed 6
+    --out out/train_state_ellsworth --overwrite --minutes "$MINUTES" --batch-size 12 --lr 5e-4 --seed 6
 .venv/bin/roadside train --init out/train_state_ellsworth/model.pt "${COCO[@]}" --recording "$SIM" \
-    --out out/train_state_ellsworth_2 --steps 1800 --minutes 45 --batch-size 12 --lr 3e-4 --seed 7
+    --out out/train_state_ellsworth_2 --overwrite --steps 1800 --minutes 45 --batch-size 12 --lr 3e-4 --seed 7
 .venv/bin/roadside export out/train_state_ellsworth_2/model.pt --out out/train_state_ellsworth_2/detector.onnx
