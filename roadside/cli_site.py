@@ -127,11 +127,10 @@ def _run_autolabel(args) -> int:
     until = _time_of_day(args.until)
     check_name("camera", args.camera)  # it names files: no '/'
     cfg = AutolabelConfig(roi_m=args.roi_m, teacher_thr=args.teacher_thr, ignore_small=args.ignore_small)
-    if args.truth:  # checked before any output is written
-        from sim.recording import Recording
+    if args.truth:  # checked before any output is written: the camera, and truth at every frame's time
+        from training.autolabel import check_truth
 
-        if args.camera not in Recording(args.truth).cameras:
-            raise ValueError(f"--truth {args.truth} has no camera {args.camera!r}")
+        check_truth(args.frames, args.truth, args.camera, until)
     teacher = _teacher(args.teacher, cfg.teacher_thr)
     tracks = None
     if args.tracks:

@@ -137,8 +137,10 @@ def test_teacher_detections_away_from_the_labels_become_ignore_regions(scene, tm
     assert report["vehicles"] == 20 and report["ignored_teacher"] == 10  # the parked car, once per frame
     doc = json.loads((tmp_path / "out" / "labels.json").read_text())
     parked = _uv((10.0, -8.0)) + 0.5  # COCO coordinates
-    crowd = [a for a in doc["annotations"] if a.get("iscrowd") and abs(a["bbox"][0] + 20 - parked[0]) < 1]
+    crowd = [a for a in doc["annotations"] if a.get("iscrowd") and abs(a["bbox"][0] + 20 - parked[0]) < 5]
     assert len(crowd) == 10 and all(a["bbox"][2:] == [40.0, 20.0] for a in crowd)
+    # the teacher's box is in pixel-centre coordinates: in COCO's its corner is half a pixel further on
+    assert all(a["bbox"][:2] == pytest.approx(parked - [20.0, 10.0], abs=1e-9) for a in crowd)
 
 
 def test_outside_the_roi_is_blanked_and_a_blob_bigger_than_a_vehicle_is_ignored(scene, tmp_path):
@@ -193,3 +195,59 @@ def test_cli_writes_the_report(scene, tmp_path, capsys):
                      "--out", str(tmp_path / "o"), "--until", "11:00:02"]) == 2
         assert message in capsys.readouterr().err
     assert (tmp_path / "o" / "labels.json").read_bytes() == before  # checked before anything was written
+
+
+def test_track_labels_are_written_in_cocos_pixel_convention(scene, tmp_path, monkeypatch):
+    """A label from the pipeline's tracks has its box in pixel-centre coordinates, as its bottom centre: both get
+    COCO's half pixel (the box once did not, and training read it back half a pixel up and left)."""
+    import training.autolabel as autolabel
+
+    frames, masks = scene
+    label = {"uv": np.array([100.0, 50.0]), "box": np.array([90.0, 40.0, 110.0, 60.0]),
+             "heading_uv": np.array([1.0, 0.0])}
+    monkeypatch.setattr(autolabel, "label_from_track", lambda _v, _view: label)
+    tracks = SimpleNamespace(at=lambda _t: [SimpleNamespace(xy=np.array([15.0, -15.0]), yaw=0.0, key="k")])
+    report = autolabel_camera(frames, masks, tmp_path / "out", "CAM", until=time(11, 0, 2), cfg=CFG, log=None,
+                              tracks=tracks)
+    assert report["from_tracks"] == 10
+    doc = json.loads((tmp_path / "out" / "labels.json").read_text())
+    got = [a for a in doc["annotations"] if a.get("from_tracks")]
+    assert len(got) == 10
+    for a in got:
+        assert a["bbox"] == [90.5, 40.5, 20.0, 20.0] and a["bottom_center"] == [100.5, 50.5]
+    # read back for training: the box and the bottom centre where the label put them
+    s = samples_from_coco(tmp_path / "out" / "labels.json")[0].load()
+    k = int(np.argmin(np.abs(s.bottom_uv - label["uv"]).sum(axis=1)))
+    np.testing.assert_allclose(s.box[k], label["box"])
+    np.testing.assert_allclose(s.bottom_uv[k], label["uv"])
+
+
+def _truth_recording(path: Path, times: list[int]) -> Path:
+    """A simulator recording of the scene's camera with no vehicles at the given frame times."""
+    camera = {"name": "CAM", "kind": "pinhole", "width": W, "height": H, "fx": 300.0, "fy": 300.0, "cx": CX, "cy": CY,
+              "pose": {"position_m": [0.0, 0.0, 12.0], "yaw_deg": 0.0, "pitch_deg": 90.0}, "gt": "gt/CAM.jsonl"}
+    (path / "gt").mkdir(parents=True)
+    (path / "recording.json").write_text(json.dumps({"format": "roadside-recording", "version": 1,
+                                                     "cameras": [camera]}))
+    (path / "gt" / "CAM.jsonl").write_text("".join(json.dumps({"t_ns": t, "vehicles": []}) + "\n" for t in times))
+    return path
+
+
+def test_cli_checks_that_the_truth_recording_has_every_frames_time_before_labelling(scene, tmp_path, capsys):
+    """`autolabel --truth` with a recording of other frames once labelled everything and then stopped with a
+    KeyError traceback: the times are checked first, and the first frame without truth is named."""
+    frames, masks = scene
+    listed = list_frames(frames, until=time(11, 0, 2))
+    argv = ["autolabel", "--frames", str(frames), "--masks", str(masks), "--camera", "CAM", "--until", "11:00:02",
+            "--roi-m", "40"]
+    other = _truth_recording(tmp_path / "other", [t for t, _ in listed[:-1]] + [listed[-1][0] + 1])
+    assert main([*argv, "--out", str(tmp_path / "o"), "--truth", str(other)]) == 2
+    err = capsys.readouterr().err
+    assert f"{listed[-1][1]}: the truth recording {other} has no ground truth of CAM at its capture time" in err
+    assert not (tmp_path / "o").exists()  # nothing written
+    assert main([*argv, "--out", str(tmp_path / "o"), "--truth", str(other), "--camera", "NE"]) == 2
+    assert "has no camera 'NE' (has: CAM)" in capsys.readouterr().err
+    same = _truth_recording(tmp_path / "same", [t for t, _ in listed])
+    assert main([*argv, "--out", str(tmp_path / "o"), "--truth", str(same)]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["score"]["true_vehicles"] == 0 and report["score"]["labels"] == report["vehicles"] > 0

@@ -438,9 +438,9 @@ def autolabel_camera(frames_dir: str | Path, masks_path: str | Path, out_dir: st
             if lab is None:
                 n["tracks_off_view"] += 1
                 continue
-            x1, y1, x2, y2 = (float(c) for c in lab["box"])
+            x1, y1, x2, y2 = (float(c) for c in lab["box"])  # pixel-centre coordinates, as the bottom centre
             annotations.append({"id": len(annotations), "image_id": i, "category_id": 0,
-                                "bbox": [x1, y1, x2 - x1, y2 - y1],
+                                "bbox": [x1 + COCO_PIXEL_OFFSET, y1 + COCO_PIXEL_OFFSET, x2 - x1, y2 - y1],
                                 "bottom_center": [float(c + COCO_PIXEL_OFFSET) for c in lab["uv"]],
                                 "ground_xy_m": [round(float(c), 3) for c in tv.xy],
                                 "heading_uv": [float(c) for c in lab["heading_uv"]],
@@ -452,9 +452,10 @@ def autolabel_camera(frames_dir: str | Path, masks_path: str | Path, out_dir: st
         for xy, box in taught[i]:
             if taken and min(np.linalg.norm(xy - t) for t in taken) < cfg.teacher_clear_m:
                 continue
-            x1, y1, x2, y2 = box
+            x1, y1, x2, y2 = box  # the detector's, in pixel-centre coordinates (as composite.py's teacher boxes)
             annotations.append({"id": len(annotations), "image_id": i, "category_id": 0, "iscrowd": 1,
-                                "bbox": [float(x1), float(y1), float(x2 - x1), float(y2 - y1)]})
+                                "bbox": [float(x1 + COCO_PIXEL_OFFSET), float(y1 + COCO_PIXEL_OFFSET),
+                                         float(x2 - x1), float(y2 - y1)]})
             n["ignored_teacher"] += 1
             taken.append(xy)
     doc = {"info": {"description": f"roadside autolabel of {camera} from {frames_dir}", "config": asdict(cfg)},
@@ -492,6 +493,26 @@ def draw(labels_json: str | Path, image_id: int) -> np.ndarray:
     return canvas
 
 
+def check_truth(frames_dir: str | Path, recording: str | Path, camera: str, until: time | None = None) -> None:
+    """ValueError unless the simulator recording has the camera and ground truth at the capture time of every frame
+    in `frames_dir` (before `until`) that autolabel_camera would label: what score_labels needs, checked before
+    anything is written. The error names the first frame without it."""
+    from sim.recording import Recording
+
+    rec = Recording(recording)
+    if camera not in rec.cameras:  # parsed: score_labels reads the camera's pose
+        raise ValueError(f"truth recording {rec.path} has no camera {camera!r} (has: {', '.join(rec.camera_names)})")
+    times = set()
+    for n, g in enumerate(rec.ground_truth(camera), 1):
+        if not isinstance(g, dict) or not isinstance(g.get("t_ns"), int):
+            raise ValueError(f"truth recording {rec.path}: ground truth of {camera}, line {n}: no whole t_ns")
+        times.add(g["t_ns"])
+    for t_ns, path in list_frames(frames_dir, until):
+        if t_ns not in times:
+            raise ValueError(f"{path}: the truth recording {rec.path} has no ground truth of {camera} at its capture "
+                             f"time ({t_ns} ns): not a recording of these frames")
+
+
 def score_labels(labels_json: str | Path, recording: str | Path, match_m: float = 1.5,
                  min_visible: float = 0.5) -> dict:
     """How right autolabel was on a simulator recording: labels (not ignored) within `match_m` of a true
@@ -514,6 +535,9 @@ def score_labels(labels_json: str | Path, recording: str | Path, match_m: float 
     n_lab = n_lab_ok = n_true = n_true_found = 0
     yaw_err = []
     for img in doc["images"]:
+        if img["t_ns"] not in truth:
+            raise ValueError(f"{img.get('source', img['file_name'])}: {rec.path} has no ground truth of {camera} at "
+                             f"its capture time ({img['t_ns']} ns)")
         gt = [v for v in truth[img["t_ns"]]["vehicles"]
               if v["in_image"] and v["visible_fraction"] >= min_visible and not v.get("parked")
               and np.hypot(*(np.asarray(v["xyz"][:2]) - foot)) <= roi_m]
