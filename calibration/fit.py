@@ -38,6 +38,8 @@ SEGMENT_BLEND_M = 2.0  # segments a user labelled blend over this much ground ac
 POLYGON_SLACK_M = 2.0  # a landmark labelled with a segment may lie this far outside its polygon (map error)
 SEGMENT_SLOPE_SIGMA = 0.1  # how far a named segment's plane may tilt from the global plane (grade)...
 SEGMENT_HEIGHT_SIGMA_M = 1.0  # ... and rise or fall from it at the landmarks' centre
+POLYGON_TOLERANCE_M = 0.1  # segment polygons are simplified to this...
+MAX_POLYGON_VERTICES = 64  # ... and may keep this many vertices
 FAR_POLYGON_M = 200.0  # a segment polygon further than this from every landmark is another site's
 
 
@@ -118,7 +120,7 @@ class Calibration:
             return np.ones((len(uv), 1))
         if self.labelled is not None:
             dirs = dirs if dirs is not None else self.camera.unproject(uv)[0]
-            return self.labelled.weights(_onto_plane(self.camera.pose.position_m, dirs, self.planes.mean(axis=0)))
+            return self.labelled.ray_weights(self.camera.pose.position_m, dirs, self.planes)
         if len(self.band_edges_m):
             return _band_weights(self._range_m(dirs if dirs is not None else self.camera.unproject(uv)[0]),
                                  self.band_edges_m)
@@ -127,6 +129,14 @@ class Calibration:
         half = math.pi / p
         w = np.clip(1.0 - (d - half * 0.6) / (half * 0.8), 0.0, 1.0)
         return w / np.maximum(w.sum(axis=1, keepdims=True), 1e-12)
+
+    def ground_z(self, xy: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        """(N,) the fitted ground's height at ground points xy (N, 2) seen at pixels uv: the site's surface, or the
+        segments' planes blended as at those pixels."""
+        if self.ground is not None:
+            return self.ground.height(xy)
+        z = self.planes[:, 0] * xy[:, :1] + self.planes[:, 1] * xy[:, 1:2] + self.planes[:, 2]
+        return np.sum(self.weights(uv) * z, axis=1)
 
     @property
     def segment_polygons(self) -> dict[int, np.ndarray] | None:
@@ -185,11 +195,17 @@ class Calibration:
 
 def _onto_plane(o: np.ndarray, dirs: np.ndarray, plane: np.ndarray) -> np.ndarray:
     """(N, 2) points where rays from o along dirs meet the plane z = a x + b y + c (NaN where they do not)."""
+    return _ray_plane(o, dirs, plane)[0]
+
+
+def _ray_plane(o: np.ndarray, dirs: np.ndarray, plane: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """((N, 2) points, (N,) distances along the rays) where rays from o along dirs meet z = a x + b y + c (NaN
+    where they do not)."""
     a, b, c = plane
     with np.errstate(divide="ignore", invalid="ignore"):
         t = (a * o[0] + b * o[1] + c - o[2]) / (dirs[:, 2] - a * dirs[:, 0] - b * dirs[:, 1])
     t = np.where((t > 0) & np.isfinite(t), t, np.nan)
-    return o[:2] + t[:, None] * dirs[:, :2]
+    return o[:2] + t[:, None] * dirs[:, :2], t
 
 
 @dataclass(frozen=True)
@@ -203,29 +219,65 @@ class LabelledSegments:
     polygons_xy: tuple[np.ndarray | None, ...]
     of_landmark: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # (N,) each landmark's segment label
 
-    def distances(self, xy: np.ndarray) -> np.ndarray:
-        """(N, P) ground distance (m) from each point to each segment (0 inside a segment's polygon)."""
-        out = np.empty((len(xy), len(self.labels)))
-        for k, (pts, poly) in enumerate(zip(self.landmarks_xy, self.polygons_xy, strict=True)):
-            if poly is not None:
-                out[:, k] = polygon_distance(xy, poly)
-            else:
-                d = np.full(len(xy), np.inf)
-                for p in pts:
+    def _nearest_landmark(self, xy: np.ndarray, segments) -> np.ndarray:
+        """(N,) ground distance from each point to the nearest landmark of `segments` (indices) without a polygon."""
+        d = np.full(len(xy), np.inf)
+        for k in segments:
+            if self.polygons_xy[k] is None:
+                for p in self.landmarks_xy[k]:
                     d = np.minimum(d, np.hypot(xy[:, 0] - p[0], xy[:, 1] - p[1]))
-                out[:, k] = d
-        return out
+        return d
 
-    def weights(self, xy: np.ndarray) -> np.ndarray:
-        """(N, P) blending weights of the segments at ground points xy (equal where a point is NaN)."""
-        d = self.distances(np.nan_to_num(xy, nan=0.0))
-        w = np.clip(1.0 - (d - d.min(axis=1, keepdims=True)) / SEGMENT_BLEND_M, 0.0, 1.0)
-        w[~np.all(np.isfinite(xy), axis=1)] = 1.0
-        return w / w.sum(axis=1, keepdims=True)
+    def distance(self, k: int, xy: np.ndarray) -> np.ndarray:
+        """(N,) how far (m) ground points lie outside segment k: from its polygon, or without one, how much nearer
+        another segment's landmark is than k's nearest (0 in k's cell of the landmarks)."""
+        if self.polygons_xy[k] is not None:
+            return polygon_distance(xy, self.polygons_xy[k])
+        return self._nearest_landmark(xy, [k]) - self._nearest_landmark(xy, range(len(self.labels)))
 
     def segment_of(self, xy: np.ndarray) -> np.ndarray:
-        """(N,) index (into `labels`) of the segment nearest to each point."""
-        return np.argmin(self.distances(xy), axis=1)
+        """(N,) index (into `labels`) of the segment each ground point lies in, or is nearest to."""
+        return np.argmin(np.column_stack([self.distance(k, xy) for k in range(len(self.labels))]), axis=1)
+
+    def ray_weights(self, o: np.ndarray, dirs: np.ndarray, planes: np.ndarray) -> np.ndarray:
+        """(N, P) blending weights of the segments for rays from o along dirs, over the segments' planes (P, 3).
+
+        Each ray is met with every segment's own plane, and a segment whose own point lies in it is a surface the
+        ray can see; of those the ray sees the nearest (a deck hides the ground behind it), else the segment its
+        point lies nearest to. Segments blend linearly over `SEGMENT_BLEND_M` of how far outside each its point
+        lies, but only where its point is within `SEGMENT_BLEND_M` of the seen one's (where planes meet, not
+        across an edge that hides one from the other). Equal where no plane is met."""
+        n, p = len(dirs), len(self.labels)
+        xy, t = np.full((n, p, 2), np.nan), np.full((n, p), np.inf)
+        d = np.full((n, p), np.inf)
+        for k in range(p):
+            xy[:, k], tk = _ray_plane(o, dirs, planes[k])
+            hit = np.isfinite(tk)
+            t[hit, k] = tk[hit]
+            d[hit, k] = np.maximum(self.distance(k, xy[hit, k]), 0.0)
+        inside = d <= 1e-9
+        seen = np.where(inside.any(axis=1), np.argmin(np.where(inside, t, np.inf), axis=1), np.argmin(d, axis=1))
+        rows = np.arange(n)
+        with np.errstate(invalid="ignore"):  # rays that meet no plane: NaN here, equal weights below
+            near = np.linalg.norm(xy - xy[rows, seen][:, None, :], axis=2) <= SEGMENT_BLEND_M
+            w = np.clip(1.0 - (d - d[rows, seen][:, None]) / SEGMENT_BLEND_M, 0.0, 1.0) * near
+        w[rows, seen] = 1.0
+        w[~np.isfinite(d).any(axis=1)] = 1.0
+        return w / w.sum(axis=1, keepdims=True)
+
+
+def simplified_polygon(poly: np.ndarray, label: int) -> np.ndarray:
+    """A segment polygon (site metres) with the vertices that move its outline less than `POLYGON_TOLERANCE_M`
+    dropped (a GIS outline has hundreds; every pixel of a mask is tested against each edge); ValueError naming the
+    segment when more than `MAX_POLYGON_VERTICES` are left."""
+    approx = cv2.approxPolyDP(np.asarray(poly, np.float64).reshape(-1, 1, 2).astype(np.float32),
+                              POLYGON_TOLERANCE_M, True).reshape(-1, 2).astype(np.float64)
+    if len(approx) < 3:  # too small to simplify: its area is checked on its own vertices
+        return np.asarray(poly, np.float64)
+    if len(approx) > MAX_POLYGON_VERTICES:
+        raise ValueError(f"segment {label}'s polygon has {len(approx)} vertices {POLYGON_TOLERANCE_M:g} m apart or "
+                         f"more; at most {MAX_POLYGON_VERTICES}: draw it coarser (a plane's outline needs few)")
+    return approx
 
 
 def polygon_distance(xy: np.ndarray, poly: np.ndarray) -> np.ndarray:
@@ -619,6 +671,7 @@ def calibrate(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame,
                 warnings.append(f"segment {label} keeps {int((seg[use] == k).sum())} usable landmark(s), fewer "
                                 f"than {MIN_PER_SEGMENT}: its plane leans on the others; add landmarks there")
         nadir_px = cam.project(cam.pose.position_m[None] - [0.0, 0.0, 10.0])[0][0]
+        obj[:, 2] = np.sum(named_planes[seg] * np.column_stack([xy, np.ones(n)]), axis=1)  # on its own plane
         return _finish(Calibration(cfg, geo, cam, named_planes, np.zeros(len(named_planes)), nadir_px,
                                    inliers=use, test_sigma=test_sigma, detectable_map_m=detectable_map,
                                    detectable_pixel_px=detectable_px, labelled=labelled), lm, obj, xy, warnings)
@@ -645,10 +698,10 @@ def calibrate(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame,
         edges = np.quantile(ranges, np.arange(1, p) / p)
         return np.zeros(p), edges, np.searchsorted(edges, ranges)
 
-    n_seg = cfg.wanted_segments
+    n_seg = 1 if named is not None else cfg.wanted_segments  # one segment named: the one plane, so labelled
     while n_seg > 1 and np.bincount(split(n_seg)[2], minlength=n_seg).min() < MIN_PER_SEGMENT:
         n_seg -= 1
-    if n_seg < cfg.wanted_segments:
+    if named is None and n_seg < cfg.wanted_segments:
         warnings.append(
             f"{int(use.sum())} usable landmarks: fitted {n_seg} ground segment(s) instead of "
             f"{cfg.wanted_segments} (each needs at least {MIN_PER_SEGMENT} landmarks)"
@@ -661,8 +714,8 @@ def calibrate(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame,
         ])
     else:
         edges, planes = np.zeros(0), global_plane[None]
-    cal = Calibration(cfg, geo, cam, planes, centres, nadir_px, edges, use,
-                      test_sigma=test_sigma, detectable_map_m=detectable_map, detectable_pixel_px=detectable_px)
+    cal = Calibration(cfg, geo, cam, planes, centres, nadir_px, edges, use, test_sigma=test_sigma,
+                      detectable_map_m=detectable_map, detectable_pixel_px=detectable_px, labelled=named)
     return _finish(cal, lm, obj, xy, warnings)
 
 

@@ -27,6 +27,7 @@ FAR_FROM_OTHERS_M = 2000.0
 MIN_SPREAD_M = 2.0  # landmarks narrower than this (the standard deviation across their spread) fix no camera
 MIN_SPREAD_PX = 10.0
 MAX_SEGMENTS = 8
+MAX_SEGMENT_NUMBER = 2**31 - 1
 
 
 @dataclass(frozen=True)
@@ -44,6 +45,10 @@ class Landmarks:
     def subset(self, idx) -> Landmarks:
         idx = np.asarray(idx)
         return Landmarks(tuple(self.ids[i] for i in idx), self.uv[idx], self.latlon[idx], self.segment[idx])
+
+    def without_segments(self) -> Landmarks:
+        """The same landmarks with no segment named (the calibration splits the ground itself)."""
+        return Landmarks(self.ids, self.uv, self.latlon, np.full(len(self.ids), -1, int))
 
     def digest(self) -> str:
         """A hash of the landmark values (ids, pixels, lat/lon), recorded with the masks made from them."""
@@ -67,6 +72,8 @@ def load_landmarks(path: str | Path) -> tuple[Landmarks, dict]:
         if path.suffix.lower() == ".csv":
             with path.open(newline="", encoding="utf-8-sig") as f:  # -sig: a spreadsheet's byte-order mark
                 reader = csv.DictReader(f)
+                if reader.fieldnames:  # " segment" or "Segment" in a spreadsheet's header is the segment column
+                    reader.fieldnames = [name.strip().lower() for name in reader.fieldnames]
                 rows = list(reader)
                 columns = set(reader.fieldnames or ())
             missing = {"id", "u", "v", "lat", "lon"} - columns
@@ -113,8 +120,9 @@ def landmarks_from_rows(rows: list[dict], where: str) -> Landmarks:
             seg.append(-1 if s in (None, "") else _whole(s))
         except (TypeError, ValueError):
             raise ValueError(f"{where}: landmark {lid!r}: segment must be a whole number, got {s!r}") from None
-        if seg[-1] < -1 or (seg[-1] == -1 and s not in (None, "")):
-            raise ValueError(f"{where}: landmark {lid!r}: segment must be a whole number >= 0 (or left empty), "
+        if not -1 <= seg[-1] <= MAX_SEGMENT_NUMBER or (seg[-1] == -1 and s not in (None, "")):
+            raise ValueError(f"{where}: landmark {lid!r}: segment must be a whole number from 0 to "
+                             f"{MAX_SEGMENT_NUMBER} (or left empty), "
                              f"got {s!r}")
     return Landmarks(
         tuple(ids), np.array(uv, float).reshape(-1, 2), np.array(latlon, float).reshape(-1, 2), np.array(seg, int)
@@ -210,10 +218,11 @@ def load_segment_polygons(path: str | Path) -> dict[int, np.ndarray]:
     for key, verts in doc.items():
         try:
             label = _whole(key)
-            if label < 0:
+            if not 0 <= label <= MAX_SEGMENT_NUMBER:
                 raise ValueError(label)
         except (TypeError, ValueError):
-            raise ValueError(f"{path}: segment {key!r}: segment numbers are whole numbers >= 0") from None
+            raise ValueError(f"{path}: segment {key!r}: segment numbers are whole numbers from 0 to "
+                             f"{MAX_SEGMENT_NUMBER}") from None
         try:
             poly = np.array(verts, float)
         except (TypeError, ValueError):

@@ -34,7 +34,7 @@ def build_report(cal: Calibration, lm: Landmarks, cfg: CalibConfig, roi: dict, l
     xy = lm.to_local(cal.geo)
     got, ok = cal.pixel_to_xy(lm.uv)
     res = np.where(ok, np.linalg.norm(got - xy, axis=1), np.nan)
-    proj, pok = cal.camera.project(np.column_stack([xy, np.zeros(len(lm))]))
+    proj, pok = cal.camera.project(np.column_stack([xy, cal.ground_z(xy, lm.uv)]))  # on the fitted ground
     res_px = np.where(pok, np.linalg.norm(proj - lm.uv, axis=1), np.nan)
     in_roi = roi_mask(xy, roi)
     loo = np.full(len(lm), np.nan)
@@ -146,7 +146,7 @@ def plot_residuals(
     if canvas.ndim == 2:
         canvas = cv2.cvtColor(canvas, cv2.COLOR_GRAY2BGR)
     xy = lm.to_local(cal.geo)
-    proj, ok = cal.camera.project(np.column_stack([xy, np.zeros(len(lm))]))
+    proj, ok = cal.camera.project(np.column_stack([xy, cal.ground_z(xy, lm.uv)]))
     for k, lid in enumerate(lm.ids):
         a = lm.uv[k]
         colour = (60, 220, 60) if cal.inliers[k] else (40, 40, 255)

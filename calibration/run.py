@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.fit import CalibConfig, calibrate, check_segments
+from calibration.fit import CalibConfig, calibrate, check_segments, simplified_polygon
 from calibration.landmarks import (
     FAR_FROM_OTHERS_M,
     load_landmarks,
@@ -68,7 +68,7 @@ def _other_camera(path: Path, kind: str, circle, fov_deg: float) -> tuple:
         raise ValueError(f"{path}: image size unknown (the landmark file has no width and height)")
     cfg = CalibConfig(kind, int(header["width"]), int(header["height"]), image_circle=circle, fov_deg=fov_deg)
     validate_landmarks(lm, cfg.width, cfg.height, cfg.circle if cfg.kind == "fisheye" else None)
-    return lm, cfg
+    return lm.without_segments(), cfg  # the site's surface is the ground: no camera's own segments
 
 
 def _same_kind(path: Path, header: dict, kind: str, given_as: str) -> None:
@@ -137,7 +137,7 @@ def run_calibration(job: CalibrateJob) -> dict:
             raise ValueError(f"the ROI radius must be > 0 m, got {job.roi['radius_m']}")
     polygons_xy = None
     if job.segment_polygons is not None:
-        polygons_xy = {k: geo.to_enu(p[:, 0], p[:, 1], geo.alt0_m)[:, :2]
+        polygons_xy = {k: simplified_polygon(geo.to_enu(p[:, 0], p[:, 1], geo.alt0_m)[:, :2], k)
                        for k, p in load_segment_polygons(job.segment_polygons).items()}
     if (lm.segment >= 0).any() or polygons_xy:
         if job.segments is not None:
@@ -176,7 +176,8 @@ def run_calibration(job: CalibrateJob) -> dict:
         for path, other, _ in others:  # one site: another site's file would bend its ground surface
             far = median_latlon(other.latlon)
             _near_landmarks(f"--shared-ground {path} (its landmarks' median)", float(far[0]), float(far[1]), lm)
-        cal = calibrate_site([(str(job.landmarks), lm, cfg), *others], geo)[str(job.landmarks)]
+        # the site's surface replaces this camera's planes: its segment column is not used (the report says so)
+        cal = calibrate_site([(str(job.landmarks), lm.without_segments(), cfg), *others], geo)[str(job.landmarks)]
     else:
         cal = calibrate(lm, cfg, geo, polygons_xy)
     t_fit = time.perf_counter() - t0

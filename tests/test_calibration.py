@@ -203,6 +203,54 @@ def test_named_segments_follow_ground_that_bends_where_automatic_ones_cannot():
         assert _bend_error(by_polygon, cam, terrain) < 0.5 * auto
 
 
+def test_a_ray_takes_the_first_named_surface_it_meets():
+    """A deck 2 m up between x = 25 and 35 m, level ground before and after it, a camera 8 m up at the origin: a
+    ray onto the deck is the deck's, though it would meet the ground plane behind the deck, inside that ground's
+    polygon; a ray onto the near ground is the ground's."""
+    from calibration.fit import LabelledSegments
+
+    def box(x0, x1):
+        return np.array([[x0, -20.0], [x1, -20.0], [x1, 20.0], [x0, 20.0]])
+
+    segs = LabelledSegments((0, 1, 2), (np.zeros((0, 2)),) * 3, (box(-5.0, 25.0), box(25.0, 35.0), box(35.0, 90.0)))
+    planes = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 2.0], [0.0, 0.0, 0.0]])
+    o = np.array([0.0, 0.0, 8.0])
+    to = np.array([[30.0, 0.0, 2.0], [20.0, 1.0, 0.0], [60.0, 0.0, 0.0], [24.5, 0.0, 0.0]]) - o
+    w = segs.ray_weights(o, to / np.linalg.norm(to, axis=1, keepdims=True), planes)
+    np.testing.assert_allclose(w[:3], np.eye(3)[[1, 0, 2]])
+    # the near ground half a metre before the deck: the deck's plane there is 8 m further on, not blended in
+    np.testing.assert_allclose(w[3], [1.0, 0.0, 0.0])
+    up = segs.ray_weights(o, np.array([[0.0, 0.6, 0.8]]), planes)  # above the horizon: meets no plane
+    np.testing.assert_allclose(up, [[1 / 3] * 3])
+
+
+def test_one_named_segment_is_one_plane_and_keeps_its_label():
+    cam = _pinhole()
+    lm = _synthetic_landmarks(cam, 12, np.random.default_rng(7), 70.0)
+    cal = calibrate(Landmarks(lm.ids, lm.uv, lm.latlon, np.full(12, 5)), CalibConfig("pinhole", 640, 512), GEO)
+    assert len(cal.planes) == 1 and cal.labelled.labels == (5,) and not any("instead of" in w for w in cal.warnings)
+
+
+def test_segment_polygons_are_simplified_and_a_ragged_one_refused():
+    from calibration.fit import simplified_polygon
+
+    a = np.linspace(0, 2 * np.pi, 400, endpoint=False)
+    circle = 30.0 * np.column_stack([np.cos(a), np.sin(a)])  # a GIS outline: 400 vertices 0.47 m apart
+    assert len(simplified_polygon(circle, 1)) <= 64
+    star = circle * np.where(np.arange(400) % 2, 1.0, 0.9)[:, None]  # 3 m teeth
+    with pytest.raises(ValueError, match=r"segment 1's polygon has \d+ vertices 0.1 m apart or more; at most 64"):
+        simplified_polygon(star, 1)
+
+
+def test_a_csv_segment_column_is_found_whatever_its_spacing_and_case(tmp_path):
+    rows = _rows(6)
+    path = tmp_path / "lm.csv"
+    lines = [f"{r['id']},{r['u']},{r['v']},{r['lat']},{r['lon']},{k % 2}\n" for k, r in enumerate(rows)]
+    path.write_text("ID, u ,v,lat,lon, Segment\n" + "".join(lines))
+    lm, _ = load_landmarks(path)
+    assert list(lm.segment) == [0, 1, 0, 1, 0, 1] and lm.ids[0] == "P0"
+
+
 def test_named_segments_that_cannot_be_fitted_are_refused_naming_them(tmp_path):
     from calibration.fit import check_segments
     from calibration.landmarks import load_segment_polygons
@@ -229,7 +277,7 @@ def test_named_segments_that_cannot_be_fitted_are_refused_naming_them(tmp_path):
     check_segments(Landmarks(lm.ids, lm.uv, lm.latlon, half), xy, None)  # six and six: fine
     for text, message in [
         ("[1, 2]", "expected a JSON object from segment number to"),
-        ('{"a": [[1, 2], [1, 3], [2, 2]]}', "segment 'a': segment numbers are whole numbers >= 0"),
+        ('{"a": [[1, 2], [1, 3], [2, 2]]}', "segment .a.: segment numbers are whole numbers from 0 to"),
         ('{"1": [[42.2, -83.7], [42.3, -83.7]]}', "segment 1: a polygon needs at least 3"),
         ('{"1": [[142.2, -83.7], [42.3, -83.7], [42.3, -83.8]]}', "segment 1: a vertex is not a latitude and"),
         ('{"1": [["x", -83.7], [42.3, -83.7], [42.3, -83.8]]}', "segment 1: vertices must be"),
@@ -240,8 +288,9 @@ def test_named_segments_that_cannot_be_fitted_are_refused_naming_them(tmp_path):
             load_segment_polygons(tmp_path / "p.json")
     with pytest.raises(ValueError, match="segment polygon file not found"):
         load_segment_polygons(tmp_path / "missing.json")
-    with pytest.raises(ValueError, match="landmark 'P0': segment must be a whole number >= 0"):
-        landmarks_from_rows([{**r, "segment": -2} for r in _rows()], "x")
+    for bad in (-2, "99999999999999999999"):
+        with pytest.raises(ValueError, match=r"landmark 'P0': segment must be a whole number from 0 to 2147483647"):
+            landmarks_from_rows([{**r, "segment": bad} for r in _rows()], "x")
 
 
 def test_a_pinhole_camera_gets_two_range_bands_by_default_and_one_plane_with_few_landmarks():
