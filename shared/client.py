@@ -47,8 +47,8 @@ from shared.codec import DecodeError, decode
 from shared.keys import latest_tracks_key, tracks_key
 from shared.messages import Tracks
 from shared.settings import BusSettings, check_endpoint
+from shared.tracks_file import REPLAYED_NS
 
-REPLAYED_NS = 5 * 10**9  # a message of the same tracker this much older than the last given: a replay, followed
 MAX_WAIT_S = 7 * 86400.0  # a longer wait is None: Zenoh's timeout is in milliseconds
 RECONNECT = {"period_init_ms": 250, "period_max_ms": 2000, "period_increase_factor": 2}  # Zenoh's connect/retry
 

@@ -15,6 +15,8 @@ import numpy as np
 from shared.geo import GeoFrame
 from shared.messages import not_covariances
 
+REPLAYED_NS = 5 * 10**9  # a message of the same tracker this much older than the last one: a recording played again
+
 _REQUIRED_ROW = ("id", "yaw", "length", "width")
 _OPTIONAL_NUMBERS = ("lat", "lon", "vx", "vy", "height", "score", "age", "hits")
 

@@ -192,6 +192,23 @@ def test_a_new_tracker_clears_the_drawings_and_tracks_of_the_one_before(tmp_path
     assert cleared, "no Clear logged on the old tracker's entity"
 
 
+def test_a_recording_played_again_starts_its_tracks_afresh(tmp_path: Path) -> None:
+    """The same tracker back at its start (a tracks file played again): its trails are not joined across the jump
+    and the first pass's tracks are not held."""
+    rec = rr.RecordingStream("roadside_test")
+    rec.save(tmp_path / "replay.rrd")
+    sink = TrackSink(rec, "s1", trail_min_step_m=0.0)
+    for k in range(80):  # 8 s: track 3 ends 80 m east
+        sink.log_tracks(_message(k))
+    sink.log_tracks(_message(0, ids=(3,)))  # played again from the start
+    assert np.allclose(sink.trail_of("ft0", 3), [[0.0, 0.0]]) and sink.live_tracks == 1
+    sink.log_tracks(_message(30, ids=(3,)))
+    sink.log_tracks(_message(10, ids=(3,)))  # 2 s back is a late message, not a replay: the track is held
+    assert len(sink.trail_of("ft0", 3)) == 3
+    rec.flush()
+    rec.disconnect()
+
+
 def test_live_counts_bad_messages_and_uses_the_first_site(tmp_path: Path) -> None:
     rec = rr.RecordingStream("roadside_test")
     rec.save(tmp_path / "live.rrd")
@@ -333,6 +350,11 @@ def test_a_failed_conversion_leaves_an_existing_rrd_as_it_was(tracks_file: Path,
         tracks_file_to_rrd(tracks_file, tmp_path)
     tracks_file_to_rrd(tracks_file, out)
     assert out.stat().st_size > 1000
+    with pytest.raises(ValueError, match="would replace the tracks file"):  # --out naming the input
+        tracks_file_to_rrd(tracks_file, tracks_file)
+    other = tracks_file_to_rrd(tracks_file, tmp_path / "other.rrd", site="elsewhere")  # --site of another site
+    assert other["messages"] == 0 and other["bad_lines"] == other["lines"] > 0
+    assert "this sink logs site 'elsewhere'" in other["first_bad_reason"]
 
 
 def test_basemap_four_corner_file_with_its_image_beside_it_or_a_folder(tmp_path: Path) -> None:
@@ -352,6 +374,15 @@ def test_basemap_four_corner_file_with_its_image_beside_it_or_a_folder(tmp_path:
         assert bm.corners_m == pytest.approx(site[[0, 1, 3, 2]], abs=0.01)  # stored tl, tr, br, bl
     with pytest.raises(ValueError, match="no site origin"):
         Basemap.from_world_file(folder)
+    for change, message in [
+        (lambda c: {k: v[::-1] for k, v in c.items()}, "km from the site's origin"),  # [lon, lat]
+        (lambda c: {"tl": c["br"], "tr": c["bl"], "bl": c["tr"], "br": c["tl"]}, "top to the north"),  # upside down
+        (lambda c: {"tl": c["tr"], "tr": c["tl"], "bl": c["br"], "br": c["bl"]}, "top to the north"),  # mirrored
+    ]:
+        corners = {k: ll[i].tolist() for i, k in enumerate(("tl", "tr", "bl", "br"))}
+        (folder / "ortho.json").write_text(json.dumps(change(corners)))
+        with pytest.raises(ValueError, match=message):
+            Basemap.from_world_file(folder / "ortho.json", origin)
     (folder / "other.json").write_text("{}")
     with pytest.raises(ValueError, match="exactly one"):
         Basemap.from_world_file(folder, origin)
@@ -364,7 +395,9 @@ def test_viz_logs_camera_frames_with_detections_when_asked(tracks_file: Path, sm
 
     from roadside.cli import main
 
-    site = write_site(tmp_path / "site", site_config(small_recording))
+    config = site_config(small_recording)
+    site = write_site(tmp_path / "site", config)
+    tracks_file.write_text(tracks_file.read_text().replace('"site": "s1"', f'"site": "{config["site"]}"'))
     model = export_tiny_detector(tmp_path / "tiny.onnx")
     out = tmp_path / "frames.rrd"
     assert main(["viz", str(tracks_file), "--out", str(out), "--site", str(site), "--frames", str(small_recording),

@@ -39,6 +39,7 @@ from shared.geo import GeoFrame
 
 MAX_SIDE_PX = 4096
 CORNER_KEYS = ("tl", "tr", "bl", "br")
+FAR_FROM_SITE_M = 10_000.0  # a map with a corner further than this from the site's origin is another place's
 
 
 @dataclass(frozen=True)
@@ -99,6 +100,7 @@ class Basemap:
         lat = np.array([lat_t, lat_t, lat_b, lat_b])
         lon = np.array([lon_l, lon_r, lon_r, lon_l])
         corners = origin.to_enu(lat, lon, origin.alt0_m)[:, :2]
+        _near_site(corners, "top_left and bottom_right")
         img = load_image(image) if isinstance(image, str | Path) else image
         return cls(_as_uint8(img, max_side_px), corners)
 
@@ -142,6 +144,8 @@ class Basemap:
                 raise ValueError(f"basemap world file {path} gives lat/lon corners but no site origin")
             ll = np.array([_latlon(spec[k], k) for k in ("tl", "tr", "br", "bl")])
             corners = origin.to_enu(ll[:, 0], ll[:, 1], origin.alt0_m)[:, :2]
+            _near_site(corners, f"{path}: the corners")
+            _upright(corners, path)
             return cls(_as_uint8(image, max_side_px), corners)
         if "extent_m" in spec:
             return cls.from_array(image, spec["extent_m"], max_side_px=max_side_px)
@@ -155,6 +159,25 @@ class Basemap:
                 "(add 'origin' to the file or pass the site origin)"
             )
         return cls.from_corners(image, spec["top_left"], spec["bottom_right"], origin, max_side_px=max_side_px)
+
+
+def _near_site(corners: np.ndarray, what: str) -> None:
+    """ValueError when a corner (site metres) is further than `FAR_FROM_SITE_M` from the site's origin."""
+    far = float(np.max(np.linalg.norm(corners, axis=1)))
+    if far > FAR_FROM_SITE_M:
+        raise ValueError(f"{what} put the basemap {far / 1000:.0f} km from the site's origin: another place's map, "
+                         "or latitude and longitude swapped ([lat, lon] each)")
+
+
+def _upright(corners: np.ndarray, path: Path) -> None:
+    """ValueError unless the corners tl, tr, br, bl (site metres, x east, y north) are an image's, the right way
+    round: top above bottom, left west of right (turned by less than 45 degrees), not mirrored, with an area."""
+    tl, tr, br, bl = corners
+    e = corners - corners.mean(axis=0)
+    area = 0.5 * float(np.sum(e[:, 0] * np.roll(e[:, 1], -1) - e[:, 1] * np.roll(e[:, 0], -1)))
+    if not (tl[1] > bl[1] and tr[1] > br[1] and tr[0] > tl[0] and br[0] > bl[0]) or area > -1.0:
+        raise ValueError(f"basemap world file {path}: the corners tl, tr, br, bl are not those of an image with its "
+                         "top to the north and its left to the west (swapped or mirrored corners?)")
 
 
 def _origin(value: object, path: Path) -> GeoFrame:

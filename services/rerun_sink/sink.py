@@ -66,7 +66,7 @@ import rerun.blueprint as rrb
 from shared.geo import GeoFrame
 from shared.messages import CHI2_2DOF_95, check_name
 from shared.movements import Junction
-from shared.tracks_file import TrackRow, TracksMessage, _int, parse_tracks_message
+from shared.tracks_file import REPLAYED_NS, TrackRow, TracksMessage, _int, parse_tracks_message
 
 from .basemap import Basemap
 
@@ -210,6 +210,7 @@ class TrackSink:
         self._tracks: dict[tuple[str, int], _TrackState] = {}
         self._drew: set[str] = set()  # the optional layers (entity paths) the last message of their tracker drew
         self._tracker: str | None = None  # the tracker of the last message: another one ends it
+        self._last_t_ns = 0  # the last message's capture time: the same tracker far back ends it too (a replay)
         self._last_speed_flush_ns: int | None = None
         self._cameras: set[str] = set()
         self._span = _Span()
@@ -238,6 +239,11 @@ class TrackSink:
         width = np.array([r.width for r in msg.rows], np.float64)
         labels = [f"{r.id} {r.type}" for r in msg.rows]
         colors = np.zeros((n, 3), np.uint8)
+        rec.set_time(TIMELINE, timestamp=np.datetime64(msg.t_ns, "ns"))
+        replayed = msg.tracker == self._tracker and msg.t_ns < self._last_t_ns - REPLAYED_NS
+        if self._tracker is not None and (self._tracker != msg.tracker or replayed):
+            self._end_tracker(self._tracker)  # its trails are not joined to the new ones
+        self._tracker, self._last_t_ns = msg.tracker, msg.t_ns
         trails = []
         for i, row in enumerate(msg.rows):
             state = self._track_state(msg.tracker, row, labels[i], msg.t_ns)
@@ -248,10 +254,6 @@ class TrackSink:
                 state.speed_mps.append(math.hypot(row.vx, row.vy))
         strips, owner = footprint_strips(x, y, yaw, length, width,
                                          np.array([r.yaw_confirmed is not False for r in msg.rows], bool))
-        rec.set_time(TIMELINE, timestamp=np.datetime64(msg.t_ns, "ns"))
-        if self._tracker not in (None, msg.tracker):
-            self._end_tracker(self._tracker)
-        self._tracker = msg.tracker
         rec.log(
             f"{base}/trails",
             rr.LineStrips3D(trails, colors=colors, labels=labels, show_labels=False, radii=rr.Radius.ui_points(1.5)),
@@ -536,6 +538,7 @@ def tracks_file_to_rrd(
     application_id: str = "roadside",
     max_trail_points: int = 50,
     junction: Junction | None = None,
+    site: str | None = None,
 ) -> dict:
     """Convert a tracks file (JSON lines, see the module docstring) to a Rerun .rrd file.
 
@@ -543,6 +546,8 @@ def tracks_file_to_rrd(
     basemap: a Basemap, or the path of a basemap world file (see basemap.py).
     frames: optional (camera, t_ns, image, detections) tuples, logged with `TrackSink.log_frame`.
     junction: the site's junction (shared/movements.py), drawn when the origin places it.
+    site: the site whose tracks are drawn (its origin and junction are the ones given); a line of another site is
+    a bad line. Default: the first valid line's site.
     Bad lines are skipped. Returns {"tracks_file", "rrd", "lines" (non-blank lines read), "messages",
     "bad_lines", "first_bad_line" (1-based line number or None), "first_bad_reason", "rows", "tracks",
     "frames", "t_first_ns", "t_last_ns", "span_s"}. Raises FileNotFoundError naming a missing tracks file."""
@@ -553,6 +558,8 @@ def tracks_file_to_rrd(
     bm = _as_basemap(basemap, origin)
     if out_rrd.is_dir():
         raise ValueError(f"{out_rrd} is a folder, not an .rrd file")
+    if out_rrd.resolve() == tracks_path.resolve():
+        raise ValueError(f"the .rrd would replace the tracks file {tracks_path}: give another --out")
     out_rrd.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_rrd.with_name(out_rrd.name + ".partial")  # an existing file is replaced only by a complete one
     rec = rr.RecordingStream(application_id)
@@ -571,13 +578,13 @@ def tracks_file_to_rrd(
                 try:
                     msg = parse_tracks_message(json.loads(line), origin)
                     if sink is None:
-                        sink = TrackSink(rec, msg.site, origin, bm, max_trail_points=max_trail_points,
+                        sink = TrackSink(rec, site or msg.site, origin, bm, max_trail_points=max_trail_points,
                                          junction=junction)
                     sink.log_tracks(msg)
                 except ValueError as e:  # json.JSONDecodeError is a ValueError too
                     bad.add(lineno, f"{type(e).__name__}: {e}" if isinstance(e, json.JSONDecodeError) else str(e))
         if sink is None:
-            sink = TrackSink(rec, "unknown", origin, bm, max_trail_points=max_trail_points, junction=junction)
+            sink = TrackSink(rec, site or "unknown", origin, bm, max_trail_points=max_trail_points, junction=junction)
         sink.flush()
         for frame in frames or ():
             sink.log_frame(*frame)
