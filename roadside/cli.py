@@ -703,8 +703,15 @@ def _run_viz(args) -> int:
         basemap = site_basemap(args.recording)
         origin = origin or Recording(args.recording).meta["site"]["origin"]
     frames = _viz_frames(args) if args.frames else None
-    summary = tracks_file_to_rrd(args.tracks, args.out, site_origin=origin, basemap=basemap, frames=frames,
-                                 junction=junction)
+    import signal
+
+    # SIGTERM as Ctrl-C: the conversion stops and its partial file is removed (an existing .rrd is kept)
+    before = signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        summary = tracks_file_to_rrd(args.tracks, args.out, site_origin=origin, basemap=basemap, frames=frames,
+                                     junction=junction, site=settings.site if args.site else None)
+    finally:
+        signal.signal(signal.SIGTERM, before)
     print(dumps(summary, indent=1))
     if summary["messages"] == 0:  # the .rrd holds the map alone: say so, as --live does when nothing came
         why = (f"; line {summary['first_bad_line']}: {summary['first_bad_reason']}" if summary["bad_lines"] else "")
@@ -734,15 +741,26 @@ def _run_viz_live(args) -> int:
     if args.timeout is not None and not args.timeout > 0:
         raise ValueError(f"--timeout must be > 0, got {args.timeout}")
     settings = load_settings(site_path(args.site))
+    if args.out.is_dir():
+        raise ValueError(f"--out {args.out} is a folder, not an .rrd file")
+    basemap = None
+    if args.basemap:  # read before the bus is joined or any file is written
+        from services.rerun_sink.basemap import Basemap
+        from shared.geo import GeoFrame
+
+        basemap = Basemap.from_world_file(args.basemap, GeoFrame.from_dict(settings.origin) if settings.origin
+                                          else None)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    rec = rr.RecordingStream("roadside")
-    sinks = [rr.FileSink(str(args.out))] + ([rr.GrpcSink(args.viewer)] if args.viewer else [])
-    rec.set_sinks(*sinks)
-    rec.send_recording_name(f"{settings.site} live")
+    partial = args.out.with_name(args.out.name + ".partial")  # an existing .rrd is replaced when the stream ends
     with TrackClient(settings.site, args.connect or None, settings.bus) as client:
+        rec = rr.RecordingStream("roadside")
+        sinks = [rr.FileSink(str(partial))] + ([rr.GrpcSink(args.viewer)] if args.viewer else [])
+        rec.set_sinks(*sinks)
+        rec.send_recording_name(f"{settings.site} live")
+
         def messages():
             for n, tracks in enumerate(client.stream(timeout_s=args.timeout, stop=stop), 1):
                 yield tracks
@@ -750,11 +768,15 @@ def _run_viz_live(args) -> int:
                     return
 
         try:
-            summary = live(messages(), rec, site_origin=settings.origin, basemap=args.basemap,
+            summary = live(messages(), rec, site_origin=settings.origin, basemap=basemap,
                            junction=settings.movements.junction() if settings.movements is not None else None)
         finally:
-            rec.flush()
+            try:
+                rec.flush()
+            except Exception as exc:  # a viewer that cannot be reached: the file is complete all the same
+                print(f"roadside viz: warning: {exc}", file=sys.stderr)
             rec.disconnect()
+            partial.replace(args.out)
         summary["bad_messages"] = client.bad.total
     print(dumps({"site": settings.site, "rrd": str(args.out), **summary}, indent=1))
     if not summary["messages"]:

@@ -179,12 +179,21 @@ def _add_status(sub) -> None:
 def _watcher_session(args):
     """A Zenoh session that asks the site's services (`--site`, `--connect` or `--port-base`, `_bus`), listening
     nowhere."""
-    import zenoh
 
     from shared.bus import zenoh_config
 
     _site(args)
-    return zenoh.open(zenoh_config(_bus(args), None, 0))
+    return _open(zenoh_config(_bus(args), None, 0))
+
+
+def _open(config):
+    """zenoh.open, its failure to reach the bus a ValueError (a message, not a traceback)."""
+    import zenoh
+
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as exc:
+        raise ValueError(f"cannot reach the bus: {exc}") from None
 
 
 def _run_status(args) -> int:
@@ -208,7 +217,7 @@ def _run_status(args) -> int:
     finally:
         session.close()
     if missing:
-        print(f"not answering: {', '.join(missing)}")
+        print(f"not answering: {', '.join(missing)}", file=sys.stderr if args.json else sys.stdout)
         return 1
     return 0 if reports else 1
 
@@ -254,7 +263,6 @@ STATUS_ANSWER_S = 1.5  # how long `roadside health` waits for the status reports
 
 
 def _run_health(args) -> int:
-    import zenoh
 
     from shared.bus import wait_for_peers, zenoh_config
     from shared.keys import alive_key
@@ -262,7 +270,7 @@ def _run_health(args) -> int:
     from shared.status import collect_status, stall_reasons
 
     settings = load_settings(site_path(args.site))
-    session = zenoh.open(zenoh_config(settings.bus.model_copy(update={"listen": []}), None, 0))
+    session = _open(zenoh_config(settings.bus.model_copy(update={"listen": []}), None, 0))
     reasons: list[str] = []
     try:
         key = alive_key(settings.site, args.service, "x").rsplit("/", 1)[0] + "/*"

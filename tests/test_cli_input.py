@@ -46,6 +46,17 @@ def test_flags_out_of_range_are_refused_by_name(argv, message, capsys):
     assert message in capsys.readouterr().err
 
 
+def test_bus_jobs_say_when_the_bus_cannot_be_reached_and_live_viz_keeps_the_file_it_would_replace(tmp_path, capsys):
+    assert main(["status", "--connect", "tcp/127.0.0.1:9"]) == 2  # nothing listens on port 9
+    assert "cannot reach the bus" in capsys.readouterr().err
+    out = tmp_path / "earlier.rrd"
+    out.write_bytes(b"an earlier recording")
+    assert main(["viz", "--live", "--site", str(EXAMPLE_SITE), "--out", str(out), "--basemap",
+                 str(tmp_path / "missing.yaml"), "--connect", "tcp/127.0.0.1:9"]) == 2
+    assert "basemap world file not found" in capsys.readouterr().err
+    assert out.read_bytes() == b"an earlier recording"
+
+
 def test_sim_checks_its_contact_sheet_name_before_the_clip(tmp_path, capsys):
     out = tmp_path / "clip"
     argv = ["sim", "--site", "intersection", "--seconds", "0.1", "--out", str(out)]
