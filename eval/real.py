@@ -17,7 +17,7 @@ from __future__ import annotations
 import json
 from collections.abc import Callable
 from dataclasses import replace
-from datetime import UTC, datetime, time
+from datetime import UTC, datetime, time, tzinfo
 from pathlib import Path
 
 import cv2
@@ -275,12 +275,13 @@ def tracks_at(lines: list, t_ns: int, max_gap_ns: int) -> tuple[np.ndarray, np.n
 
 def evaluate_tracks_real(labels_dir: str | Path, tracks: str | Path, masks_dir: str | Path,
                          site_geo: GeoFrame | None = None, held_out_from: time | None = time(11, 0, 40),
-                         max_gap_ms: float = 250.0) -> dict:
+                         max_gap_ms: float = 250.0, tz: tzinfo = UTC) -> dict:
     """The pipeline's tracks (a tracks file of the recorded footage played through it) scored against the hand
     labels like detections (`evaluate_real`): at each labelled frame's capture time the tracks, interpolated
     between the ticks around it, are matched to that camera's labels within MATCH_M, within ROI_M of its
     foot. Frames with no tracks line within `max_gap_ms` are counted apart (`frames_without_tracks`), not
-    scored. `site_geo`: the tracks' site frame when it differs from the masks' own."""
+    scored. `site_geo`: the tracks' site frame when it differs from the masks' own. `tz`: the time zone of the
+    frames' names, as ingest read them (`ingest.timezone`)."""
     from eval.tracking import covariance_measure, load_tracks
 
     labels_dir, masks_dir = Path(labels_dir), Path(masks_dir)
@@ -299,7 +300,7 @@ def evaluate_tracks_real(labels_dir: str | Path, tracks: str | Path, masks_dir: 
         frames = load_labels(f, masks.shape[1], masks.shape[0], held_out_from)
         scored = 0
         for name, labels in sorted(frames.items()):
-            at = tracks_at(lines, capture_time_from_name(name), round(max_gap_ms * 1e6))
+            at = tracks_at(lines, capture_time_from_name(name, tz), round(max_gap_ms * 1e6))
             if at is None:
                 missing += 1
                 continue

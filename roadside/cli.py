@@ -299,7 +299,7 @@ def _run_eval(args) -> int:
         _site_tracks([args.tracks], settings, args.site)
         origin = settings.origin
         result = evaluate_tracks_real(args.site / "labels", args.tracks, args.site / "masks",
-                                      GeoFrame.from_dict(origin) if origin else None)
+                                      GeoFrame.from_dict(origin) if origin else None, tz=settings.ingest.tzinfo())
         line = ("{name:8s} tracks: precision {precision} recall {recall} ({labels} labels, {detections} tracks "
                 f"within {result['roi_m']:g} m, {{frames}} frames)")
         return _print_eval(args, result, "per_camera", line)
@@ -656,7 +656,7 @@ def _viz_frames(args):
     settings = load_settings(site_path(args.site))
     cams = [c.name for c in settings.cameras]
     det = OnnxDetector(args.model, threads=2, score_thr=settings.detect.score_thr)
-    return _viz_frame_rows(args, settings, det, open_source(str(args.frames), cams, {}))
+    return _viz_frame_rows(args, settings, det, open_source(str(args.frames), cams, {}, tz=settings.ingest.tzinfo()))
 
 
 def _viz_frame_rows(args, settings, det, source):

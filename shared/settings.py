@@ -172,6 +172,27 @@ class IngestSettings(Strict):
     # liveliness tokens beyond the four services' that ingest waits for before it plays (up to 60 s), e.g. 1 for
     # a recorder that must see the first frame (the demo's collector declares one once it is linked to all four)
     wait_extra_peers: int = Field(0, ge=0)
+    # the time zone of date-time file names (`2023-12-19 11-00-00-034395.jpg`): cameras and recorders name files in
+    # their local time, and a capture time is UTC on the wire (an IANA name, e.g. America/Detroit)
+    timezone: str = "UTC"
+
+    @field_validator("timezone")
+    @classmethod
+    def _timezone(cls, v: str) -> str:
+        from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
+
+        try:
+            ZoneInfo(v)
+        except (ZoneInfoNotFoundError, ValueError):
+            raise ValueError(f"unknown time zone {v!r}: an IANA name such as America/Detroit or Europe/Berlin, or "
+                             "UTC") from None
+        return v
+
+    def tzinfo(self):
+        """`timezone` as a tzinfo."""
+        from zoneinfo import ZoneInfo
+
+        return ZoneInfo(self.timezone)
 
     @field_validator("pace", mode="before")  # before: YAML and --set give `pace: 2` as a number
     @classmethod

@@ -198,6 +198,15 @@ def test_tracks_are_interpolated_to_each_labelled_frame_and_scored_like_detectio
         (t1 - 50 * ms, [(1, 109.0, 0.0), (2, 90.0, 0.0)]), (t1 + 150 * ms, [(1, 113.0, 0.0), (3, 100.0, 10.0)])])
     r2 = evaluate_tracks_real(site / "labels", shifted, site / "masks", GeoFrame(ll[0], ll[1], 0.0))
     assert (r2["overall"]["true_positives"], r2["overall"]["detections"]) == (1, 2)
+    # frames named in Ann Arbor's clock (ingest.timezone), the tracks at the UTC times ingest gave them: 5 h later
+    from zoneinfo import ZoneInfo
+
+    later = _tracks_file(tmp_path / "later.jsonl", [(t1 + 5 * 3600 * 10**9 - 50 * ms, [(1, 9.0, 0.0)]),
+                                                    (t1 + 5 * 3600 * 10**9 + 150 * ms, [(1, 13.0, 0.0)])])
+    r3 = evaluate_tracks_real(site / "labels", later, site / "masks", tz=ZoneInfo("America/Detroit"))
+    assert r3["overall"]["true_positives"] == 1
+    with pytest.raises(ValueError, match="no tracks within 250 ms of any labelled frame"):
+        evaluate_tracks_real(site / "labels", later, site / "masks")  # read as UTC: 5 h apart
     # tracks of another time (a simulated run's): nothing to score, said so rather than precision None
     other = _tracks_file(tmp_path / "other.jsonl", [(t1 - 3600 * 10**9, [(1, 9.0, 0.0)])])
     with pytest.raises(ValueError, match=r"other\.jsonl: no tracks within 250 ms of any labelled frame \(2 frames\)"):

@@ -146,6 +146,24 @@ def test_capture_times_in_names_and_numbered_frames_in_their_order(tmp_path):
     assert capture_time_from_name("1718218800123.jpg") == 1718218800123000000  # ms
     assert capture_time_from_name("0000000000000001.jpg") is None  # a zero-padded frame counter: no time
     assert capture_time_from_name("171821880012345.jpg") is None  # 15 digits: no unit
+    from zoneinfo import ZoneInfo
+
+    from shared.settings import IngestSettings
+
+    utc = capture_time_from_name("2023-12-19 11-00-00-034395.jpg")
+    assert utc == 1702983600034395000  # 11:00 UTC by default
+    detroit = IngestSettings(timezone="America/Detroit").tzinfo()  # a camera naming files in its local clock
+    assert capture_time_from_name("2023-12-19 11-00-00-034395.jpg", detroit) - utc == 5 * 3600 * 10**9  # EST
+    assert capture_time_from_name("2023-07-19 11-00-00.jpg", ZoneInfo("America/Detroit")) == \
+        capture_time_from_name("2023-07-19 15-00-00.jpg")  # EDT in summer
+    with pytest.raises(ValueError, match="unknown time zone 'Mars/Olympus'"):
+        IngestSettings(timezone="Mars/Olympus")
+    named = tmp_path / "named"
+    named.mkdir()
+    cv2.imwrite(str(named / "2023-12-19 11-00-00-034395.png"), np.full((48, 64), 90, np.uint8))
+    from services.ingest.sources import open_source
+
+    assert [f.t_capture_ns for f in open_source(str(named), ["c"], {}, tz=detroit)] == [utc + 5 * 3600 * 10**9]
     for n in (1, 2, 10, 11):
         cv2.imwrite(str(tmp_path / f"frame{n}.png"), np.full((48, 64), 90, np.uint8))
     frames = list(ImageFolderSource({"c": tmp_path}, fps=10, start_ns=0))

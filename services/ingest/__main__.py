@@ -156,7 +156,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
         return src if not src or "://" in src else str(settings.path(src))
 
     source = open_source(resolve(cfg.source) or "", list(cams), {c.name: resolve(c.source) for c in settings.cameras},
-                         cfg.fps)
+                         cfg.fps, cfg.tzinfo())
     bad = BadInput("ingest")
     session = open_session(settings, "ingest")
     try:

@@ -5,8 +5,8 @@ Every source yields `SourceFrame`s in capture-time order (merged over its camera
 - `ImageFolderSource`: one folder of images per camera; capture time from each file name — integer
   nanoseconds, microseconds or milliseconds since the epoch (19, 16 or 13 digits: `1718218800000000000.jpg`,
   from 2000 on) or a date and time (`2023-12-19 11-00-00-034395.jpg`, as in the real State/Ellsworth footage;
-  taken as UTC unless a time zone is given) — or, when names carry no time, from a frame rate, the files in
-  the order of their names with numbers compared as numbers (`frame2.png` before `frame10.png`).
+  in the time zone `ingest.timezone` names, UTC by default) — or, when names carry no time, from a frame rate,
+  the files in the order of their names with numbers compared as numbers (`frame2.png` before `frame10.png`).
 - `VideoSource`: a video file or an RTSP/HTTP stream through OpenCV; capture time from the stream's
   position (files) or the wall clock at grab (live streams).
 
@@ -20,7 +20,7 @@ import re
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
-from datetime import UTC, datetime, timezone
+from datetime import UTC, datetime, tzinfo
 from pathlib import Path
 
 import cv2
@@ -49,7 +49,7 @@ class SourceFrame:
     error: str = ""
 
 
-def capture_time_from_name(name: str, tz: timezone = UTC) -> int | None:
+def capture_time_from_name(name: str, tz: tzinfo = UTC) -> int | None:
     """Capture time (ns since the epoch) from a file name, None when it carries none or one outside the times a
     message may carry (1970 to 2116, `shared.messages.T_CAPTURE_END`; a number of digits since the epoch from 2000
     on: a zero-padded frame counter is no time)."""
@@ -109,7 +109,7 @@ class RecordingSource:
 class ImageFolderSource:
     """Image sequences, one folder per camera: {camera: folder}."""
 
-    def __init__(self, folders: dict[str, str | Path], fps: float | None = None, tz: timezone = UTC,
+    def __init__(self, folders: dict[str, str | Path], fps: float | None = None, tz: tzinfo = UTC,
                  start_ns: int | None = None) -> None:
         streams: dict[str, list[tuple[int, Path]]] = {}
         for cam, folder in folders.items():
@@ -191,8 +191,9 @@ class VideoSource:
 
 
 def open_source(source: str, cameras: list[str], camera_sources: dict[str, str | None],
-                fps: float | None = None) -> RecordingSource | ImageFolderSource | VideoSource | MergedSource:
-    """The source a site's settings describe.
+                fps: float | None = None, tz: tzinfo = UTC
+                ) -> RecordingSource | ImageFolderSource | VideoSource | MergedSource:
+    """The source a site's settings describe (`tz`: the time zone of date-time file names).
 
     `source` is a simulator recording, a folder of per-camera image folders (matched to camera names:
     the sub-folder named `<camera>`, in any case, else the one whose name ends with `_<camera>`), one image folder,
@@ -205,9 +206,9 @@ def open_source(source: str, cameras: list[str], camera_sources: dict[str, str |
         if rest and not source:
             raise ValueError(f"no source for camera{'s' * (len(rest) > 1)} {', '.join(rest)}: give each camera its "
                              "own source, or ingest.source for the cameras without one")
-        parts = [open_source(s, [c], {}, fps) for c, s in own.items()]
+        parts = [open_source(s, [c], {}, fps, tz) for c, s in own.items()]
         if rest:
-            parts.append(open_source(source, rest, {}, fps))
+            parts.append(open_source(source, rest, {}, fps, tz))
         live = [p for p in parts if getattr(p, "live", False)]
         if live and len(live) < len(parts):
             raise ValueError(f"camera{'s' * (len(live) > 1)} {', '.join(p.camera for p in live)} stream live (the "
@@ -234,7 +235,7 @@ def open_source(source: str, cameras: list[str], camera_sources: dict[str, str |
     if not subdirs:
         if len(cameras) != 1:
             raise ValueError(f"{path} holds images of one camera; the site has {len(cameras)} cameras")
-        return ImageFolderSource({cameras[0]: path}, fps)
+        return ImageFolderSource({cameras[0]: path}, fps, tz)
     folders = {}
     for cam in cameras:
         match = ([p for n, p in subdirs.items() if n == cam]  # NE beside T_NE: NE's folder is NE
@@ -244,7 +245,7 @@ def open_source(source: str, cameras: list[str], camera_sources: dict[str, str |
             raise ValueError(f"camera {cam}: expected one sub-folder of {path} named {cam} or *_{cam}, "
                              f"found {sorted(p.name for p in match) or 'none'} among {sorted(subdirs)}")
         folders[cam] = match[0]
-    return ImageFolderSource(folders, fps)
+    return ImageFolderSource(folders, fps, tz)
 
 
 class MergedSource:
