@@ -111,19 +111,45 @@ def offset_latlon(lat_deg: np.ndarray, lon_deg: np.ndarray, east_m: np.ndarray,
             np.asarray(lon_deg, np.float64) + np.degrees(np.asarray(east_m, np.float64) / (n * np.cos(lat))))
 
 
-def in_footprints(xy: np.ndarray, yaw: np.ndarray, size_lwh: np.ndarray, scale: float = 1.0) -> np.ndarray:
+FOOTPRINT_ROWS = 128  # in_footprints rows its callers ask for at a time: 128 x 4096 float64 temporaries are 4 MB
+
+
+def in_footprints(xy: np.ndarray, yaw: np.ndarray, size_lwh: np.ndarray, scale: float = 1.0,
+                  rows: np.ndarray | None = None, either: bool = False) -> np.ndarray:
     """(N, N) bool, inside[a, b]: ground point b (site metres) lies within a's footprint, its length and width times
     `scale` centred on its point along its yaw (rad); the diagonal is True. What localize's footprint rule and the
-    fusion's long-vehicle rule both ask: is this object another peak on that vehicle's body?"""
+    fusion's long-vehicle rule both ask: is this object another peak on that vehicle's body?
+
+    `rows` ((M,) indices) gives only those rows, (M, N): inside[rows]; `either` gives (inside | inside.T)[rows] (a's
+    footprint holds b's point or b's holds a's). Memory grows with M x N: callers with many objects ask for
+    FOOTPRINT_ROWS rows at a time. The values are those of the whole matrix, bit for bit."""
     xy = np.asarray(xy, np.float64).reshape(-1, 2)
     n = len(xy)
     yaw = np.asarray(yaw, np.float64).reshape(n)
     half = 0.5 * scale * np.asarray(size_lwh, np.float64).reshape(n, -1)[:, :2]
-    d = xy[None, :, :] - xy[:, None, :]  # d[a, b]: from a to b
-    c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
-    along = np.abs(d[..., 0] * c + d[..., 1] * s)
-    across = np.abs(d[..., 1] * c - d[..., 0] * s)
-    return (along <= half[:, :1]) & (across <= half[:, 1:])
+    c, s = np.cos(yaw), np.sin(yaw)  # of every object, then indexed: the same values whichever rows are asked for
+    a = np.arange(n) if rows is None else np.asarray(rows, np.int64).reshape(-1)
+    dx = xy[None, :, 0] - xy[a, 0][:, None]  # from a to b
+    dy = xy[None, :, 1] - xy[a, 1][:, None]
+    inside = _holds(dx, dy, c[a][:, None], s[a][:, None], half[a, :1], half[a, 1:])
+    if either:  # b's footprint holding a's point: the offsets negated, which changes no magnitude below
+        inside |= _holds(dx, dy, c[None, :], s[None, :], half[None, :, 0], half[None, :, 1])
+    return inside
+
+
+def _holds(dx: np.ndarray, dy: np.ndarray, c: np.ndarray, s: np.ndarray, half_l: np.ndarray,
+           half_w: np.ndarray) -> np.ndarray:
+    """Whether offsets (dx, dy) lie within footprints of half length and width (half_l, half_w) along (c, s)
+    (arrays that broadcast): |dx c + dy s| <= half_l and |dy c - dx s| <= half_w, in place on one temporary."""
+    t = dx * c
+    t += dy * s
+    np.abs(t, out=t)
+    out = t <= half_l
+    np.multiply(dy, c, out=t)
+    t -= dx * s
+    np.abs(t, out=t)
+    out &= t <= half_w
+    return out
 
 
 def _prime_vertical(lat: np.ndarray) -> np.ndarray:

@@ -4,6 +4,7 @@ crowded views, extend-only objects, regions."""
 from __future__ import annotations
 
 import math
+import tracemalloc
 
 import numpy as np
 import pytest
@@ -22,6 +23,8 @@ from services.fuse_track.tracker import (
     Tracker,
     TrackerConfig,
 )
+from shared.geo import FOOTPRINT_ROWS
+from shared.messages import MAX_ROWS
 from shared.position_error import POSITION_SIGMA, position_information
 
 
@@ -371,3 +374,46 @@ def test_a_tick_whose_only_object_is_a_low_scoring_one_dropped_fuses_to_nothing(
     both = ObjectBatch.concat([frame("A", 0, [[90.0, 0.0]], score=0.25), frame("B", 0, [[95.0, 0.0]], score=0.9)])
     fused = fusion.fuse(both, 0)
     assert len(fused) == 1 and fused.camera.tolist() == ["B"]
+
+
+def test_the_long_vehicle_rule_in_blocks_is_the_whole_matrix_rule_and_its_memory_is_bounded():
+    """Fused objects of many lengths, crowded: a block of FOOTPRINT_ROWS footprints at a time drops exactly what
+    the N x N rule dropped; a tick of MAX_ROWS long objects on one spot no longer needs N x N float64 matrices
+    (~650 MB)."""
+    fusion = Fusion([CameraRegion("A", (0.0, 0.0))], FusionConfig())
+    lmin, scale = fusion.config.long_vehicle_m, fusion.config.long_footprint
+
+    def whole_matrix_rule(fused: ObjectBatch) -> np.ndarray:
+        half = 0.5 * scale * fused.size_lwh[:, :2]
+        d = fused.xy[None, :, :] - fused.xy[:, None, :]
+        c, s = np.cos(fused.yaw)[:, None], np.sin(fused.yaw)[:, None]
+        inside = (np.abs(d[..., 0] * c + d[..., 1] * s) <= half[:, :1]) & (
+            np.abs(d[..., 1] * c - d[..., 0] * s) <= half[:, 1:])
+        length = fused.size_lwh[:, 0]
+        long_ = np.flatnonzero(length >= lmin)
+        drop = np.zeros(len(fused), bool)
+        for i in long_[np.lexsort((-fused.score[long_], -length[long_]))]:
+            if not drop[i]:
+                drop |= inside[i] & (length < length[i])
+        return np.flatnonzero(~drop)
+
+    rng = np.random.default_rng(11)
+    for trial in range(6):
+        n = int(rng.integers(2, 3 * FOOTPRINT_ROWS))
+        fused = ObjectBatch.from_frame("A", 0, rng.uniform(-40, 40, (n, 2)), rng.uniform(-np.pi, np.pi, n),
+                                       np.column_stack([rng.choice([4.5, 7.0, 9.0, 12.0, 14.0], n),
+                                                        np.full(n, 2.5), np.full(n, 3.0)]),
+                                       np.zeros(n, int), np.round(rng.uniform(0.3, 1, n), 1))
+        kept = fusion._under_long_vehicles(fused)
+        assert kept.xy.tolist() == fused.xy[whole_matrix_rule(fused)].tolist(), trial
+    n = MAX_ROWS
+    crowd = ObjectBatch.from_frame("A", 0, rng.uniform(-3, 3, (n, 2)), rng.uniform(-np.pi, np.pi, n),
+                                   np.column_stack([rng.uniform(7, 15, n), np.full(n, 2.5), np.full(n, 3.0)]),
+                                   np.zeros(n, int), rng.uniform(0.3, 1, n))
+    tracemalloc.start()
+    try:
+        kept = fusion._under_long_vehicles(crowd)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert len(kept) < n and peak < 64e6, (len(kept), peak)

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from shared.geo import GeoFrame
+from shared.geo import GeoFrame, in_footprints
 
 LAT0, LON0, ALT0 = 42.2294, -83.739, 265.0
 
@@ -144,3 +144,28 @@ def test_reframe_moves_ground_points_between_site_frames(frame: GeoFrame) -> Non
                                [[0.0, 0.0], [-100.0, 40.0]], atol=0.01)
     pts = np.random.default_rng(4).uniform(-300, 300, (50, 2))
     np.testing.assert_allclose(other.reframe(frame.reframe(pts, other), frame), pts, atol=1e-6)
+
+
+def _whole_matrix(xy: np.ndarray, yaw: np.ndarray, size_lwh: np.ndarray, scale: float) -> np.ndarray:
+    """in_footprints as it was, all N x N at once: the reference."""
+    half = 0.5 * scale * size_lwh[:, :2]
+    d = xy[None, :, :] - xy[:, None, :]
+    c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+    return (np.abs(d[..., 0] * c + d[..., 1] * s) <= half[:, :1]) & (np.abs(d[..., 1] * c - d[..., 0] * s)
+                                                                        <= half[:, 1:])
+
+
+def test_in_footprints_rows_are_the_whole_matrixs_rows() -> None:
+    """Rows asked for (in any order, repeated) are the whole matrix's rows, and `either` the rows of it or its
+    transpose, bit for bit: what lets the footprint rules take FOOTPRINT_ROWS rows at a time."""
+    rng = np.random.default_rng(4)
+    n = 300
+    xy = np.round(rng.uniform(-20, 20, (n, 2)), 1)  # on a grid: many points on an outline
+    yaw = rng.choice([0.0, np.pi / 2, np.pi, 0.3], n)
+    size = np.column_stack([rng.choice([4.0, 4.5, 12.0], n), rng.choice([1.8, 2.5], n), np.ones(n)])
+    whole = _whole_matrix(xy, yaw, size, 1.4)
+    np.testing.assert_array_equal(in_footprints(xy, yaw, size, 1.4), whole)
+    rows = np.array([5, 0, 299, 5, 17])
+    np.testing.assert_array_equal(in_footprints(xy, yaw, size, 1.4, rows=rows), whole[rows])
+    np.testing.assert_array_equal(in_footprints(xy, yaw, size, 1.4, rows=rows, either=True), (whole | whole.T)[rows])
+    assert in_footprints(xy, yaw, size, 1.4, rows=np.zeros(0, int)).shape == (0, n)

@@ -64,7 +64,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from shared.geo import in_footprints
+from shared.geo import FOOTPRINT_ROWS, in_footprints
 from shared.messages import not_covariances
 from shared.position_error import POSITION_SIGMA, check_position_sigma, position_information
 
@@ -545,10 +545,14 @@ class Fusion:
         if not long_.size:
             return fused
         drop = np.zeros(len(fused), bool)
-        inside = in_footprints(fused.xy, fused.yaw, fused.size_lwh, self.config.long_footprint)
-        for i in long_[np.lexsort((-fused.score[long_], -length[long_]))]:  # the longest first, then the surest
-            if not drop[i]:
-                drop |= inside[i] & (length < length[i])
+        order = long_[np.lexsort((-fused.score[long_], -length[long_]))]  # the longest first, then the surest
+        for start in range(0, len(order), FOOTPRINT_ROWS):  # a block of footprints at a time: memory grows with N
+            block = order[start:start + FOOTPRINT_ROWS]
+            block = block[~drop[block]]
+            inside = in_footprints(fused.xy, fused.yaw, fused.size_lwh, self.config.long_footprint, rows=block)
+            for i, row in zip(block.tolist(), inside, strict=True):
+                if not drop[i]:
+                    drop |= row & (length < length[i])
         return fused.select(np.flatnonzero(~drop)) if drop.any() else fused
 
     def _fuse(self, objects: ObjectBatch, t_ref_ns: int, vel: np.ndarray, pool: np.ndarray,
