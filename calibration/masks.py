@@ -54,12 +54,13 @@ class LookupMasks:
             raise ValueError("the masks carry no camera pose (meta.camera.pose.position_m): "
                              "build them with roadside calibrate") from None
 
-    def lookup(self, uv: np.ndarray, geodetic: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def lookup(self, uv: np.ndarray, geodetic: bool = True,
+               latlon_rows: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Bilinear lookup at sub-pixel positions.
 
         uv (N, 2) pixels -> (latlon (N, 2) float64 degrees, xy (N, 2) float64 metres, valid (N,)).
         A position is valid when its four neighbouring pixel centres are all valid. `geodetic=False`
-        leaves latlon NaN (metres only).
+        leaves latlon NaN (metres only); `latlon_rows` limits latlon to the first that many positions (the rest NaN).
         """
         if self.lat.size == 0 and self.valid.size:
             raise ValueError("these masks were loaded without latitude/longitude (load_masks(with_latlon=False)): "
@@ -71,7 +72,10 @@ class LookupMasks:
         xy[~ok] = np.nan
         if not geodetic:
             return np.full_like(xy, np.nan), xy, ok
-        latlon = np.column_stack([bilinear(self.lat, cells)[:, 0], bilinear(self.lon, cells)[:, 0]])
+        m = len(xy) if latlon_rows is None else max(0, min(int(latlon_rows), len(xy)))
+        first = tuple(c[:m] for c in cells)
+        latlon = np.full_like(xy, np.nan)
+        latlon[:m] = np.column_stack([bilinear(self.lat, first)[:, 0], bilinear(self.lon, first)[:, 0]])
         latlon[~ok] = np.nan
         return latlon, xy, ok
 
@@ -222,10 +226,39 @@ def angular_coverage_deg(xy: np.ndarray, centre: np.ndarray) -> float:
 
 def excluded(valid: np.ndarray, polygons: list) -> np.ndarray:
     """A copy of a validity mask (H, W) with the pixels inside the polygons (pixel coordinates, pixel centres on
-    integers) set invalid, so that a detection there is dropped like one outside the calibrated area."""
-    import cv2  # only here: the masks load without OpenCV
+    integers) set invalid, so that a detection there is dropped like one outside the calibrated area. A pixel is
+    inside when its centre is (even-odd rule; a centre on the outline counts as inside): exactly the pixels
+    cv2.pointPolygonTest puts inside or on the polygon, not the outline pixels around it that cv2.fillPoly adds."""
+    out = valid.copy()
+    h, w = valid.shape
+    for poly in polygons:
+        p = np.asarray(poly, np.float64).reshape(-1, 2)
+        lo, hi = np.ceil(p.min(axis=0)), np.floor(p.max(axis=0))  # the pixel centres within its bounding box
+        u0, v0 = int(max(lo[0], 0)), int(max(lo[1], 0))
+        u1, v1 = int(min(hi[0], w - 1)), int(min(hi[1], h - 1))
+        if u1 < u0 or v1 < v0:
+            continue
+        out[v0:v1 + 1, u0:u1 + 1] &= ~_inside_polygon(p, np.arange(u0, u1 + 1.0), np.arange(v0, v1 + 1.0))
+    return out
 
-    inside = np.zeros(valid.shape, np.uint8)
-    # fillPoly takes fixed-point vertices: 4 fractional bits keep a quarter of a pixel
-    cv2.fillPoly(inside, [np.round(np.asarray(p, np.float64) * 16).astype(np.int32) for p in polygons], 1, shift=4)
-    return valid & (inside == 0)
+
+def _inside_polygon(p: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(len(v), len(u)) bool: the points (u, v) of a grid inside polygon p ((K, 2) vertices) or on its outline.
+    Even-odd: a point is inside when a ray from it towards +u crosses the outline an odd number of times (an edge
+    counts where it spans the point's v half-open, so a vertex on the ray is crossed once); then every point on an
+    edge is added. One row of crossings per edge and grid row: the cost grows with edges x pixels of the box."""
+    uu = u[None, :]
+    inside = np.zeros((len(v), len(u)), bool)
+    edge = np.zeros_like(inside)
+    for (x1, y1), (x2, y2) in zip(p, np.roll(p, -1, axis=0), strict=True):
+        spans = (y1 > v) != (y2 > v)  # (len(v),) the rows this edge crosses
+        if spans.any():
+            x = x1 + (v[spans] - y1) * (x2 - x1) / (y2 - y1)  # where it crosses them
+            inside[spans] ^= uu < x[:, None]
+        # on the edge: within its extent and collinear with it
+        rows = np.flatnonzero((v >= min(y1, y2)) & (v <= max(y1, y2)))
+        cols = np.flatnonzero((u >= min(x1, x2)) & (u <= max(x1, x2)))
+        if len(rows) and len(cols):
+            box = np.ix_(rows, cols)
+            edge[box] |= (x2 - x1) * (v[rows, None] - y1) == (y2 - y1) * (u[None, cols] - x1)
+    return inside | edge

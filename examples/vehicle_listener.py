@@ -87,7 +87,23 @@ def decode_tracks(payload: bytes) -> dict:
     missing = [f for f in ("site", "seq", "t_capture_ns", "cameras") if f not in msg]
     if missing:
         raise BadMessage(f"fields missing: {', '.join(missing)}")
+    for field in ("seq", "t_capture_ns"):
+        if type(msg[field]) is not int or msg[field] < 0:  # bool is not an int here
+            raise BadMessage(f"field {field!r}: expected an integer >= 0, got {msg[field]!r:.80}")
+    for field in ("site", "tracker"):
+        if not isinstance(msg.get(field, ""), str):
+            raise BadMessage(f"field {field!r}: expected a string, got {msg[field]!r:.80}")
     cols = {field: column(msg, field) for field in TRACK_COLUMNS}
+    for field, (dtype, _) in TRACK_COLUMNS.items():
+        if dtype.startswith("<f") and not all(math.isfinite(v) for row in cols[field] for v in row):
+            raise BadMessage(f"field {field!r}: NaN or infinite values")
+    for field in ("xy_cov", "velocity_cov"):  # the contract's covariances: symmetric, positive definite
+        for i, (a, b, c, d) in enumerate(cols[field]):
+            if not (a > 0 and a * d > b * c and b == c):
+                raise BadMessage(f"field {field!r}: track {i} has {[[a, b], [c, d]]}, not a symmetric positive "
+                                 "definite covariance")
+    if not all(s > 0 for (s,) in cols["yaw_std"]):
+        raise BadMessage("field 'yaw_std': a value not > 0")
     n = len(cols["id"])
     cameras = msg["cameras"]
     if not (isinstance(cameras, list) and all(isinstance(c, list) and all(isinstance(s, str) for s in c)

@@ -141,6 +141,13 @@ def _check_columns(name: str, arrays: dict[str, tuple[np.ndarray, tuple, str]]) 
     return n or 0
 
 
+def _check_rows(name: str, bad: np.ndarray, values: np.ndarray, why: str) -> None:
+    """ValueError naming the first row of `values` that `bad` ((N,) bool) marks, and why it is refused."""
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"{name}[{i}] = {np.asarray(values[i], np.float64).round(6).tolist()} {why}")
+
+
 class Frame(CameraMessage):
     """One camera image. `data`: the encoded bytes (jpeg) or raw pixels (gray8: H*W, bgr8: H*W*3).
     `scale`: this image's pixels per original-sensor pixel (ingest may decode a JPEG at reduced size);
@@ -169,8 +176,10 @@ class Detections(CameraMessage):
     """Detections of one frame, in original-sensor pixels of the camera.
 
     score (N,) float32 in [0, 1]; uv (N, 2) float32 bottom centre px; box (N, 4) float32 x1 y1 x2 y2 px;
-    heading_uv (N, 2) float32 image-space unit vector rear -> front; size_lwh (N, 3) float32 metres;
-    vtype (N,) int8 index into VEHICLE_TYPES. `infer_ms`: the detector's own time for this frame.
+    heading_uv (N, 2) float32 image-space unit vector rear -> front (not (0, 0)); size_lwh (N, 3) float32 metres,
+    each > 0; vtype (N,) int8 index into VEHICLE_TYPES. `infer_ms`: the detector's own time for this frame.
+    A message with a row outside these ranges is refused whole, as one with NaN is (localize would pass the row on,
+    and fuse_track refuse the whole frame for it).
     """
 
     kind: ClassVar[str] = "detections"
@@ -190,6 +199,10 @@ class Detections(CameraMessage):
             "score": (self.score, (), "f"), "uv": (self.uv, (2,), "f"), "box": (self.box, (4,), "f"),
             "heading_uv": (self.heading_uv, (2,), "f"), "size_lwh": (self.size_lwh, (3,), "f"),
             "vtype": (self.vtype, (), "iu")})
+        _check_rows("Detections.score", (self.score < 0) | (self.score > 1), self.score, "is not within [0, 1]")
+        _check_rows("Detections.size_lwh", np.any(self.size_lwh <= 0, axis=1), self.size_lwh, "is not > 0 m")
+        _check_rows("Detections.heading_uv", np.all(self.heading_uv == 0, axis=1), self.heading_uv,
+                    "is not a direction")
         return self
 
     def __len__(self) -> int:

@@ -384,6 +384,29 @@ def test_nan_or_inf_in_a_float_column_is_refused(maker, field: str, bad: float) 
     refused(pack(d), f"{field}.*contains NaN or infinite values")
 
 
+@pytest.mark.parametrize(("field", "rows", "reason"), [
+    ("score", np.array([0.5, 1.5, 0.25], np.float32), r"Detections.score\[1\] = 1.5 is not within \[0, 1\]"),
+    ("score", np.array([0.5, 0.25, -0.125], np.float32), r"Detections.score\[2\] = -0.125 is not within"),
+    ("size_lwh", np.array([[4.5, 1.8, 1.5], [0.0, 1.8, 1.5], [4.5, 1.8, 1.5]], np.float32),
+     r"Detections.size_lwh\[1\] = \[0.0, 1.8, 1.5\] is not > 0 m"),
+    ("size_lwh", np.array([[4.5, 1.8, 1.5], [4.5, 1.8, 1.5], [-4.5, 1.8, 1.5]], np.float32),
+     r"Detections.size_lwh\[2\] = \[-4.5, 1.8, 1.5\] is not > 0 m"),
+    ("heading_uv", np.array([[1.0, 0.0], [0.0, 0.0], [0.0, 1.0]], np.float32),
+     r"Detections.heading_uv\[1\] = \[0.0, 0.0\] is not a direction"),
+])
+def test_detections_off_the_contracts_ranges_are_refused(field: str, rows: np.ndarray, reason: str) -> None:
+    """A score outside [0, 1], a size not > 0 m or a heading (0, 0) in any row refuses the message where it is
+    decoded (localize counts and skips it), as NaN does; before, localize passed such a row on and fuse_track
+    refused the whole frame of objects for it. Scores 0 and 1 and tiny sizes are within the contract."""
+    d = raw(make_detections(3))
+    d[field] = arr(rows)
+    refused(pack(d), reason, Detections)
+    ok = make_detections(3, score=np.array([0.0, 1.0, 0.5], np.float32),
+                         size_lwh=np.array([[1e-3, 1e-3, 1e-3]] * 3, np.float32),
+                         heading_uv=np.array([[0.0, -1.0], [1e-30, 0.0], [0.6, 0.8]], np.float32))
+    assert_same(decode(encode(ok), Detections), ok)
+
+
 @pytest.mark.parametrize(("field", "value"), [("infer_ms", math.nan), ("infer_ms", math.inf)])
 def test_nan_or_inf_in_a_scalar_is_refused(field: str, value: float) -> None:
     d = raw(make_detections(1))

@@ -1,21 +1,30 @@
-"""localize without transport: the footprint overlap rule and the Objects message it shapes."""
+"""localize without transport: the footprint overlap rule and the Objects message it shapes, the site frame
+of its cameras, exclusion polygons and bad input."""
 
 from __future__ import annotations
 
+import os
+import tracemalloc
+
+import cv2
 import numpy as np
 import pytest
+import yaml
 
-from calibration.masks import LookupMasks
-from services.localize.__main__ import objects_message
+from calibration.masks import FORMAT, VERSION, LookupMasks, excluded
+from services.fuse_track.__main__ import camera_positions
+from services.localize.__main__ import load_all_masks, misaddressed, objects_message
 from services.localize.lift import (
     MERGE_MAX_LENGTH_M,
     GroundLookup,
     footprint_groups,
     footprint_rule,
+    lift,
     merge_along,
 )
-from shared.messages import Detections
-from shared.settings import LocalizeSettings
+from shared.geo import FOOTPRINT_ROWS, GeoFrame
+from shared.messages import MAX_ROWS, Detections
+from shared.settings import LocalizeSettings, load_settings
 
 CAR = (4.5, 1.8, 1.5)
 
@@ -66,12 +75,16 @@ def test_settings_default_and_refuse_a_negative_scale():
         LocalizeSettings(footprint_overlap=-1)
 
 
-def _masks(w: int = 64, h: int = 48, m_per_px: float = 0.25) -> GroundLookup:
+def _lookup_masks(w: int = 64, h: int = 48, m_per_px: float = 0.25) -> LookupMasks:
     v, u = np.mgrid[0:h, 0:w].astype(np.float64)
     xy = np.stack([u * m_per_px, -v * m_per_px], axis=2)  # east along u, north up the image
     meta = {"geo_origin": {"lat_deg": 42.0, "lon_deg": -83.0, "alt_m": 0.0}}
-    return GroundLookup(LookupMasks(42 + xy[..., 1] / 111e3, -83 + xy[..., 0] / 82e3, xy.astype(np.float32),
-                                    np.ones((h, w), bool), meta))
+    return LookupMasks(42 + xy[..., 1] / 111e3, -83 + xy[..., 0] / 82e3, xy.astype(np.float32), np.ones((h, w), bool),
+                       meta)
+
+
+def _masks(w: int = 64, h: int = 48, m_per_px: float = 0.25) -> GroundLookup:
+    return GroundLookup(_lookup_masks(w, h, m_per_px))
 
 
 def _cars_heading_east(u: list[float], score: list[float]) -> Detections:
@@ -184,3 +197,201 @@ def test_objects_message_grows_a_vehicle_merged_on_both_sides_without_moving_it(
     kept = objects_message(_cars_heading_east([10, 22, 34], [0.5, 0.8, 0.6]), _masks(), 6.0, 2.0, True)
     np.testing.assert_allclose(kept.xy, [[5.5, -5.0]], atol=1e-6)
     np.testing.assert_allclose(kept.size_lwh, [[10.5, 1.8, 1.5]], atol=1e-6)
+
+
+# --- one site frame for every camera -----------------------------------------------------------------------------
+
+
+def _save_masks(path, geo: GeoFrame, site: GeoFrame, w: int = 64, h: int = 48) -> None:
+    """Masks of one ground patch (east along u, north up the image, 4 px per metre from the point 10 m east and
+    5 m north of `site`'s origin) expressed around `geo`, with the camera's foot at the patch's top-left corner."""
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    xy_site = np.stack([10 + u / 4, 5 - v / 4], axis=2).reshape(-1, 2)
+    xy = site.reframe(xy_site, geo).reshape(h, w, 2)
+    ll = site.to_geodetic(xy_site)
+    meta = {"format": FORMAT, "version": VERSION, "geo_origin": geo.to_dict(),
+            "camera": {"pose": {"position_m": [*site.reframe(np.array([[10.0, 5.0]]), geo)[0].tolist(), 8.0]}}}
+    LookupMasks(ll[:, 0].reshape(h, w), ll[:, 1].reshape(h, w), xy.astype(np.float32), np.ones((h, w), bool),
+                meta).save(path)
+
+
+def test_without_an_origin_every_camera_is_lifted_in_the_first_masks_frame_as_fuse_track_takes_it(tmp_path,
+                                                                                                   monkeypatch):
+    """Two cameras seeing the same ground, their masks made around origins 112 m apart and a site file without
+    `origin`: localize lifts both in the first masks file's frame, the one fuse_track takes for the site, so the same
+    ground point has the same metres from either camera (before, B's were in its own masks' frame, 112 m off)."""
+    for k in [k for k in os.environ if k.startswith("ROADSIDE_")]:
+        monkeypatch.delenv(k)
+    a = GeoFrame(42.2294, -83.739, 265.0)
+    ll = a.to_geodetic(np.array([[50.0, 100.0]]))[0]
+    b = GeoFrame(float(ll[0]), float(ll[1]), 262.0)
+    (tmp_path / "masks").mkdir()
+    _save_masks(tmp_path / "masks" / "A.npz", a, a)
+    _save_masks(tmp_path / "masks" / "B.npz", b, a)
+    (tmp_path / "site.yaml").write_text(yaml.safe_dump({"site": "s2", "cameras": [
+        {"name": n, "kind": "fisheye", "width": 64, "height": 48, "masks": f"masks/{n}.npz"} for n in ("A", "B")]}))
+    settings = load_settings(tmp_path / "site.yaml")
+    assert settings.origin is None
+    lookups = load_all_masks(settings)
+    positions, site_geo = camera_positions(settings)
+    assert site_geo == a and lookups["A"].site_geo == a and lookups["B"].site_geo == a
+    uv = np.array([[0.0, 0.0], [20.0, 12.0], [63.0, 47.0]])
+    latlon_a, xy_a, _ = lookups["A"].lookup(uv)
+    latlon_b, xy_b, _ = lookups["B"].lookup(uv)
+    np.testing.assert_allclose(xy_a, [[10.0, 5.0], [15.0, 2.0], [25.75, -6.75]], atol=1e-4)
+    np.testing.assert_allclose(xy_b, xy_a, atol=1e-4)  # float32 masks: a tenth of a millimetre
+    np.testing.assert_allclose(latlon_b, latlon_a, atol=1e-9)
+    np.testing.assert_allclose([positions["A"], positions["B"]], [[10.0, 5.0], [10.0, 5.0]], atol=1e-6)
+    # the site's origin, where the file gives one, is every camera's frame
+    (tmp_path / "site.yaml").write_text(yaml.safe_dump({**yaml.safe_load((tmp_path / "site.yaml").read_text()),
+                                                        "origin": b.to_dict()}))
+    lookups = load_all_masks(load_settings(tmp_path / "site.yaml"))
+    np.testing.assert_allclose(lookups["A"].lookup(uv)[1], lookups["B"].lookup(uv)[1], atol=1e-4)
+    np.testing.assert_allclose(lookups["A"].lookup(uv)[1], a.reframe(xy_a, b), atol=1e-4)
+
+
+# --- bad input ------------------------------------------------------------------------------------------------------
+
+
+def test_detections_of_another_site_or_of_another_camera_than_their_keys_are_misaddressed():
+    det = _cars_heading_east([10], [0.9])
+    assert misaddressed(det, "s", "C1") is None
+    assert misaddressed(det, "other", "C1") == "detections of site 's' on the bus of site 'other'"
+    assert misaddressed(det, "s", "C2") == "detections of camera 'C1' on the key of camera 'C2'"
+
+
+# --- many objects ---------------------------------------------------------------------------------------------------
+
+
+def _dense_footprint_groups(xy, yaw, size_lwh, score, scale):
+    """footprint_groups as it was, on the whole N x N matrix (geo.in_footprints as it was): the reference."""
+    xy = np.asarray(xy, np.float64).reshape(-1, 2)
+    n = len(xy)
+    score = np.asarray(score, np.float64).reshape(n)
+    order = np.argsort(-score, kind="stable")
+    if n < 2 or scale <= 0:
+        return {int(a): np.zeros(0, np.int64) for a in order}
+    yaw = np.asarray(yaw, np.float64).reshape(n)
+    size = np.asarray(size_lwh, np.float64).reshape(n, 3)
+    ok = np.isfinite(xy).all(axis=1) & np.isfinite(yaw) & np.isfinite(size[:, :2]).all(axis=1)
+    half = 0.5 * scale * size[:, :2]
+    d = xy[None, :, :] - xy[:, None, :]
+    c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+    inside = (np.abs(d[..., 0] * c + d[..., 1] * s) <= half[:, :1]) & (np.abs(d[..., 1] * c - d[..., 0] * s)
+                                                                          <= half[:, 1:])
+    inside = (inside | inside.T) & ok[:, None] & ok[None, :]
+    np.fill_diagonal(inside, False)
+    drop = np.zeros(n, bool)
+    groups = {}
+    for a in order:
+        if not drop[a]:
+            groups[int(a)] = np.flatnonzero(inside[a] & ~drop)
+            drop |= inside[a]
+    return groups
+
+
+def test_the_footprint_rule_in_blocks_is_the_whole_matrix_rule():
+    """Random frames of up to three blocks of FOOTPRINT_ROWS objects, crowded (most overlap something), with ties in
+    score and non-finite rows: the same groups, in the same order, as the N x N rule."""
+    rng = np.random.default_rng(7)
+    for trial in range(40):
+        n = int(rng.integers(0, 3 * FOOTPRINT_ROWS + 5))
+        xy = rng.uniform(-25, 25, (n, 2))
+        yaw = rng.uniform(-np.pi, np.pi, n)
+        size = np.column_stack([rng.uniform(2, 14, n), rng.uniform(1.5, 2.6, n), rng.uniform(1, 3, n)])
+        score = np.round(rng.uniform(0, 1, n), 1)
+        if n > 2:
+            xy[rng.integers(0, n), 0], yaw[rng.integers(0, n)], size[rng.integers(0, n), 1] = np.nan, np.nan, np.inf
+        want = _dense_footprint_groups(xy, yaw, size, score, 1.4)
+        got = footprint_groups(xy, yaw, size, score, 1.4)
+        assert list(got) == list(want), trial
+        assert all(got[a].tolist() == want[a].tolist() for a in want), trial
+
+
+def test_a_frame_of_max_rows_detections_is_localized_in_bounded_memory():
+    """MAX_ROWS detections, every one on the same few metres (each overlaps all the others): the footprint rule takes
+    blocks of rows, not an N x N matrix (that took ~650 MB and 2 s; localize has 512 MB)."""
+    f4, n = np.float32, MAX_ROWS
+    rng = np.random.default_rng(3)
+    det = Detections(site="s", camera="C1", seq=1, t_capture_ns=5, width=64, height=48, infer_ms=1.0,
+                     score=rng.uniform(0.3, 1, n).astype(f4), uv=rng.uniform(20, 30, (n, 2)).astype(f4),
+                     box=np.zeros((n, 4), f4), heading_uv=np.tile(np.array([1, 0], f4), (n, 1)),
+                     size_lwh=np.tile(np.array(CAR, f4), (n, 1)), vtype=np.zeros(n, np.int8))
+    tracemalloc.start()
+    try:
+        out = objects_message(det, _masks(), 6.0, 1.4, False)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert 1 <= len(out) < 10 and peak < 64e6, (len(out), peak)
+
+
+# --- merging --------------------------------------------------------------------------------------------------------
+
+
+def test_merging_rounds_take_in_only_what_lines_up_and_keep_the_rest():
+    """After the first round a grown footprint suppresses only the peaks the grown object takes in: a car crossing
+    1.5 m in front of a 12 m bus read as two 6 m peaks stays (before, the bus's 10 m span held its point and it was
+    dropped), and so does a 12 m vehicle lined up behind the span that would make it longer than MERGE_MAX_LENGTH_M."""
+    bus = [[6.0, 2.5, 3.2], [6.0, 2.5, 3.2]]
+    kept, xy, size = footprint_rule(np.array([[0.0, 0], [4, 0], [8.5, 0]]), np.array([0, 0, np.pi / 2]),
+                                    np.array([*bus, CAR]), np.array([0.9, 0.8, 0.7]), 1.4, True)
+    assert kept.tolist() == [0, 2]
+    np.testing.assert_allclose(xy[kept], [[2.0, 0.0], [8.5, 0.0]])
+    np.testing.assert_allclose(size[kept, 0], [10.0, CAR[0]])
+    # lined up, inside the 10 m span's footprint (7.4 m from its middle, reach 7.5 m), but 17.5 + 1 m together
+    kept, xy, size = footprint_rule(np.array([[0.0, 0], [4, 0], [9.4, 0]]), np.zeros(3),
+                                    np.array([*bus, [12.0, 2.5, 3.2]]), np.array([0.9, 0.8, 0.7]), 1.5, True)
+    assert kept.tolist() == [0, 2]
+    np.testing.assert_allclose(size[kept, 0], [10.0, 12.0])
+    np.testing.assert_allclose(xy[kept], [[2.0, 0.0], [9.4, 0.0]])
+
+
+# --- exclusion polygons ---------------------------------------------------------------------------------------------
+
+
+def test_an_exclusion_polygon_takes_exactly_the_pixels_whose_centres_it_holds():
+    """Pixel centres inside or on the outline, as cv2.pointPolygonTest says, and no others (cv2.fillPoly also took
+    outline pixels whose centres lie outside, up to a pixel beyond the polygon)."""
+    valid = np.ones((60, 70), bool)
+    square = excluded(valid, [[(10.5, 10.5), (19.5, 10.5), (19.5, 19.5), (10.5, 19.5)]])
+    vv, uu = np.nonzero(~square)
+    assert (uu.min(), uu.max(), vv.min(), vv.max(), len(uu)) == (11, 19, 11, 19, 81)
+    on_outline = excluded(valid, [[(2, 3), (6, 3), (6, 5), (2, 5)]])  # integer corners: the outline's pixels count
+    assert (~on_outline).sum() == 15 and not on_outline[3:6, 2:7].any()
+    rng = np.random.default_rng(5)
+    vv, uu = np.mgrid[0:60, 0:70]
+    for _ in range(12):
+        k = int(rng.integers(3, 9))
+        poly = np.round(rng.uniform(-5, 75, (k, 2)) * 8) / 8  # eighths: float32 holds them, as pointPolygonTest does
+        out = excluded(valid, [poly])
+        test = np.array([cv2.pointPolygonTest(poly.astype(np.float32), (float(u), float(v)), False)
+                         for u, v in zip(uu.ravel(), vv.ravel(), strict=True)]).reshape(60, 70)
+        np.testing.assert_array_equal(~out, test >= 0)
+    # several polygons take their union; pixels already invalid stay so; nothing in the image: nothing taken
+    two = excluded(valid, [[(0, 0), (3, 0), (3, 3), (0, 3)], [(2, 2), (5, 2), (5, 5), (2, 5)]])
+    assert (~two).sum() == 16 + 16 - 4
+    assert excluded(np.zeros((4, 4), bool), [[(0, 0), (2, 0), (2, 2)]]).sum() == 0
+    assert excluded(valid, [[(-9, -9), (-2, -9), (-2, -2)]]).all()
+
+
+# --- latitude/longitude of the bottom centres only ------------------------------------------------------------------
+
+
+def test_lift_converts_only_the_bottom_centres_to_latitude_longitude(monkeypatch):
+    """The ends of the heading step need metres only: the ellipsoid conversion takes N points, not 3N, and the
+    latitudes and longitudes are those of the lookup of the bottom centres alone."""
+    masks = _masks()
+    uv = np.array([[10.0, 20.0], [30.5, 12.25], [50.0, 40.0], [200.0, 5.0]])  # the last outside the image
+    heading = np.array([[1.0, 0.0], [0.0, 1.0], [0.6, 0.8], [1.0, 0.0]])
+    want, _, _ = masks.lookup(uv)
+    converted = []
+    to_geodetic = GeoFrame.to_geodetic
+    monkeypatch.setattr(GeoFrame, "to_geodetic", lambda self, p: converted.append(len(p)) or to_geodetic(self, p))
+    out = lift(masks, uv, heading)
+    assert converted == [3]
+    np.testing.assert_array_equal(out.latlon, want)
+    for lookup in (masks, _lookup_masks()):  # masks with latitude/longitude arrays (eval.real lifts through them)
+        latlon, xy, _ = lookup.lookup(np.concatenate([uv, uv + 1]), latlon_rows=4)
+        assert np.isnan(latlon[4:]).all() and np.isfinite(xy[4:7]).all()
+        np.testing.assert_array_equal(latlon[:4], lookup.lookup(uv)[0])

@@ -828,6 +828,15 @@ def test_localize_drops_bad_detections_and_keeps_running(site, site_name, port_b
         (camera_key(site_name, "SW", "detections"), encode(good_detections(site_name, 0, camera="SW")),
          "detections from camera 'SW', not at this site"),
         (key, tampered(det, site="other/site"), "site name must be"),
+        # off the contract: refused where decoded, not passed on to make fuse_track refuse the whole frame
+        (key, tampered(det, score=arr(np.array([0.9, 1.5], np.float32))), r"Detections.score\[1\] = 1.5 is not within"),
+        (key, tampered(det, size_lwh=arr(np.array([[4.5, 1.8, 1.5], [0.0, 1.8, 1.5]], np.float32))),
+         r"Detections.size_lwh\[1\] = \[0.0, 1.8, 1.5\] is not > 0 m"),
+        # misaddressed: another site's detections on this site's key, another camera's on this camera's key
+        (key, encode(good_detections("other_site", 0)), f"detections of site 'other_site' on the bus of site "
+                                                        f"'{site_name}'"),
+        (key, encode(good_detections(site_name, 0, camera="SW")), f"detections of camera 'SW' on the key of camera "
+                                                                  f"'{CAMERA}'"),
     ]
     send_bad_inputs(localize, peer, cases)
 
@@ -869,6 +878,8 @@ def test_fuse_track_drops_bad_objects_and_keeps_running(site, site_name, port_ba
         (key, tampered(obj, size_lwh=arr(np.array([[4.0, 1e-300, 1.5]]))), r"size .* m outside"),
         (camera_key(site_name, "SW", "objects"), encode(good_objects(site_name, 0, camera="SW")),
          "objects from camera 'SW', not at this site"),
+        (key, encode(good_objects("other_site", next(seq))), f"objects of site 'other_site' on the bus of site "
+                                                             f"'{site_name}'"),
         (key, tampered(obj, t_capture_ns=obj.t_capture_ns + 3600 * 10**9), "dropped, ahead: captured 3600"),
         (key, encode(good_objects(site_name, first)), "dropped, late: its tick has closed"),
     ]
@@ -1165,14 +1176,16 @@ def test_viz_live_records_the_live_tracks_until_count_or_sigterm(site, site_name
         proc = subprocess.Popen([*base, "--out", str(tmp_path / "live.rrd")], env=service_env(),
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
-            assert wait_until(lambda: (tmp_path / "live.rrd").is_file()
-                              and (tmp_path / "live.rrd").stat().st_size > 1000, 60), "no tracks reached the file"
+            partial = tmp_path / "live.rrd.partial"  # the stream's file until it ends, then live.rrd
+            assert wait_until(lambda: partial.is_file() and partial.stat().st_size > 1000, 60), \
+                "no tracks reached the file"
             proc.send_signal(signal.SIGTERM)
             out, err = proc.communicate(timeout=60)
         finally:
             if proc.poll() is None:
                 proc.kill()
         assert proc.returncode == 0, err[-2000:]
+        assert (tmp_path / "live.rrd").stat().st_size > 1000 and not partial.exists()
         summary = json.loads(out)
         assert summary["messages"] >= 1 and summary["tracks"] >= 1 and summary["bad_messages"] == 0
     finally:

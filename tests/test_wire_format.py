@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import math
 import re
+import struct
 import subprocess
 import sys
 import threading
@@ -188,6 +190,22 @@ def tampered(field: str, value) -> bytes:
     (tampered("id", [7, 12]), "field 'id': expected an array map"),
     (tampered("cameras", [["NE"]]), "fields of different lengths"),
     (tampered("cameras", "NE"), "field 'cameras'"),
+    # a message off the contract: reported and skipped, not a ValueError or TypeError that ends the listener
+    (tampered("xy_cov", {"dtype": "<f4", "shape": [2, 2, 2], "data": struct.pack("<8f", -1, 0, 0, -1, 1, 0, 0, 1)}),
+     "field 'xy_cov': track 0 has [[-1.0, 0.0], [0.0, -1.0]], not a symmetric positive definite covariance"),
+    (tampered("xy_cov", {"dtype": "<f4", "shape": [2, 2, 2], "data": struct.pack("<8f", 1, 0, 0, 1, 1, 2, -2, 1)}),
+     "field 'xy_cov': track 1 has [[1.0, 2.0], [-2.0, 1.0]], not a symmetric"),
+    (tampered("velocity_cov", {"dtype": "<f4", "shape": [2, 2, 2], "data": struct.pack("<8f", 1, 0, 0, 1, 1, 0, 0, 0)}),
+     "field 'velocity_cov': track 1 has [[1.0, 0.0], [0.0, 0.0]], not a symmetric"),
+    (tampered("xy", {"dtype": "<f8", "shape": [2, 2], "data": struct.pack("<4d", 1, 2, math.nan, 4)}),
+     "field 'xy': NaN or infinite values"),
+    (tampered("yaw_std", {"dtype": "<f4", "shape": [2], "data": struct.pack("<2f", 0.1, 0.0)}),
+     "field 'yaw_std': a value not > 0"),
+    (tampered("seq", "42"), "field 'seq': expected an integer >= 0, got '42'"),
+    (tampered("seq", True), "field 'seq': expected an integer >= 0, got True"),
+    (tampered("t_capture_ns", -5), "field 't_capture_ns': expected an integer >= 0, got -5"),
+    (tampered("site", 7), "field 'site': expected a string, got 7"),
+    (tampered("tracker", ["t"]), "field 'tracker': expected a string"),
 ])
 def test_the_listener_refuses_a_bad_payload_with_the_reason(payload: bytes, reason: str) -> None:
     with pytest.raises(listener.BadMessage, match=re.escape(reason)):

@@ -2,14 +2,14 @@
 
 `python -m services.fuse_track --site SITE`
 
-Subscribes to `roadside/<site>/cam/*/objects`; groups them into event-time ticks (capture time,
-bounded watermark: services/fuse_track/ticks.py); fuses by camera region with a distance-gated merge
-(fusion.py); tracks with SORT on [x, y, s, r, vx, vy, vs, vr] (tracker.py); publishes Tracks on
-`roadside/<site>/tracks`, answers `roadside/<site>/tracks/latest` with the newest Tracks (a vehicle that
-joins late gets the current tracks at once), and appends every Tracks message to the recording file
-(`fuse_track.record`, JSON lines, flushed per line so a kill loses nothing written before it; a write that fails
-is logged and counted, and tracking goes on; rotated by size: recorder.py). When every camera's clock steps back,
-the tracker starts again under a new id (ticks.py).
+Subscribes to `roadside/<site>/cam/*/objects` (objects of another site, or of a camera not at this site, are bad
+input: counted and skipped); groups them into event-time ticks (capture time, bounded watermark:
+services/fuse_track/ticks.py); fuses by camera region with a distance-gated merge (fusion.py); tracks with SORT
+on [x, y, s, r, vx, vy, vs, vr] (tracker.py); publishes Tracks on `roadside/<site>/tracks`, answers
+`roadside/<site>/tracks/latest` with the newest Tracks (a vehicle that joins late gets the current tracks at
+once), and appends every Tracks message to the recording file (`fuse_track.record`, JSON lines, flushed per line
+so a kill loses nothing written before it; a write that fails is logged and counted, and tracking goes on; rotated
+by size: recorder.py). When every camera's clock steps back, the tracker starts again under a new id (ticks.py).
 """
 
 from __future__ import annotations
@@ -226,6 +226,9 @@ def main(settings: Settings, stopper: Stopper) -> int:
             if received:
                 status.count("objects_in", len(received))
             for o in received:
+                if o.site != settings.site:
+                    bad(f"objects of site {o.site!r} on the bus of site {settings.site!r}", o.camera)
+                    continue
                 if o.camera not in positions:
                     bad(f"objects from camera {o.camera!r}, not at this site", o.camera)
                     continue
