@@ -151,7 +151,7 @@ class CameraSettings(Strict):
         return v
 
 
-MAX_EXCLUDE_PX = 1_000_000  # exclusion polygons are filled in 28.4 fixed point (calibration/masks.py `excluded`)
+MAX_EXCLUDE_PX = 1_000_000  # polygon vertices further off the image are a typo (calibration/masks.py `excluded`)
 
 
 class IngestSettings(Strict):
