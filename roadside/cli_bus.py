@@ -150,7 +150,9 @@ def _run_tracks(args) -> int:
                 tracks = tracks.predicted(tracks.t_capture_ns + round(args.ahead_ms * 1e6))
             rows = tracks.rows()
             if args.json:
-                print(dumps({"t_ns": tracks.t_capture_ns, "seq": tracks.seq, "tracks": rows}), flush=True)
+                # a tracks-file line (docs/wire-format.md): `roadside viz`, `play` and `counts` read what it prints
+                print(dumps({"site": tracks.site, "seq": tracks.seq, "t_ns": tracks.t_capture_ns,
+                             "tracker": tracks.tracker, "tracks": rows}), flush=True)
             else:
                 print(f"t={tracks.t_capture_ns / 1e9:.2f} s  {len(rows)} tracks", flush=True)
                 for r, err in zip(rows, err95_m(tracks.xy_cov).tolist(), strict=True):

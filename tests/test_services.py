@@ -363,7 +363,10 @@ def test_a_cabinet_with_mutual_tls_lets_only_its_enrolled_vehicles_in(tmp_path, 
         from roadside.cli import main
         assert main(["tracks", "--site", "s", "--connect", endpoint, "--ca", str(ca), "--cert", str(vehicle[0]),
                      "--key", str(vehicle[1]), "--count", "1", "--json", "--wait", "10"]) == 0
-        assert json.loads(capsys.readouterr().out)["seq"] == 7
+        line = json.loads(capsys.readouterr().out)
+        from shared.tracks_file import parse_tracks_message  # a tracks-file line: viz, play and counts read it
+
+        assert line["seq"] == 7 and parse_tracks_message(line).site == "s"
         done = subprocess.run([sys.executable, str(REPO / "examples" / "vehicle_listener.py"), "--site", "s",
                                "--connect", endpoint, "--ca", str(ca), "--cert", str(vehicle[0]), "--key",
                                str(vehicle[1]), "--count", "1", "--timeout", "5"],
