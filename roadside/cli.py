@@ -638,7 +638,7 @@ def _add_viz(sub) -> None:
     p.add_argument("--frames", help="also log the camera frames of this source (recording, image folders; needs "
                    "--site for the camera names) with the detections of --model")
     p.add_argument("--model", type=Path, help="ONNX detector for the logged frames' detections")
-    p.add_argument("--frames-every", type=int, default=5, help="log every n-th frame of each camera")
+    p.add_argument("--frames-every", type=int, help="log every n-th frame of each camera (default 5)")
 
 
 def _viz_frames(args):
@@ -656,7 +656,9 @@ def _viz_frames(args):
     settings = load_settings(site_path(args.site))
     cams = [c.name for c in settings.cameras]
     det = OnnxDetector(args.model, threads=2, score_thr=settings.detect.score_thr)
-    return _viz_frame_rows(args, settings, det, open_source(str(args.frames), cams, {}, tz=settings.ingest.tzinfo()))
+    # the frames' capture times as ingest gives them: from the names in the site's time zone, or its frame rate
+    source = open_source(str(args.frames), cams, {}, settings.ingest.fps, settings.ingest.tzinfo())
+    return _viz_frame_rows(args, settings, det, source)
 
 
 def _viz_frame_rows(args, settings, det, source):
@@ -702,6 +704,9 @@ def _run_viz(args) -> int:
 
         basemap = site_basemap(args.recording)
         origin = origin or Recording(args.recording).meta["site"]["origin"]
+    if not args.frames and (args.model or args.frames_every is not None):
+        raise ValueError("--model and --frames-every go with --frames (the camera frames to log)")
+    args.frames_every = 5 if args.frames_every is None else args.frames_every
     frames = _viz_frames(args) if args.frames else None
     import signal
 

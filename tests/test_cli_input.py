@@ -57,6 +57,14 @@ def test_bus_jobs_say_when_the_bus_cannot_be_reached_and_live_viz_keeps_the_file
     assert out.read_bytes() == b"an earlier recording"
 
 
+def test_viz_refuses_frame_flags_without_frames(tmp_path, capsys):
+    tracks = tmp_path / "t.jsonl"
+    tracks.write_text("")
+    for flags in (["--model", "m.onnx"], ["--frames-every", "2"]):
+        assert main(["viz", str(tracks), "--out", str(tmp_path / "o.rrd"), *flags]) == 2
+        assert "go with --frames" in capsys.readouterr().err
+
+
 def test_sim_checks_its_contact_sheet_name_before_the_clip(tmp_path, capsys):
     out = tmp_path / "clip"
     argv = ["sim", "--site", "intersection", "--seconds", "0.1", "--out", str(out)]
