@@ -150,9 +150,11 @@ def decode(heat: np.ndarray, size: np.ndarray, heading: np.ndarray, vtype_prob: 
         flip = (direction * hd).sum(axis=1) < 0
         direction[flip] *= -1
         hd = direction
-    hd /= np.maximum(np.linalg.norm(hd, axis=1, keepdims=True), HEADING_EPS)
+    norm = np.linalg.norm(hd, axis=1, keepdims=True)
+    hd /= np.maximum(norm, HEADING_EPS)
     prob = vtype_prob[:, rows, cols].astype(np.float64).T
-    keep = _kept_after_votes(uv, box_wh, moved) if moved.any() else slice(None)
+    keep = _kept_after_votes(uv, box_wh, moved) if moved.any() else np.arange(len(uv))
+    keep = keep[norm[keep, 0] > HEADING_EPS]  # a peak with no heading at all gives no ground yaw: left out
     return Detections(score=score[keep], uv=uv[keep],
                       box=np.concatenate([box_c - box_wh / 2, box_c + box_wh / 2], axis=1)[keep],
                       heading_uv=hd[keep], size_lwh=size[0:3, rows, cols].astype(np.float64).T[keep],

@@ -217,6 +217,7 @@ def hand_maps(h=8, w=10):
     heading = np.zeros((2, h, w), np.float32)
     heading[:, 2, 3] = [0.3, 0.4]
     heading[:, 5, 7] = [-1.0, 0.0]
+    heading[:, 6, 1] = [0.0, 2.0]
     prob = np.full((5, h, w), 0.2, np.float32)
     prob[:, 2, 3] = [0.1, 0.1, 0.6, 0.1, 0.1]
     return heat, size, heading, prob, offset
@@ -241,6 +242,8 @@ def test_decode_threshold_and_top_k():
     top = decode(*maps, stride=4, score_thr=0.1, top_k=2)
     np.testing.assert_allclose(top.score, [0.9, 0.7], rtol=1e-6)
     assert len(decode(*maps, stride=4, top_k=0)) == 0
+    maps[2][:, 6, 1] = 0.0  # a peak with no heading at all: no ground yaw, left out (not a message refused whole)
+    assert decode(*maps, stride=4, score_thr=0.1).score.tolist() == pytest.approx([0.9, 0.7])
 
 
 def test_peak_mask_is_the_3x3_maximum_everywhere():
