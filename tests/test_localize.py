@@ -253,6 +253,19 @@ def test_without_an_origin_every_camera_is_lifted_in_the_first_masks_frame_as_fu
 # --- bad input ------------------------------------------------------------------------------------------------------
 
 
+def test_every_cameras_queue_is_localized_in_capture_order_across_the_cameras():
+    """After a stall each camera's queue holds several frames: taken camera by camera, NE's backlog would be
+    published before NW's, and fuse_track would close the ticks NW still needs."""
+    from services.localize.__main__ import in_capture_order
+
+    det = _cars_heading_east([10], [0.9])
+    queues = {c: [det.model_copy(update={"camera": c, "t_capture_ns": t}) for t in (100, 200, 300)]
+              for c in ("NE", "NW")}
+    merged = in_capture_order([(c, d) for c, q in queues.items() for d in q])
+    assert [(c, d.t_capture_ns) for c, d in merged] == [("NE", 100), ("NW", 100), ("NE", 200), ("NW", 200),
+                                                         ("NE", 300), ("NW", 300)]
+
+
 def test_detections_of_another_site_or_of_another_camera_than_their_keys_are_misaddressed():
     det = _cars_heading_east([10], [0.9])
     assert misaddressed(det, "s", "C1") is None

@@ -62,6 +62,13 @@ def load_all_masks(settings: Settings) -> dict[str, GroundLookup]:
     return out
 
 
+def in_capture_order(msgs: list[tuple[str, Detections]]) -> list[tuple[str, Detections]]:
+    """(camera, Detections) of every camera's queue, in capture-time order across the cameras (each queue is in
+    it already): after a stall, one camera's backlog published before the others' would let fuse_track close the
+    ticks the others still need, and drop them as late."""
+    return sorted(msgs, key=lambda m: m[1].t_capture_ns)
+
+
 def misaddressed(det: Detections, site: str, camera: str) -> str | None:
     """Why Detections that came on camera `camera`'s key of site `site` are not that camera's (bad input), None when
     they are."""
@@ -128,7 +135,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
         status = StatusReporter(session, settings.site, "localize", bad, settings.bus.status_period_s)
         done = 0
         while not stopper.is_set():
-            msgs = [(c, det) for c, r in receivers.items() for det in r.poll()]
+            msgs = in_capture_order([(c, det) for c, r in receivers.items() for det in r.poll()])
             stray = strays.take()
             if not msgs and not stray:
                 wake.wait(IDLE_WAIT_S)
