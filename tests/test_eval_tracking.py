@@ -396,6 +396,10 @@ def test_a_tracker_slower_than_the_cameras_is_silent_only_where_it_misses_its_ow
     stalled = slow[:10]  # then 2 s without a line: 10 of its ticks missed
     r = evaluate_tracks(gt, stalled)
     assert r["silent_ticks_filled"] == 10 and r["num_frames"] == 20 and r["recall"] == pytest.approx(0.5)
+    # a 100 ms tracker that misses two ticks in three after its first six: not a 300 ms one, charged for them
+    missing = [*make_rows()[:6], *make_rows()[6::3]]
+    r = evaluate_tracks(gt, missing)
+    assert r["num_frames"] == N_FRAMES and r["silent_ticks_filled"] == N_FRAMES - len(missing)
 
 
 @pytest.mark.parametrize(
