@@ -35,6 +35,9 @@ def _add_autolabel(sub) -> None:
     p.add_argument("--tracks", type=Path, help="the pipeline's tracks of the same footage (roadside up --record): "
                    "vehicles they followed while moving become labels where the background model found none "
                    "(training/track_labels.py)")
+    p.add_argument("--timezone", default="UTC",
+                   help="the time zone the frames' names are in, the site's ingest.timezone (IANA name, default "
+                        "UTC): with --tracks, their capture times must meet the tracks'")
 
 
 def _add_static(sub) -> None:
@@ -122,9 +125,11 @@ def _teacher(model: Path | None, score_thr: float):
 
 
 def _run_autolabel(args) -> int:
+    from shared.settings import IngestSettings
     from training.autolabel import AutolabelConfig, autolabel_camera, score_labels
 
     until = _time_of_day(args.until)
+    tz = IngestSettings(timezone=args.timezone).tzinfo()  # an unknown zone named before any work
     check_name("camera", args.camera)  # it names files: no '/'
     cfg = AutolabelConfig(roi_m=args.roi_m, teacher_thr=args.teacher_thr, ignore_small=args.ignore_small)
     if args.truth:  # checked before any output is written: the camera, and truth at every frame's time
@@ -138,7 +143,7 @@ def _run_autolabel(args) -> int:
 
         tracks = TrackTeacher(args.tracks)
     report = autolabel_camera(args.frames, args.masks, args.out, args.camera, until, cfg,
-                              log=lambda m: print(m, file=sys.stderr), teacher=teacher, tracks=tracks)
+                              log=lambda m: print(m, file=sys.stderr), teacher=teacher, tracks=tracks, tz=tz)
     if args.truth:
         report["score"] = score_labels(args.out / "labels.json", args.truth)
         (args.out / "report.json").write_text(dumps(report, indent=1))

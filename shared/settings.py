@@ -173,7 +173,8 @@ class IngestSettings(Strict):
     # a recorder that must see the first frame (the demo's collector declares one once it is linked to all four)
     wait_extra_peers: int = Field(0, ge=0)
     # the time zone of date-time file names (`2023-12-19 11-00-00-034395.jpg`): cameras and recorders name files in
-    # their local time, and a capture time is UTC on the wire (an IANA name, e.g. America/Detroit)
+    # their local time, and a capture time is UTC on the wire (an IANA name, e.g. America/Detroit). A name in the hour
+    # that the autumn clock change repeats is ambiguous and taken in its first pass: name such files in UTC
     timezone: str = "UTC"
 
     @field_validator("timezone")

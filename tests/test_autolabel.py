@@ -206,7 +206,8 @@ def test_track_labels_are_written_in_cocos_pixel_convention(scene, tmp_path, mon
     label = {"uv": np.array([100.0, 50.0]), "box": np.array([90.0, 40.0, 110.0, 60.0]),
              "heading_uv": np.array([1.0, 0.0])}
     monkeypatch.setattr(autolabel, "label_from_track", lambda _v, _view: label)
-    tracks = SimpleNamespace(at=lambda _t: [SimpleNamespace(xy=np.array([15.0, -15.0]), yaw=0.0, key="k")])
+    tracks = SimpleNamespace(at=lambda _t: [SimpleNamespace(xy=np.array([15.0, -15.0]), yaw=0.0, key="k")],
+                             times=[0, 2**62])  # a teacher whose tracks span every frame
     report = autolabel_camera(frames, masks, tmp_path / "out", "CAM", until=time(11, 0, 2), cfg=CFG, log=None,
                               tracks=tracks)
     assert report["from_tracks"] == 10

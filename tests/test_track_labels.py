@@ -84,6 +84,21 @@ def test_a_hidden_moving_vehicle_becomes_a_label_and_nothing_else_does(scene, tm
         assert [x, y, x + w, y + h] == pytest.approx([*pts.min(axis=0), *pts.max(axis=0)], abs=0.6), a["bbox"]
 
 
+def test_frames_named_in_local_time_meet_the_tracks_only_in_their_time_zone(scene, tmp_path):
+    """The pipeline's tracks carry UTC capture times; frames named in Ann Arbor's clock are 5 h earlier read as UTC:
+    named in the time zone the site's ingest used, the labels come; read as UTC, refused, not a silent nothing."""
+    from zoneinfo import ZoneInfo
+
+    frames, masks, times = scene
+    later = TrackTeacher(_tracks(tmp_path / "tracks.jsonl", [t + 5 * 3600 * 10**9 for t in times]))
+    report = autolabel_camera(frames, masks, tmp_path / "out", "CAM", until=time(11, 0, 2), cfg=CFG, log=None,
+                              tracks=later, tz=ZoneInfo("America/Detroit"))
+    assert report["from_tracks"] == 10
+    with pytest.raises(ValueError, match="do not span the frames' capture times"):
+        autolabel_camera(frames, masks, tmp_path / "out2", "CAM", until=time(11, 0, 2), cfg=CFG, log=None,
+                         tracks=later)
+
+
 def test_a_bad_tracks_file_is_named(tmp_path):
     with pytest.raises(ValueError, match="tracks file missing"):
         TrackTeacher(tmp_path / "none.jsonl")

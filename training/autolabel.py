@@ -44,7 +44,7 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import asdict, dataclass
-from datetime import UTC, datetime, time
+from datetime import UTC, datetime, time, tzinfo
 from pathlib import Path
 
 import cv2
@@ -110,9 +110,10 @@ class Blob:
     heading_xy: np.ndarray | None = None  # unit vector, site frame
 
 
-def list_frames(folder: str | Path, until: time | None = None) -> list[tuple[int, Path]]:
-    """(capture time ns, path) of the images in `folder`, in time order; frames at or after the time of day
-    `until` (read from the names, as written) are left out. Raises ValueError when a name has no time."""
+def list_frames(folder: str | Path, until: time | None = None, tz: tzinfo = UTC) -> list[tuple[int, Path]]:
+    """(capture time ns, path) of the images in `folder`, in time order, the names read in time zone `tz` (as ingest
+    reads them with `ingest.timezone`); frames at or after the time of day `until` (read from the names, as
+    written) are left out. Raises ValueError when a name has no time."""
     folder = Path(folder)
     if not folder.is_dir():
         raise ValueError(f"frames folder not found: {folder}")
@@ -120,10 +121,10 @@ def list_frames(folder: str | Path, until: time | None = None) -> list[tuple[int
     for path in sorted(folder.iterdir()):
         if path.suffix.lower() not in IMAGE_SUFFIXES:
             continue
-        t = capture_time_from_name(path.name)
+        t = capture_time_from_name(path.name, tz)
         if t is None:
             raise ValueError(f"{path}: no capture time in the file name (expected e.g. 2023-12-19 11-00-00-034395)")
-        if until is not None and datetime.fromtimestamp(t / 1e9, UTC).time() >= until:
+        if until is not None and datetime.fromtimestamp(t / 1e9, tz).time() >= until:
             continue
         out.append((t, path))
     if not out:
@@ -369,16 +370,22 @@ def teacher_regions(frames: list[np.ndarray], view: GroundView, detect, cfg: Aut
 
 def autolabel_camera(frames_dir: str | Path, masks_path: str | Path, out_dir: str | Path, camera: str,
                      until: time | None = None, cfg: AutolabelConfig | None = None, log=print,
-                     teacher=None, tracks=None) -> dict:
+                     teacher=None, tracks=None, tz: tzinfo = UTC) -> dict:
     """Label one camera's frames; writes `out_dir`/images/*.png and `out_dir`/labels.json (COCO-style);
     returns the report (also in `out_dir`/report.json). `teacher`: a detector (grey image -> detections
     with score, uv, box) whose detections become ignore regions (module doc, step 5); None: no teacher.
     `tracks`: a `training.track_labels.TrackTeacher` (the pipeline's tracks of the same footage): its moving
-    vehicles away from the frame's labels and ignore regions become labels too (`from_tracks` in the file)."""
+    vehicles away from the frame's labels and ignore regions become labels too (`from_tracks` in the file);
+    `tz`: the time zone of the frames' names (the site's `ingest.timezone`), so that they meet the tracks' times."""
     cfg = cfg or AutolabelConfig()
     masks = load_masks(masks_path)
     view = GroundView(masks, cfg.scale, cfg.roi_m)
-    listed = list_frames(frames_dir, until)
+    listed = list_frames(frames_dir, until, tz)
+    if tracks is not None and not (tracks.times[0] - 10**9 <= listed[-1][0] and listed[0][0] <= tracks.times[-1]
+                                   + 10**9):
+        raise ValueError(f"the tracks ({tracks.times[0]} to {tracks.times[-1]} ns) do not span the frames' capture "
+                         f"times ({listed[0][0]} to {listed[-1][0]} ns): the names in another time zone than "
+                         "--timezone, or another footage's tracks?")
     ws, hs = view.valid.shape[1], view.valid.shape[0]
     frames = []
     for _, path in listed:
