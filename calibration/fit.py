@@ -147,9 +147,8 @@ class Calibration:
 
     def _range_m(self, dirs: np.ndarray) -> np.ndarray:
         """Ground distance from the camera's foot along each ray, on the mean of the planes."""
-        xy = _onto_plane(self.camera.pose.position_m, dirs, self.planes.mean(axis=0))
-        r = np.linalg.norm(xy - self.camera.pose.position_m[:2], axis=1)
-        return np.where(np.isfinite(r), r, np.inf)
+        _, t = _ray_plane(self.camera.pose.position_m, dirs, self.planes.mean(axis=0))
+        return np.where(np.isfinite(t), t * np.linalg.norm(dirs[:, :2], axis=1), np.inf)
 
     def pixel_to_xy(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(N, 2) pixels -> ((N, 2) site metres, (N,) valid)."""
@@ -220,20 +219,24 @@ class LabelledSegments:
     of_landmark: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # (N,) each landmark's segment label
 
     def _nearest_landmark(self, xy: np.ndarray, segments) -> np.ndarray:
-        """(N,) ground distance from each point to the nearest landmark of `segments` (indices) without a polygon."""
+        """(N,) ground distance from each point to the nearest landmark of `segments` (indices)."""
         d = np.full(len(xy), np.inf)
         for k in segments:
-            if self.polygons_xy[k] is None:
-                for p in self.landmarks_xy[k]:
-                    d = np.minimum(d, np.hypot(xy[:, 0] - p[0], xy[:, 1] - p[1]))
+            for p in self.landmarks_xy[k]:
+                d = np.minimum(d, np.hypot(xy[:, 0] - p[0], xy[:, 1] - p[1]))
         return d
 
     def distance(self, k: int, xy: np.ndarray) -> np.ndarray:
-        """(N,) how far (m) ground points lie outside segment k: from its polygon, or without one, how much nearer
-        another segment's landmark is than k's nearest (0 in k's cell of the landmarks)."""
+        """(N,) how far (m) ground points lie outside segment k: from its polygon; without one, how much nearer
+        another segment's landmark is than k's nearest (0 in k's cell of all the landmarks), and never 0 inside
+        another segment's polygon (that ground is the polygon's)."""
         if self.polygons_xy[k] is not None:
             return polygon_distance(xy, self.polygons_xy[k])
-        return self._nearest_landmark(xy, [k]) - self._nearest_landmark(xy, range(len(self.labels)))
+        d = self._nearest_landmark(xy, [k]) - self._nearest_landmark(xy, range(len(self.labels)))
+        for poly in self.polygons_xy:
+            if poly is not None:
+                d = np.where(polygon_distance(xy, poly) == 0.0, np.maximum(d, SEGMENT_BLEND_M), d)
+        return d
 
     def segment_of(self, xy: np.ndarray) -> np.ndarray:
         """(N,) index (into `labels`) of the segment each ground point lies in, or is nearest to."""

@@ -120,9 +120,9 @@ def landmarks_from_rows(rows: list[dict], where: str) -> Landmarks:
             seg.append(-1 if s in (None, "") else _whole(s))
         except (TypeError, ValueError):
             raise ValueError(f"{where}: landmark {lid!r}: segment must be a whole number, got {s!r}") from None
-        if not -1 <= seg[-1] <= MAX_SEGMENT_NUMBER or (seg[-1] == -1 and s not in (None, "")):
+        if not -1 <= seg[-1] <= MAX_SEGMENT_NUMBER:  # -1: none named, as an empty cell
             raise ValueError(f"{where}: landmark {lid!r}: segment must be a whole number from 0 to "
-                             f"{MAX_SEGMENT_NUMBER} (or left empty), "
+                             f"{MAX_SEGMENT_NUMBER} (or left empty, or -1), "
                              f"got {s!r}")
     return Landmarks(
         tuple(ids), np.array(uv, float).reshape(-1, 2), np.array(latlon, float).reshape(-1, 2), np.array(seg, int)

@@ -141,10 +141,15 @@ def _check_keys(where: str, d: dict, known: tuple[str, ...], required: tuple[str
 
 
 def _number(where: str, v: object) -> float:
-    """`v` as a float; ValueError naming `where` unless it is a finite real number (not a bool or a string)."""
-    if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v):
+    """`v` as a float; ValueError naming `where` unless it is a finite real number, or a string of one (YAML reads
+    `6e-3` as a string), and not a bool."""
+    try:
+        x = float(v) if isinstance(v, str) else v
+    except ValueError:
+        x = None
+    if isinstance(x, bool) or not isinstance(x, numbers.Real) or not math.isfinite(x):
         raise ValueError(f"{where} must be a finite number, got {v!r}")
-    return float(v)
+    return float(x)
 
 
 def ground_lookup(camera: Camera, terrain: Terrain, max_range_m: float = 1e3) -> tuple[np.ndarray, np.ndarray]:

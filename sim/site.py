@@ -13,7 +13,7 @@ from typing import Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from shared.cameras import Camera, Pose
 from shared.geo import GeoFrame
@@ -177,15 +177,6 @@ class SiteSpec(_Model):
     pedestrians: int = Field(10, ge=0)
     cameras: tuple[CameraSpec, ...]
 
-    @field_validator("extent_m")
-    @classmethod
-    def _extent_fits_in_memory(cls, v: float) -> float:
-        if v > MAX_EXTENT_M:
-            raise ValueError(f"extent_m must be at most {MAX_EXTENT_M:g} m, got {v:g}: the ground is painted at 4 cm "
-                             f"per pixel and the world's memory grows with its area (about 2 GB at 120 m, "
-                             f"8 GB at {MAX_EXTENT_M:g} m)")
-        return v
-
     @model_validator(mode="after")
     def _consistent(self) -> SiteSpec:
         if self.layout == "roundabout" and self.roundabout is None:
@@ -262,9 +253,15 @@ def load_site(name_or_path: str | Path) -> SiteSpec:
     if not isinstance(data, dict):
         raise ValueError(f"site file {path} must hold a mapping, got {type(data).__name__}")
     try:
-        return SiteSpec.model_validate(data)
+        spec = SiteSpec.model_validate(data)
     except ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(x) for x in first["loc"])  # empty for a check of the whole file
         msg = first["msg"].removeprefix("Value error, ")
         raise ValueError(f"site file {path}: {where + ': ' if where else ''}{msg}") from None
+    # checked where a world is to be built from the file, not where a recording's site is read back
+    if spec.extent_m > MAX_EXTENT_M:
+        raise ValueError(f"site file {path}: extent_m must be at most {MAX_EXTENT_M:g} m, got {spec.extent_m:g}: the "
+                         f"ground is painted at 4 cm per pixel and the world's memory grows with its area (about 2 GB "
+                         f"at 120 m, 8 GB at {MAX_EXTENT_M:g} m)")
+    return spec

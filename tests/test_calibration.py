@@ -224,6 +224,23 @@ def test_a_ray_takes_the_first_named_surface_it_meets():
     np.testing.assert_allclose(up, [[1 / 3] * 3])
 
 
+def test_a_polygon_holds_its_ground_against_a_segment_named_by_landmarks_alone():
+    """Segment 1 named by its landmarks (south), segment 2 by a polygon (north): a point in the polygon is segment
+    2's whatever the numbering, and one among segment 1's landmarks is segment 1's."""
+    from calibration.fit import LabelledSegments
+
+    south = np.array([[0.0, -20.0], [10.0, -25.0], [-10.0, -22.0]])
+    north = np.array([[-30.0, 0.0], [30.0, 0.0], [30.0, 40.0], [-30.0, 40.0]])
+    pts = np.array([[0.0, 20.0], [0.0, -21.0]])
+    for labels, order in (((1, 2), (0, 1)), ((3, 2), (1, 0))):  # 2 after or before the landmarks' segment
+        segs = (south, np.zeros((0, 2)))
+        polys = (None, north)
+        segments = LabelledSegments(tuple(labels[i] for i in order), tuple(segs[i] for i in order),
+                                    tuple(polys[i] for i in order))
+        got = [segments.labels[k] for k in segments.segment_of(pts)]
+        assert got == [2, labels[0]]
+
+
 def test_one_named_segment_is_one_plane_and_keeps_its_label():
     cam = _pinhole()
     lm = _synthetic_landmarks(cam, 12, np.random.default_rng(7), 70.0)
@@ -288,6 +305,7 @@ def test_named_segments_that_cannot_be_fitted_are_refused_naming_them(tmp_path):
             load_segment_polygons(tmp_path / "p.json")
     with pytest.raises(ValueError, match="segment polygon file not found"):
         load_segment_polygons(tmp_path / "missing.json")
+    assert list(landmarks_from_rows([{**r, "segment": -1} for r in _rows()], "x").segment) == [-1] * 5  # none named
     for bad in (-2, "99999999999999999999"):
         with pytest.raises(ValueError, match=r"landmark 'P0': segment must be a whole number from 0 to 2147483647"):
             landmarks_from_rows([{**r, "segment": bad} for r in _rows()], "x")

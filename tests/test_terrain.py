@@ -227,3 +227,4 @@ def test_from_dict_takes_an_empty_bump_list_and_whole_numbers() -> None:
     assert Terrain.from_dict({"bumps": None}) == Terrain()
     t = Terrain.from_dict({"slope_x": 0, "bumps": [{"x_m": 1, "y_m": 2, "sigma_m": 3, "height_m": 1}]})
     assert t == Terrain(0.0, 0.0, (Bump(1.0, 2.0, 3.0, 1.0),))
+    assert Terrain.from_dict({"slope_x": "6e-3"}).slope_x == 0.006  # YAML reads 6e-3 (no dot) as a string

@@ -269,7 +269,8 @@ def load_resume(path: Path, settings: dict) -> tuple[dict, Detector]:
     the problem (no file, not a resume file, settings (`_resume_settings` of the run as given) that differ from the
     interrupted run's)."""
     if not path.is_file():
-        raise FileNotFoundError(f"resume: no {path} (a run writes it every save_every steps; start without --resume)")
+        raise FileNotFoundError(f"resume: no {path} (a run writes it every save_every steps): start the run again "
+                                f"with --overwrite instead of --resume")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
         keys = {"model_config", "model", "optimizer", "step", "elapsed_s", "settings"}
