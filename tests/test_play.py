@@ -231,6 +231,17 @@ def test_a_vehicle_reads_a_played_recording_as_it_reads_a_cabinet(tmp_path):
             assert wait_for_peers(client.session, "roadside/se/alive/fuse_track/*", 1, 10.0) == 1
             stream = client.stream(timeout_s=30.0)
             got = [next(stream) for _ in range(25)]
+            from shared.status import collect_status  # the player reports as fuse_track's "playback" instance
+
+            reports: list = []  # the reports come every 2 s: one after the first messages counts them
+
+            def counted() -> bool:
+                reports[:] = collect_status(client.session, "se", 1.0)[0]
+                return bool(reports) and reports[0].counts.get("tracks_out", 0) > 0
+
+            assert wait_until(counted, 30)
+            assert (reports[0].service, reports[0].instance) == ("fuse_track", "playback")
+            assert reports[0].last_output_ns > 0
     finally:
         proc.send_signal(signal.SIGTERM)
         out, _ = proc.communicate(timeout=30)

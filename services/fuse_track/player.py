@@ -5,7 +5,8 @@ subscriber against, and not the four services, their models and the cameras' foo
 fuse_track's recorder wrote (one Tracks message per line: `Tracks.from_record`; rotated files one after the other)
 and publishes each message on `roadside/<site>/tracks` at its recorded pace (its capture times, 1 = real time, N
 times as fast, or `max`), answering `roadside/<site>/tracks/latest` with the newest one published and holding a
-liveliness token `roadside/<site>/alive/fuse_track/playback`, as fuse_track does: every subscriber (`roadside
+liveliness token `roadside/<site>/alive/fuse_track/playback` and reporting its Status as fuse_track's instance
+`playback` (`roadside status`, `roadside health --service fuse_track`), as fuse_track does: every subscriber (`roadside
 tracks`, `shared.client.TrackClient`, the standalone listener of docs/wire-format.md, `roadside viz --live`) reads
 it as it reads a cabinet. The site is the first record's; in the
 embedded default the player listens where fuse_track would (`bus.port_base` + 3), so it stands in for it.
@@ -30,6 +31,7 @@ from shared.bus import BadInput, declare_alive
 from shared.codec import encode
 from shared.keys import latest_tracks_key, tracks_key
 from shared.messages import Tracks
+from shared.status import StatusReporter
 from shared.tracks_file import file_lines
 
 log = logging.getLogger("roadside.play")
@@ -129,10 +131,10 @@ class TracksPublisher:
     join late (declared for the first message's site, on its arrival). `block`: wait for a slow subscriber rather
     than drop (as fast as the player can go, nothing is lost)."""
 
-    def __init__(self, session, block: bool = False) -> None:
-        self.session, self.block = session, block
+    def __init__(self, session, block: bool = False, status_period_s: float = 2.0) -> None:
+        self.session, self.block, self.status_period_s = session, block, status_period_s
         self.latest: list[bytes] = []
-        self.pub = self.queryable = None
+        self.pub = self.queryable = self.status = None
         self.tokens: list = []
 
     def _declare(self, site: str) -> None:
@@ -146,6 +148,9 @@ class TracksPublisher:
                 query.reply(latest_tracks_key(site), self.latest[-1])
 
         self.queryable = self.session.declare_queryable(latest_tracks_key(site), answer)
+        # a Status report as fuse_track's (its instance "playback"): `roadside status` and `health` see the player
+        self.status = StatusReporter(self.session, site, "fuse_track", BadInput("play"), self.status_period_s,
+                                     instance=TOKEN)
         self.tokens = declare_alive(self.session, site, "fuse_track", [TOKEN])
 
     def __call__(self, msg: Tracks) -> None:
@@ -155,8 +160,11 @@ class TracksPublisher:
         payload = encode(msg)
         self.latest[:] = [payload]
         self.pub.put(payload)
+        self.status.count("tracks_out", output=True)
 
     def close(self) -> None:
+        if self.status is not None:
+            self.status.close()
         for entity in (*self.tokens, self.queryable, self.pub):
             if entity is not None:
                 entity.undeclare()
