@@ -197,6 +197,10 @@ class Receiver:
 
     def poll(self) -> list[Message]:
         """Every message waiting now, decoded (bad ones counted and skipped)."""
+        return [msg for _, msg in self.poll_keyed()]
+
+    def poll_keyed(self) -> list[tuple[str, Message]]:
+        """`poll`, each message with the key it came on (a wildcard subscriber's: which camera's)."""
         out = []
         if self.overflow > self._reported:
             dropped, self._reported = self.overflow - self._reported, self.overflow
@@ -213,7 +217,7 @@ class Receiver:
             except IndexError:
                 break
             try:
-                out.append(decode(payload, self.expect))
+                out.append((key, decode(payload, self.expect)))
             except DecodeError as exc:
                 self.bad(str(exc), key)
         return out

@@ -5,7 +5,7 @@
 Loads each camera's masks file (`cameras[].masks`, from `roadside calibrate`) at start: a missing
 or unreadable one stops the service with one error line. The site frame is the site file's `origin`, else the
 first camera's masks' origin (as fuse_track's): masks made around another origin are re-expressed in it.
-Subscribes to `roadside/<site>/cam/<camera>/detections` of each camera, publishes Objects (site metres,
+Subscribes to `roadside/<site>/cam/*/detections` (the key says whose they are), publishes Objects (site metres,
 latitude/longitude, world yaw, size) on `roadside/<site>/cam/<camera>/objects`, dropping detections outside the
 calibrated area and those inside the ground footprint of a higher-scoring one (`localize.footprint_overlap`;
 `lift.lift_kept`). Detections of another site, of another camera than their key's, or on the key of a camera
@@ -15,18 +15,16 @@ that is not at this site are bad input: counted and skipped.
 from __future__ import annotations
 
 import logging
-import threading
 import time
-from collections import Counter
 
 import numpy as np
 
 from calibration.masks import excluded, load_masks
 from services.localize.lift import GroundLookup, lift_kept
-from shared.bus import FIFO_BYTES, BadInput, Receiver, Stopper, declare_alive, open_session
+from shared.bus import BadInput, Receiver, Stopper, declare_alive, open_session
 from shared.codec import encode
 from shared.geo import GeoFrame
-from shared.keys import all_cameras_key, camera_key
+from shared.keys import all_cameras_key, camera_key, camera_of
 from shared.messages import Detections, Objects
 from shared.service import run
 from shared.settings import Settings
@@ -34,7 +32,6 @@ from shared.status import StatusReporter
 
 log = logging.getLogger("roadside.localize")
 IDLE_WAIT_S = 0.1
-MAX_STRAY_NAMES = 64  # cameras not at this site counted by name (StrayCameras)
 
 
 def load_all_masks(settings: Settings) -> dict[str, GroundLookup]:
@@ -63,8 +60,8 @@ def load_all_masks(settings: Settings) -> dict[str, GroundLookup]:
 
 
 def in_capture_order(msgs: list[tuple[str, Detections]]) -> list[tuple[str, Detections]]:
-    """(camera, Detections) of every camera's queue, in capture-time order across the cameras (each queue is in
-    it already): after a stall, one camera's backlog published before the others' would let fuse_track close the
+    """(camera, Detections) waiting now, in capture-time order across the cameras (stable: each camera's are in it
+    already): after a stall, one camera's backlog published before the others' would let fuse_track close the
     ticks the others still need, and drop them as late."""
     return sorted(msgs, key=lambda m: m[1].t_capture_ns)
 
@@ -93,58 +90,28 @@ def objects_message(det: Detections, masks: GroundLookup, step_px: float, footpr
         vtype=det.vtype[k].astype(np.int8), score=det.score[k].astype(f4), uv=det.uv[k].astype(f4))
 
 
-class StrayCameras:
-    """Counts the messages on the detections keys of cameras that are not at this site, by the key's camera chunk
-    (nothing is decoded; at most MAX_STRAY_NAMES names, the rest counted as "others"). `take()` gives {camera:
-    messages} since the last call."""
-
-    def __init__(self, session, site: str, cameras: set[str], wake: threading.Event) -> None:
-        self.counts: Counter[str] = Counter()
-        self.lock = threading.Lock()
-
-        def on_sample(sample) -> None:
-            camera = str(sample.key_expr).split("/")[3][:64]  # a match of roadside/<site>/cam/*/detections
-            if camera not in cameras:
-                with self.lock:
-                    self.counts[camera if camera in self.counts or len(self.counts) < MAX_STRAY_NAMES
-                                else "others"] += 1
-                wake.set()
-
-        self.sub = session.declare_subscriber(all_cameras_key(site, "detections"), on_sample)
-
-    def take(self) -> dict[str, int]:
-        with self.lock:
-            out = dict(self.counts)
-            self.counts.clear()
-        return out
-
-
 def main(settings: Settings, stopper: Stopper) -> int:
     masks = load_all_masks(settings)
     cams = list(masks)
     bad = BadInput("localize")
     session = open_session(settings, "localize")
     try:
-        wake = threading.Event()
-        # one subscriber per camera, so that the key a message came on is known; the FIFOs share one byte budget
-        receivers = {c: Receiver(session, camera_key(settings.site, c, "detections"), Detections, bad, wake=wake,
-                                 fifo_bytes=FIFO_BYTES // len(cams)) for c in cams}
-        strays = StrayCameras(session, settings.site, set(cams), wake)
+        # one subscriber on every camera's key; the key a message came on says whose it is
+        receiver = Receiver(session, all_cameras_key(settings.site, "detections"), Detections, bad)
         pubs = {c: session.declare_publisher(camera_key(settings.site, c, "objects")) for c in cams}
-        tokens = declare_alive(session, settings.site, "localize", cams)  # after the subscribers: ready
+        tokens = declare_alive(session, settings.site, "localize", cams)  # after the subscriber: ready
         status = StatusReporter(session, settings.site, "localize", bad, settings.bus.status_period_s)
         done = 0
         while not stopper.is_set():
-            msgs = in_capture_order([(c, det) for c, r in receivers.items() for det in r.poll()])
-            stray = strays.take()
-            if not msgs and not stray:
-                wake.wait(IDLE_WAIT_S)
-                wake.clear()
+            msgs = in_capture_order([(camera_of(key), det) for key, det in receiver.poll_keyed()])
+            if not msgs:
+                receiver.wait(IDLE_WAIT_S)
                 continue
-            status.count("detections_in", len(msgs) + sum(stray.values()))
-            for camera, count in stray.items():
-                bad(f"detections from camera {camera!r}, not at this site", camera, count=count)
+            status.count("detections_in", len(msgs))
             for camera, det in msgs:
+                if camera not in masks:
+                    bad(f"detections from camera {camera!r}, not at this site", camera)
+                    continue
                 if (reason := misaddressed(det, settings.site, camera)) is not None:
                     bad(reason, camera)
                     continue
@@ -159,7 +126,6 @@ def main(settings: Settings, stopper: Stopper) -> int:
                 done += 1
         log.info("stopped: %d messages localized, %d bad %s", done, bad.total, dict(bad.counts))
         status.close()
-        strays.sub.undeclare()
         del tokens
     finally:
         session.close()
