@@ -278,15 +278,12 @@ def test_detections_of_another_site_or_of_another_camera_than_their_keys_are_mis
 
 def _dense_footprint_groups(xy, yaw, size_lwh, score, scale):
     """footprint_groups as it was, on the whole N x N matrix (geo.in_footprints as it was): the reference."""
-    xy = np.asarray(xy, np.float64).reshape(-1, 2)
+    from services.localize.lift import footprint_inputs  # the inputs as the rule reads them; the matrix as it was
+
+    xy, yaw, size, score, order, ok = footprint_inputs(xy, yaw, size_lwh, score)
     n = len(xy)
-    score = np.asarray(score, np.float64).reshape(n)
-    order = np.argsort(-score, kind="stable")
     if n < 2 or scale <= 0:
         return {int(a): np.zeros(0, np.int64) for a in order}
-    yaw = np.asarray(yaw, np.float64).reshape(n)
-    size = np.asarray(size_lwh, np.float64).reshape(n, 3)
-    ok = np.isfinite(xy).all(axis=1) & np.isfinite(yaw) & np.isfinite(size[:, :2]).all(axis=1)
     half = 0.5 * scale * size[:, :2]
     d = xy[None, :, :] - xy[:, None, :]
     c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]

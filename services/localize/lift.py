@@ -108,6 +108,18 @@ def lift(masks: GroundLookup | LookupMasks, uv: np.ndarray, heading_uv: np.ndarr
     return Lifted(valid, xy, latlon, yaw)
 
 
+def footprint_inputs(xy: np.ndarray, yaw: np.ndarray, size_lwh: np.ndarray, score: np.ndarray) -> tuple:
+    """`footprint_groups`' objects as float64 arrays (xy (N, 2), yaw (N,), size (N, 3), score (N,)), the order it
+    keeps them in (best score first) and which of them take part (finite position, yaw and size)."""
+    xy = np.asarray(xy, np.float64).reshape(-1, 2)
+    n = len(xy)
+    score = np.asarray(score, np.float64).reshape(n)
+    yaw = np.asarray(yaw, np.float64).reshape(n)
+    size = np.asarray(size_lwh, np.float64).reshape(n, 3)
+    ok = np.isfinite(xy).all(axis=1) & np.isfinite(yaw) & np.isfinite(size[:, :2]).all(axis=1)
+    return xy, yaw, size, score, np.argsort(-score, kind="stable"), ok
+
+
 def footprint_groups(xy: np.ndarray, yaw: np.ndarray, size_lwh: np.ndarray, score: np.ndarray, scale: float,
                      take: Callable[[int, np.ndarray], np.ndarray] | None = None) -> dict[int, np.ndarray]:
     """The footprint rule: greedy by score, as non-maximum suppression, an object (site metres, world yaw, size in
@@ -119,15 +131,10 @@ def footprint_groups(xy: np.ndarray, yaw: np.ndarray, size_lwh: np.ndarray, scor
     footprints overlap, not suppressed yet, ascending) the kept object suppresses; the others stay candidates for
     the objects after it (`footprint_rule`'s later rounds: only the peaks a merged object takes in).
     The footprints are compared FOOTPRINT_ROWS objects at a time (best first), so memory grows with N, not N^2."""
-    xy = np.asarray(xy, np.float64).reshape(-1, 2)
+    xy, yaw, size, score, order, ok = footprint_inputs(xy, yaw, size_lwh, score)
     n = len(xy)
-    score = np.asarray(score, np.float64).reshape(n)
-    order = np.argsort(-score, kind="stable")
     if n < 2 or scale <= 0:
         return {int(a): np.zeros(0, np.int64) for a in order}
-    yaw = np.asarray(yaw, np.float64).reshape(n)
-    size = np.asarray(size_lwh, np.float64).reshape(n, 3)
-    ok = np.isfinite(xy).all(axis=1) & np.isfinite(yaw) & np.isfinite(size[:, :2]).all(axis=1)
     drop = np.zeros(n, bool)
     groups = {}
     for start in range(0, n, FOOTPRINT_ROWS):
