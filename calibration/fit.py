@@ -192,11 +192,6 @@ class Calibration:
         return h
 
 
-def _onto_plane(o: np.ndarray, dirs: np.ndarray, plane: np.ndarray) -> np.ndarray:
-    """(N, 2) points where rays from o along dirs meet the plane z = a x + b y + c (NaN where they do not)."""
-    return _ray_plane(o, dirs, plane)[0]
-
-
 def _ray_plane(o: np.ndarray, dirs: np.ndarray, plane: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """((N, 2) points, (N,) distances along the rays) where rays from o along dirs meet z = a x + b y + c (NaN
     where they do not)."""

@@ -14,10 +14,10 @@ Every tracks line (one tick, at its capture time `t_ns`) is one motmetrics frame
 with gate `match_gate_m` (max_d2 = gate^2, `motmetrics.distances.norm2squared_matrix`). A track's identity is
 (tracker, id): ids are unique per tracker instance, so a restart is an identity change. Lines are taken in
 capture-time order; lines outside the recording's time span are skipped. With `fill_silent_ticks` (default),
-a frame time of the first chosen camera with no tracks line within half the tracker's own tick (the median
-spacing of its lines, at least a frame interval) becomes an empty frame, one per tick it missed: a silent (or
-dead, or restarting) tracker misses every GT object then, and an empty tracks file scores MOTA 0 rather than
-nothing.
+a frame time of the first chosen camera with no tracks line within half the tracker's own tick (a low, 10th
+percentile of the spacing of its lines, at least a frame interval) becomes an empty frame, one per tick it
+missed: a silent (or dead, or restarting) tracker misses every GT object then, and an empty tracks file scores
+MOTA 0 rather than nothing.
 
 `traj_err_in_roi_m` is the paper's trajectory error: for each tracked position scored inside the ROI (within the
 ROI radius of a chosen camera), the distance to the ground-truth trajectory (the polyline of its samples within
