@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import os
 import re
+from datetime import UTC
 from pathlib import Path
 from typing import Literal
 
@@ -182,6 +183,8 @@ class IngestSettings(Strict):
     def _timezone(cls, v: str) -> str:
         from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
+        if v == "UTC":  # the default needs no time-zone database
+            return v
         try:
             ZoneInfo(v)
         except (ZoneInfoNotFoundError, ValueError):
@@ -193,7 +196,7 @@ class IngestSettings(Strict):
         """`timezone` as a tzinfo."""
         from zoneinfo import ZoneInfo
 
-        return ZoneInfo(self.timezone)
+        return UTC if self.timezone == "UTC" else ZoneInfo(self.timezone)
 
     @field_validator("pace", mode="before")  # before: YAML and --set give `pace: 2` as a number
     @classmethod
