@@ -10,6 +10,8 @@ the site folder.
 Bus default: Zenoh peer-to-peer on loopback, multicast scouting off, explicit endpoints. Each service
 listens on its own port (`port_base` + its index in SERVICES; clients such as `roadside tracks` use
 `port_base` + 4 and up) and connects to the others, so any one of them can restart.
+
+Precedence, lowest first: the defaults, the site file, the environment, the command line (`--set` and flags).
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from typing import Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict, SettingsError
+from pydantic_settings import BaseSettings, EnvSettingsSource, SettingsConfigDict, SettingsError
 
 from shared.keys import SERVICES
 from shared.messages import check_name
@@ -401,7 +403,7 @@ class Settings(BaseSettings):
     @classmethod
     def settings_customise_sources(cls, settings_cls, init_settings, env_settings, dotenv_settings,
                                    file_secret_settings):
-        return (env_settings, init_settings)  # the environment overrides the file
+        return (init_settings,)  # load_settings merges the file, the environment and the overrides, in that order
 
     @field_validator("site")
     @classmethod
@@ -434,8 +436,9 @@ class Settings(BaseSettings):
 
 
 def load_settings(path: str | Path, **overrides) -> Settings:
-    """Read a site YAML file (or a site folder holding site.yaml), apply `overrides` (top-level keys,
-    e.g. from command-line flags), then environment variables. ValueError names the file and field."""
+    """Read a site YAML file (or a site folder holding site.yaml), then the environment's ROADSIDE_ variables over
+    it, then `overrides` (top-level keys, e.g. from command-line flags and `--set`) over both: a flag given on the
+    command line wins over the container's environment. ValueError names the file and field."""
     path = Path(path)
     if path.is_dir():
         path = path / "site.yaml"
@@ -453,6 +456,16 @@ def load_settings(path: str | Path, **overrides) -> Settings:
     if odd:
         raise ValueError(f"{path}: top-level keys must be names, got {odd[0]!r}")
     data.setdefault("site_dir", str(path.parent.resolve()))
+    unknown = unknown_environment()
+    if unknown:
+        raise ValueError(f"{path}: the environment: {', '.join(unknown)} {'is' if len(unknown) == 1 else 'are'} no "
+                         "setting (ROADSIDE_<FIELD> or ROADSIDE_<SECTION>__<FIELD>, e.g. ROADSIDE_FUSE_TRACK__RECORD; "
+                         "deploy/sites/README.md)")
+    try:
+        data = _deep_merge(data, EnvSettingsSource(Settings)())  # fields it does not name keep the file's values
+    except SettingsError as exc:  # an environment variable that is not the JSON its field needs
+        names = sorted(k for k in os.environ if k.upper().startswith("ROADSIDE_"))
+        raise ValueError(f"{path}: the environment: {exc} (ROADSIDE_ variables set: {', '.join(names)})") from None
     for key, value in overrides.items():
         if value is None:
             continue
@@ -463,11 +476,6 @@ def load_settings(path: str | Path, **overrides) -> Settings:
             data[key] = {**base, **value}
         else:
             data[key] = value
-    unknown = unknown_environment()
-    if unknown:
-        raise ValueError(f"{path}: the environment: {', '.join(unknown)} {'is' if len(unknown) == 1 else 'are'} no "
-                         "setting (ROADSIDE_<FIELD> or ROADSIDE_<SECTION>__<FIELD>, e.g. ROADSIDE_FUSE_TRACK__RECORD; "
-                         "deploy/sites/README.md)")
     try:
         return Settings(**data)
     except ValidationError as exc:
@@ -475,9 +483,17 @@ def load_settings(path: str | Path, **overrides) -> Settings:
         loc = [str(p) for p in e.get("loc", ())]
         where = f"{'.'.join(loc)}: " if loc else ""  # nothing for a rule over the whole file
         raise ValueError(f"{path}: {where}{e.get('msg')}{_given_by(loc, overrides)}") from None
-    except SettingsError as exc:  # an environment variable that is not the JSON its field needs
-        names = sorted(k for k in os.environ if k.upper().startswith("ROADSIDE_"))
-        raise ValueError(f"{path}: the environment: {exc} (ROADSIDE_ variables set: {', '.join(names)})") from None
+
+
+def _deep_merge(base: dict, over: dict) -> dict:
+    """`base` with `over`'s values put in, mappings merged key by key (a list or a value replaces)."""
+    out = dict(base)
+    for key, value in over.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _deep_merge(out[key], value)
+        else:
+            out[key] = value
+    return out
 
 
 def unknown_environment() -> list[str]:
@@ -505,20 +521,23 @@ def unknown_environment() -> list[str]:
 
 
 def _given_by(loc: list[str], overrides: dict) -> str:
-    """Where a bad value came from when not from the site file: an environment variable (ROADSIDE_SECTION__FIELD,
-    which wins over the file) or an override (`--set section.field=...`, a command-line flag)."""
+    """Where a bad value came from when not from the site file: an override (`--set section.field=...`, a
+    command-line flag, which wins over the rest) or an environment variable (ROADSIDE_SECTION__FIELD, which wins
+    over the file)."""
     if not loc:  # a rule over the whole file
         return ""
+    node: object = overrides
+    for part in loc:
+        if not isinstance(node, dict) or part not in node:
+            break
+        node = node[part]
+    else:
+        return " (given on the command line: --set or a flag)"
     for n in range(len(loc), 0, -1):
         name = "ROADSIDE_" + "__".join(loc[:n]).upper()
         if any(k.upper() == name for k in os.environ):
             return f" (given by the environment: {name})"
-    node: object = overrides
-    for part in loc:
-        if not isinstance(node, dict) or part not in node:
-            return ""
-        node = node[part]
-    return " (given on the command line: --set or a flag)"
+    return ""
 
 
 def env_overrides() -> dict[str, str]:

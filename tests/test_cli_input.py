@@ -203,6 +203,22 @@ def test_a_bad_value_from_the_environment_or_a_flag_is_not_blamed_on_the_site_fi
         load_settings(EXAMPLE_SITE)
 
 
+def test_a_flag_wins_over_the_environment_which_wins_over_the_file(monkeypatch):
+    """Inside a compose container ROADSIDE_FUSE_TRACK__RECORD is always set: a replay given `--set
+    fuse_track.record=...` appended to the cabinet's live recording when the environment won over the flag."""
+    monkeypatch.setenv("ROADSIDE_FUSE_TRACK__RECORD", "/data/tracks.jsonl")
+    monkeypatch.setenv("ROADSIDE_INGEST__PACE", "1")
+    monkeypatch.setenv("ROADSIDE_BUS__PORT_BASE", "31000")
+    s = load_settings(EXAMPLE_SITE, fuse_track={"record": "/data/replay.jsonl"}, ingest={"pace": "max"})
+    assert str(s.fuse_track.record) == "/data/replay.jsonl" and s.ingest.pace == "max"
+    assert s.bus.port_base == 31000  # the environment still wins over the file where no flag names the field
+    file = load_settings(EXAMPLE_SITE, detect={"workers": 1})
+    assert str(file.fuse_track.record) == "/data/tracks.jsonl" and file.ingest.pace == "1" and file.detect.workers == 1
+    monkeypatch.setenv("ROADSIDE_DETECT__SCORE_THR", "0.2")
+    with pytest.raises(ValueError, match=r"score_thr: .*\(given on the command line: --set or a flag\)"):
+        load_settings(EXAMPLE_SITE, detect={"score_thr": 7})  # the flag's value is the one refused, and named
+
+
 def test_a_masks_file_that_is_no_archive_and_a_zero_stride_are_named(tmp_path, capsys):
     from calibration.masks import load_masks
 
