@@ -410,6 +410,9 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
     log(f"running the pipeline: roadside up (logs in {cfg.out / 'logs'})")
     status = launcher.run(log=log)
     collector.stop()
+    if launcher.signalled:  # Ctrl-C: a run cut short is not scored (its summary would replace the last whole one's)
+        log(f"the pipeline was stopped by {launcher.signalled}: not scored, {cfg.out / 'summary.json'} left as it was")
+        raise KeyboardInterrupt
     if status != 0:
         raise RuntimeError(f"the pipeline stopped with status {status}; see {cfg.out / 'logs'}")
     log("timing the detector alone again")

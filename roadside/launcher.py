@@ -73,6 +73,7 @@ class Launcher:
         self.started_at: dict[str, float] = {}
         self.quick_failures: dict[str, int] = dict.fromkeys(cfg.services, 0)  # deaths in a row soon after start
         self.stopping = False
+        self.signalled: str | None = None  # the signal that stopped the run (SIGINT, SIGTERM, SIGHUP), if one did
         self.peak_rss_mb: dict[str, float] = {}
         self.cpu_s: dict[str, float] = {}  # CPU seconds (user + system) of each service's current process
 
@@ -152,7 +153,8 @@ class Launcher:
 
     def run(self, log=print) -> int:
         """Run until ingest ends (or forever with a looping/live source), Ctrl-C or SIGTERM."""
-        def on_signal(*_):
+        def on_signal(signum, _):
+            self.signalled = signal.Signals(signum).name  # a stop asked for: `roadside up` exits 0, a demo is cut short
             self.stopping = True
 
         # SIGHUP too: a closed terminal or a dropped ssh session must not leave the services (in their own
@@ -187,7 +189,7 @@ class Launcher:
                         reason = self.last_log_line(s) if rc == 2 else None
                         if reason:
                             log(f"[up] {s}: a configuration error, not restarted: {reason}")
-                        status = rc or 1
+                        status = 128 - rc if rc < 0 else rc or 1  # killed by a signal: 128 + its number, as a shell
                         self.stopping = True
                         break
                     delay = self.restart_delay(s)

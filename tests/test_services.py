@@ -1412,6 +1412,55 @@ def test_a_configuration_error_ends_the_run_with_its_reason(tmp_path):
         in lines, lines
 
 
+def test_a_service_killed_by_a_signal_ends_the_run_as_a_shell_would_say_it(tmp_path):
+    """--no-restart, a service killed (the OOM killer's SIGKILL): 128 + 9, not Popen's -9 (247 at the shell)."""
+    import threading
+
+    launcher = _fake_launcher(tmp_path, services=("fuse_track",), restart=False, stop_timeout_s=2.0)
+    threading.Timer(1.0, lambda: os.kill(launcher.procs["fuse_track"].pid, signal.SIGKILL)).start()
+    assert launcher.run(log=lambda _: None) == 128 + signal.SIGKILL
+    assert launcher.signalled is None
+
+
+def test_a_run_stopped_by_a_signal_says_so_and_the_demo_does_not_score_it(tmp_path, monkeypatch):
+    """Ctrl-C: `roadside up` stops cleanly (status 0) and says which signal stopped it; `roadside demo` went on to
+    score the cut-short run and replaced the last whole run's summary with it."""
+    import threading
+    from types import SimpleNamespace
+
+    import roadside.demo as demo
+    import roadside.launcher
+    import shared.settings
+
+    launcher = _fake_launcher(tmp_path, services=("fuse_track",), stop_timeout_s=2.0)
+    threading.Timer(1.0, lambda: os.kill(os.getpid(), signal.SIGINT)).start()
+    assert launcher.run(log=lambda _: None) == 0 and launcher.signalled == "SIGINT"
+
+    class CutShort:  # the demo's launcher, stopped by Ctrl-C
+        def __init__(self, cfg):
+            self.cpu_s, self.signalled = {}, None
+
+        def run(self, log):
+            self.signalled = "SIGINT"
+            return 0
+
+    timed: list[str] = []
+    settings = SimpleNamespace(cameras=[], detect=None, site="x", path=lambda p: tmp_path / "tracks.jsonl",
+                               fuse_track=SimpleNamespace(record="tracks.jsonl"))
+    monkeypatch.setattr(demo, "make_recording", lambda cfg, log: tmp_path)
+    monkeypatch.setattr(demo, "make_site", lambda cfg, rec, log: (tmp_path, {}))
+    monkeypatch.setattr(shared.settings, "load_settings", lambda path: settings)
+    monkeypatch.setattr(demo, "DetectorAlone", lambda *a: SimpleNamespace(run=lambda: timed.append("timed") or {}))
+    monkeypatch.setattr(demo, "Collector", lambda *a, **k: SimpleNamespace(start=lambda: None, stop=lambda: None))
+    monkeypatch.setattr(roadside.launcher, "Launcher", CutShort)
+    (tmp_path / "summary.json").write_text("{}")
+    lines: list[str] = []
+    with pytest.raises(KeyboardInterrupt):
+        demo.run_demo(demo.DemoConfig(out=tmp_path), log=lines.append)
+    assert timed == ["timed"] and (tmp_path / "summary.json").read_text() == "{}"  # not timed again, not scored
+    assert any("stopped by SIGINT: not scored" in line for line in lines), lines
+
+
 @pytest.mark.skipif(sys.platform != "linux", reason="PR_SET_PDEATHSIG is Linux's")
 def test_the_services_stop_when_the_launcher_is_killed(tmp_path):
     """SIGKILL (the OOM killer) gives the launcher no chance to stop its services: they are told by the kernel."""
