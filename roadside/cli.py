@@ -212,7 +212,8 @@ def _add_eval(sub) -> None:
     p.add_argument("--recording", type=Path, help="simulator recording (detector)")
     p.add_argument("--every", type=int, default=1, help="use every n-th frame (detector)")
     p.add_argument("--score-thr", type=score, help="lowest score kept (default: 0.05 for detector, as AP needs "
-                   "the low ones; the detect service's 0.3 for real)")
+                   "the low ones; 0.3 for real: the State/Ellsworth site's fuse_track.high_score, from which "
+                   "detections start tracks; its detect service keeps them down to detect.score_thr 0.2)")
     p.add_argument("--site", type=Path, default=Path("deploy/sites/state_ellsworth"),
                    help="site folder with labels/ and masks/ (real), or its site.yaml's cameras (handoff)")
     p.add_argument("--footage", type=Path, default=Path("../shared/data/state_ellsworth/sample_data"),
@@ -298,7 +299,8 @@ def _run_eval(args) -> int:
         settings = load_settings(args.site)
         _site_tracks([args.tracks], settings, args.site)
         origin = settings.origin
-        result = evaluate_tracks_real(args.site / "labels", args.tracks, args.site / "masks",
+        folder = args.site.parent if args.site.is_file() else args.site  # labels/ and masks/ beside its site.yaml
+        result = evaluate_tracks_real(folder / "labels", args.tracks, folder / "masks",
                                       GeoFrame.from_dict(origin) if origin else None, tz=settings.ingest.tzinfo())
         line = ("{name:8s} tracks: precision {precision} recall {recall} ({labels} labels, {detections} tracks "
                 f"within {result['roi_m']:g} m, {{frames}} frames)")
@@ -319,7 +321,8 @@ def _run_eval(args) -> int:
         exclude = {c.name: c.exclude_px for c in cams if c.exclude_px}
         areas = {c.name: c.detect_area_px for c in cams if c.detect_area_px}
         localize = settings.localize if settings else None
-        result = evaluate_real(args.site / "labels", args.footage, args.site / "masks", det.detect, score_thr=thr,
+        folder = args.site.parent if args.site.is_file() else args.site  # labels/ and masks/ beside its site.yaml
+        result = evaluate_real(folder / "labels", args.footage, folder / "masks", det.detect, score_thr=thr,
                                curve=curve, exclude_px=exclude, detect_area_px=areas, localize=localize)
         result["footprint_overlap"] = localize.footprint_overlap if localize else 0.0  # localize's rule (site.yaml)
         result["footprint_merge"] = bool(localize and localize.footprint_overlap > 0 and localize.footprint_merge)

@@ -24,7 +24,8 @@ def _add_autolabel(sub) -> None:
     p.add_argument("--masks", type=Path, required=True, help="the camera's lookup masks (roadside calibrate)")
     p.add_argument("--camera", required=True, help="camera name written into the labels")
     p.add_argument("--out", type=Path, required=True, help="folder for labels.json, images/ and report.json")
-    p.add_argument("--until", help="leave out frames at or after this time of day HH:MM:SS (a held-out slice)")
+    p.add_argument("--until", help="leave out frames at or after this time of day HH:MM:SS[.f] (a held-out slice), the "
+                   "clock written in the file names (not moved by --timezone; names of epoch time: their UTC time)")
     p.add_argument("--roi-m", type=positive_float, default=30.0, help="label within this distance of the camera")
     p.add_argument("--truth", type=Path, help="simulator recording of these frames: score the labels against it")
     p.add_argument("--teacher", type=Path, help="detector ONNX model whose detections away from the labels become "
@@ -34,10 +35,10 @@ def _add_autolabel(sub) -> None:
                    help="foreground regions too small for a vehicle become ignore regions instead of being dropped")
     p.add_argument("--tracks", type=Path, help="the pipeline's tracks of the same footage (roadside up --record): "
                    "vehicles they followed while moving become labels where the background model found none "
-                   "(training/track_labels.py)")
+                   "(training/track_labels.py); only lines before the end of the labelled slice are read")
     p.add_argument("--timezone", default="UTC",
                    help="the time zone the frames' names are in, the site's ingest.timezone (IANA name, default "
-                        "UTC): with --tracks, their capture times must meet the tracks'")
+                        "UTC): with --tracks (and --truth), their capture times must meet the tracks' (the truth's)")
 
 
 def _add_static(sub) -> None:
@@ -58,6 +59,8 @@ def _add_area(sub) -> None:
                                     "circle): its cameras[].detect_area_px")
     p.add_argument("--frames", type=Path, required=True, help="one camera's frames (a folder of images)")
     p.add_argument("--every", type=int, default=60, help="use every n-th frame (default 60)")
+    p.add_argument("--until", help="only frames before this time of day HH:MM:SS[.f] (leave a held-out slice alone), "
+                   "the clock written in the file names (names of epoch time: their UTC time)")
     p.add_argument("--level", type=finite_float, default=40.0, help="grey level above which a pixel shows something")
     p.add_argument("--share", type=finite_float, default=0.02,
                    help="a column (row) belongs to the area when more than this share of its pixels do")
@@ -69,13 +72,18 @@ def _run_area(args) -> int:
 
     if args.every < 1:
         raise ValueError(f"--every must be >= 1, got {args.every}")
-    if not args.frames.is_dir():
-        raise ValueError(f"frames folder not found: {args.frames}")
-    paths = sorted(p for p in args.frames.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)[:: args.every]
+    if args.until:  # the names must carry their times: in time order, those before --until
+        from training.autolabel import list_frames
+
+        paths = [p for _, p in list_frames(args.frames, _time_of_day(args.until))][:: args.every]
+    else:  # any images, in the order of their names
+        if not args.frames.is_dir():
+            raise ValueError(f"frames folder not found: {args.frames}")
+        paths = sorted(p for p in args.frames.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)[:: args.every]
     if not paths:
         raise ValueError(f"{args.frames}: no images")
     area, (w, h), n = image_area(read_frames(paths), args.level, args.share)
-    print(dumps({"frames_folder": str(args.frames), "frames": n, "width": w, "height": h,
+    print(dumps({"frames_folder": str(args.frames), "until": args.until, "frames": n, "width": w, "height": h,
                       "detect_area_px": list(area), "share_of_image": round((area[2] - area[0]) * (area[3] - area[1])
                                                                             / (w * h), 3)}, indent=1))
     return 0
@@ -135,15 +143,11 @@ def _run_autolabel(args) -> int:
     if args.truth:  # checked before any output is written: the camera, and truth at every frame's time
         from training.autolabel import check_truth
 
-        check_truth(args.frames, args.truth, args.camera, until)
+        check_truth(args.frames, args.truth, args.camera, until, tz)
     teacher = _teacher(args.teacher, cfg.teacher_thr)
-    tracks = None
-    if args.tracks:
-        from training.track_labels import TrackTeacher
-
-        tracks = TrackTeacher(args.tracks)
+    # the tracks file is read there, up to the end of the labelled slice only
     report = autolabel_camera(args.frames, args.masks, args.out, args.camera, until, cfg,
-                              log=lambda m: print(m, file=sys.stderr), teacher=teacher, tracks=tracks, tz=tz)
+                              log=lambda m: print(m, file=sys.stderr), teacher=teacher, tracks=args.tracks, tz=tz)
     if args.truth:
         report["score"] = score_labels(args.out / "labels.json", args.truth)
         (args.out / "report.json").write_text(dumps(report, indent=1))

@@ -207,9 +207,10 @@ def test_track_labels_are_written_in_cocos_pixel_convention(scene, tmp_path, mon
              "heading_uv": np.array([1.0, 0.0])}
     monkeypatch.setattr(autolabel, "label_from_track", lambda _v, _view: label)
     tracks = SimpleNamespace(at=lambda _t: [SimpleNamespace(xy=np.array([15.0, -15.0]), yaw=0.0, key="k")],
-                             times=[0, 2**62])  # a teacher whose tracks span every frame
+                             times=[0, 2**62], lines_after_end=0)  # a teacher whose tracks span every frame
+    monkeypatch.setattr(autolabel, "TrackTeacher", lambda _path, t_end_ns: tracks)
     report = autolabel_camera(frames, masks, tmp_path / "out", "CAM", until=time(11, 0, 2), cfg=CFG, log=None,
-                              tracks=tracks)
+                              tracks=tmp_path / "tracks.jsonl")
     assert report["from_tracks"] == 10
     doc = json.loads((tmp_path / "out" / "labels.json").read_text())
     got = [a for a in doc["annotations"] if a.get("from_tracks")]
@@ -252,3 +253,97 @@ def test_cli_checks_that_the_truth_recording_has_every_frames_time_before_labell
     assert main([*argv, "--out", str(tmp_path / "o"), "--truth", str(same)]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["score"]["true_vehicles"] == 0 and report["score"]["labels"] == report["vehicles"] > 0
+
+
+def _epoch_frames(scene_frames: Path, folder: Path) -> Path:
+    """The scene's frames named as a simulator names them: UTC nanoseconds since the epoch (11:00:00 UTC + t)."""
+    from datetime import UTC, datetime
+
+    folder.mkdir()
+    t0 = int(datetime(2023, 12, 19, 11, 0, 0, tzinfo=UTC).timestamp()) * 10**9
+    for k, (_, path) in enumerate(list_frames(scene_frames)):
+        (folder / f"{t0 + k * 200_000_000}.png").write_bytes(path.read_bytes())
+    return folder
+
+
+def test_until_is_the_clock_written_in_the_names_whatever_the_time_zone(scene, tmp_path, capsys):
+    """--until once moved with --timezone on frames named by epoch time (a simulator's): read in Ann Arbor's zone,
+    every frame of 11:00 UTC was before 11:00:02 (06:00 there), and the held-out frame was labelled; --truth's
+    check read the names as UTC whatever --timezone said, so it checked other times than the labels got."""
+    from zoneinfo import ZoneInfo
+
+    frames, masks = scene
+    epoch = _epoch_frames(frames, tmp_path / "epoch")
+    detroit = ZoneInfo("America/Detroit")
+    for folder in (frames, epoch):  # date-time names: as written; epoch names: their UTC time of day
+        for tz in (detroit, ZoneInfo("UTC")):
+            assert len(list_frames(folder, time(11, 0, 2), tz)) == 10
+    argv = ["autolabel", "--masks", str(masks), "--camera", "CAM", "--until", "11:00:02", "--roi-m", "40",
+            "--timezone", "America/Detroit"]
+    assert main([*argv, "--frames", str(epoch), "--out", str(tmp_path / "e")]) == 0
+    assert json.loads(capsys.readouterr().out)["frames"] == 10
+    # the truth at the capture times the labels get in that zone (5 h after the names read as UTC): accepted
+    local = [t for t, _ in list_frames(frames, time(11, 0, 2), detroit)]
+    truth = _truth_recording(tmp_path / "truth", local)
+    assert main([*argv, "--frames", str(frames), "--out", str(tmp_path / "o"), "--truth", str(truth)]) == 0
+    assert json.loads(capsys.readouterr().out)["score"]["labels"] > 0
+
+
+def test_area_leaves_out_the_frames_at_or_after_until(tmp_path, capsys):
+    """`roadside area` read every n-th frame of the whole folder, a held-out slice's too: --until as `static` has."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for k, x0 in enumerate((100, 120, 10)):  # the frame at 11:00:02 shows a lit patch further left
+        img = np.zeros((H, W), np.uint8)
+        img[:, x0:500] = 200
+        cv2.imwrite(str(folder / f"2023-12-19 11-00-0{k}-000000.png"), img)
+    assert main(["area", "--frames", str(folder), "--every", "1", "--until", "11:00:02"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["frames"] == 2 and out["detect_area_px"] == [100, 0, 500, H] and out["until"] == "11:00:02"
+    assert main(["area", "--frames", str(folder), "--every", "1"]) == 0  # without it, every frame
+    assert json.loads(capsys.readouterr().out)["detect_area_px"] == [10, 0, 500, H]
+    assert main(["area", "--frames", str(folder), "--until", "11:00:00"]) == 2
+    assert "no frames before 11:00:00" in capsys.readouterr().err
+
+
+def _truth_with(path: Path, t_ns: int, vehicles: list[dict]) -> Path:
+    _truth_recording(path, [t_ns])
+    (path / "gt" / "CAM.jsonl").write_text(json.dumps({"t_ns": t_ns, "vehicles": vehicles}) + "\n")
+    return path
+
+
+def test_a_label_on_any_true_vehicle_is_right_though_recall_counts_only_the_moving_visible_ones(tmp_path):
+    """score_labels matched the labels only against the vehicles counted for recall: a label on a parked car, a
+    mostly hidden one or one just outside the ROI counted as wrong."""
+    from training.autolabel import score_labels
+
+    def vehicle(xy, parked=False, visible=1.0):
+        return {"xyz": [*xy, 0.0], "yaw": 0.0, "in_image": True, "visible_fraction": visible, "parked": parked}
+
+    truth = _truth_with(tmp_path / "rec", 1000, [vehicle((5.0, 0.0)), vehicle((-5.0, 5.0), parked=True),
+                                                 vehicle((0.0, -8.0), visible=0.2), vehicle((0.0, 31.0))])
+    labels = [(5.2, 0.0), (-5.0, 5.3), (0.1, -8.0), (0.0, 30.5), (-9.0, -9.0)]  # the last one on nothing
+    doc = {"info": {"config": {"roi_m": 30.0}}, "images": [{"id": 0, "file_name": "x.png", "camera": "CAM",
+                                                           "t_ns": 1000}],
+           "annotations": [{"id": k, "image_id": 0, "category_id": 0, "bbox": [0, 0, 1, 1], "ground_xy_m": list(xy),
+                            "ground_yaw_rad": 0.0} for k, xy in enumerate(labels)]}
+    (tmp_path / "labels.json").write_text(json.dumps(doc))
+    r = score_labels(tmp_path / "labels.json", truth)
+    assert (r["labels"], r["precision"]) == (5, 0.8)
+    assert (r["true_vehicles"], r["recall"], r["headings"]) == (1, 1.0, 1)
+
+
+def test_the_ground_view_samples_the_masks_at_the_working_pixels_centre(tmp_path):
+    """At scale 0.5 working pixel p is centred on full-resolution position 2p + 0.5: the masks were read at 2p (the
+    nearest pixel, numpy rounding half to even), a quarter working pixel off."""
+    from calibration.masks import load_masks
+    from training.autolabel import GroundView
+
+    view = GroundView(load_masks(_masks(tmp_path / "masks.npz")), 0.5, 40.0)
+    assert view.valid.shape == (H // 2, W // 2) and view.valid.all()
+    v, u = np.mgrid[0:H // 2, 0:W // 2].astype(np.float64)
+    q_u, q_v = 2 * u + 0.5, 2 * v + 0.5
+    np.testing.assert_allclose(view.xy, np.stack([(q_u - CX) * M_PER_PX, (CY - q_v) * M_PER_PX], axis=2), atol=1e-5)
+    # a ground point back to its working pixel: (u, v) = ((q_u, q_v) - 0.5) / 2
+    p = view.to_pixel(np.array([3.0, -4.0]), (0, 0, W // 2 - 1, H // 2 - 1))
+    np.testing.assert_allclose(p, ((_uv((3.0, -4.0)) + 0.5) / 2 - 0.5), atol=1e-4)

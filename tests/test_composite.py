@@ -52,9 +52,11 @@ def test_labels_sit_on_the_drawn_vehicles_over_the_untouched_background(small_re
     assert used == 2
     bg = cv2.resize(cv2.cvtColor(bg_full, cv2.COLOR_BGR2GRAY), (640, 480), interpolation=cv2.INTER_AREA)
     m = load_masks(masks)
-    xy = m.xy[::2, ::2]  # as GroundView: working pixel p <-> full-resolution pixel round(2p + 0.5) = 2p
+    # as GroundView: working pixel p <-> full-resolution position 2p + 0.5, the lookup sampled there
+    q = np.stack(np.meshgrid(np.arange(640) * 2 + 0.5, np.arange(480) * 2 + 0.5), axis=2).reshape(-1, 2)
+    _, xy, ok = m.lookup(q, geodetic=False)
     foot = np.asarray(m.meta["camera"]["pose"]["position_m"][:2])
-    roi = m.valid[::2, ::2] & (np.hypot(*(xy - foot).transpose(2, 0, 1)) <= CFG.roi_m)
+    roi = ok.reshape(480, 640) & (np.hypot(*(xy.reshape(480, 640, 2) - foot).transpose(2, 0, 1)) <= CFG.roi_m)
     drawn = np.zeros((480, 640), bool)
     for s in samples:
         img = s.image.astype(np.float32)

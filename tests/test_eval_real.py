@@ -266,3 +266,33 @@ def test_the_real_labels_load_and_the_shipped_model_is_scored(capsys):
     r = json.loads(capsys.readouterr().out)
     assert r["overall"]["frames"] == 40 and r["overall"]["labels"] >= 100
     assert (r["footprint_overlap"], r["footprint_merge"]) == (1.5, False)  # the site's localize rule, as scored
+
+
+def test_the_cli_takes_the_sites_site_yaml_as_well_as_its_folder(tmp_path, monkeypatch, capsys):
+    """`eval real --site <folder>/site.yaml` looked for site.yaml/labels and site.yaml/masks: labels/ and masks/ are
+    the ones beside the file, with the model's detections and with tracks alike."""
+    import yaml
+
+    import shared.inference
+    from services.ingest.sources import capture_time_from_name
+
+    site, footage = _site(tmp_path)
+    (site / "site.yaml").write_text(yaml.safe_dump({"site": "t", "cameras": [
+        {"name": "C1", "kind": "fisheye", "width": W, "height": H, "masks": "masks/C1.npz"}]}))
+    _labels(site, {"2023-12-19 11-00-41-000000.jpg": [[200, 120]], "2023-12-19 11-00-43-000000.jpg": [[160, 140]]})
+
+    class FakeDetector:  # the labels' own points: every label found
+        def __init__(self, *_args, **_kwargs) -> None:
+            self.detect = _detector([[[200, 120]], [[160, 140]]])
+
+    monkeypatch.setattr(shared.inference, "OnnxDetector", FakeDetector)
+    t1 = capture_time_from_name("2023-12-19 11-00-41-000000.jpg")
+    tracks = tmp_path / "tracks.jsonl"  # rows with lat and lon too, as the CLI's site check reads them
+    tracks.write_text("".join(json.dumps({"site": "t", "t_ns": t, "tracker": "t1", "tracks": [
+        {"id": 1, "x": x, "y": y, "lat": 42.0 + y / 111e3, "lon": -83.0 + x / 82e3}]}) + "\n"
+        for t, x, y in ((t1, 10.0, 0.0), (t1 + 2 * 10**9, 0.0, -5.0))))
+    for flags in (["--model", str(tmp_path / "model.onnx")], ["--tracks", str(tracks)]):
+        assert main(["eval", "real", *flags, "--site", str(site / "site.yaml"), "--footage", str(footage),
+                     "--json"]) == 0, capsys.readouterr().err
+        r = json.loads(capsys.readouterr().out)
+        assert (r["overall"]["labels"], r["overall"]["true_positives"], r["overall"]["precision"]) == (2, 2, 1.0)

@@ -64,10 +64,10 @@ def test_the_teacher_gives_moving_tracks_carried_to_the_frame_time(scene, tmp_pa
 
 def test_a_hidden_moving_vehicle_becomes_a_label_and_nothing_else_does(scene, tmp_path):
     frames, masks, times = scene
-    teacher = TrackTeacher(_tracks(tmp_path / "tracks.jsonl", times))
     report = autolabel_camera(frames, masks, tmp_path / "out", "CAM", until=time(11, 0, 2), cfg=CFG, log=None,
-                              tracks=teacher)
+                              tracks=_tracks(tmp_path / "tracks.jsonl", times))
     assert report["from_tracks"] == 10 and report["vehicles"] == 30  # the two drawn cars, and the hidden one
+    assert report["track_lines_after_slice"] == 0
     doc = json.loads((tmp_path / "out" / "labels.json").read_text())
     labs = [a for a in doc["annotations"] if a.get("from_tracks")]
     assert {a["track_id"] for a in labs} == {"tracker-a/2"}
@@ -90,11 +90,11 @@ def test_frames_named_in_local_time_meet_the_tracks_only_in_their_time_zone(scen
     from zoneinfo import ZoneInfo
 
     frames, masks, times = scene
-    later = TrackTeacher(_tracks(tmp_path / "tracks.jsonl", [t + 5 * 3600 * 10**9 for t in times]))
+    later = _tracks(tmp_path / "tracks.jsonl", [t + 5 * 3600 * 10**9 for t in times])
     report = autolabel_camera(frames, masks, tmp_path / "out", "CAM", until=time(11, 0, 2), cfg=CFG, log=None,
                               tracks=later, tz=ZoneInfo("America/Detroit"))
     assert report["from_tracks"] == 10
-    with pytest.raises(ValueError, match="do not span the frames' capture times"):
+    with pytest.raises(ValueError, match=r"holds no tracks before \d+ ns .* in another time zone"):
         autolabel_camera(frames, masks, tmp_path / "out2", "CAM", until=time(11, 0, 2), cfg=CFG, log=None,
                          tracks=later)
 
@@ -140,3 +140,54 @@ def test_a_vehicle_at_the_edge_of_the_calibrated_ground_gets_a_finite_box_or_non
             assert np.isfinite(lab["box"]).all() and np.isfinite(lab["uv"]).all(), lab
             assert lab["box"][1] >= 149.5  # the box stays on the calibrated ground
     assert 0 < made < 60
+
+
+def test_only_the_lines_before_the_end_decide_which_tracks_moved(tmp_path):
+    """A car that waits through the training slice and drives off after it: with the whole file it was a moving
+    vehicle, and so labelled where it waited; lines at or after `t_end_ns` are not read at all."""
+    path = tmp_path / "tracks.jsonl"
+    lines = [{"site": "se", "seq": k, "t_ns": k * 200_000_000, "tracker": "tr",
+              "tracks": [_row(5, (5.0, -10.0), (0.0, 0.0 if k < 10 else 3.0), math.pi / 2)]} for k in range(15)]
+    path.write_text("".join(json.dumps(ln) + "\n" for ln in lines))
+    assert TrackTeacher(path).vehicles == {"tr/5"}  # the whole file: it moved
+    before = TrackTeacher(path, t_end_ns=10 * 200_000_000)
+    assert before.vehicles == set() and before.at(9 * 200_000_000) == []
+    assert before.lines_after_end == 5 and before.times[-1] == 9 * 200_000_000 and before.tracks_seen == 1
+    with pytest.raises(ValueError, match=r"holds no tracks before 0 ns \(the end of the frames' slice; 15 lines"):
+        TrackTeacher(path, t_end_ns=0)
+
+
+def test_autolabel_reads_the_tracks_only_up_to_the_until_instant(scene, tmp_path):
+    """`autolabel --until --tracks` with the tracks of the whole footage: a track standing through the labelled frames
+    that moves from the until instant on gives no labels, and the lines left out are reported."""
+    frames, masks, _ = scene
+    every = [t for t, _ in list_frames(frames)]  # the 11th frame, at 11:00:02 (the until instant), is held out
+    cut = every[-1]
+    lines = []
+    for k, t_ns in enumerate([*every, cut + 200_000_000, cut + 400_000_000]):
+        t = k / HZ + 0.03
+        hidden = np.array(HIDDEN[0]) + t * np.array(HIDDEN[1])
+        waiting = _row(5, (-8.0, -6.0), (0.0, 0.0) if t_ns < cut else (4.0, 0.0), 0.0)
+        lines.append({"site": "se", "seq": k, "t_ns": t_ns + 30_000_000, "tracker": "tracker-a",
+                      "tracks": [_row(2, hidden, HIDDEN[1], math.pi / 2), waiting]})
+    path = tmp_path / "tracks.jsonl"
+    path.write_text("".join(json.dumps(ln) + "\n" for ln in lines))
+    assert TrackTeacher(path).vehicles == {"tracker-a/2", "tracker-a/5"}  # on all its lines the waiting car moved
+    report = autolabel_camera(frames, masks, tmp_path / "out", "CAM", until=time(11, 0, 2), cfg=CFG, log=None,
+                              tracks=path)
+    doc = json.loads((tmp_path / "out" / "labels.json").read_text())
+    assert {a["track_id"] for a in doc["annotations"] if a.get("from_tracks")} == {"tracker-a/2"}
+    assert report["from_tracks"] == 10 and report["track_lines_after_slice"] == 3
+    # without --until the slice ends just after the last frame it lists: the line 30 ms after it is left out too
+    listed = tmp_path / "listed"
+    listed.mkdir()
+    for _, p in list_frames(frames, time(11, 0, 2)):
+        (listed / p.name).write_bytes(p.read_bytes())
+    report = autolabel_camera(listed, masks, tmp_path / "out2", "CAM", cfg=CFG, log=None, tracks=path)
+    assert report["track_lines_after_slice"] == 4 and report["from_tracks"] == 9
+    # tracks all before the frames: refused as before
+    early = tmp_path / "early.jsonl"
+    early.write_text("".join(json.dumps({**ln, "t_ns": ln["t_ns"] - 3600 * 10**9}) + "\n" for ln in lines))
+    with pytest.raises(ValueError, match="do not span the frames' capture times"):
+        autolabel_camera(frames, masks, tmp_path / "out3", "CAM", until=time(11, 0, 2), cfg=CFG, log=None,
+                         tracks=early)

@@ -44,7 +44,7 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import asdict, dataclass
-from datetime import UTC, datetime, time, tzinfo
+from datetime import UTC, time, tzinfo
 from pathlib import Path
 
 import cv2
@@ -54,12 +54,13 @@ from scipy.optimize import linear_sum_assignment
 from calibration.masks import LookupMasks, load_masks
 from services.ingest.sources import capture_time_from_name
 from shared.raster import bilinear, bilinear_cells
-from training.track_labels import label_from_track
+from training.track_labels import TrackTeacher, label_from_track
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
 COCO_PIXEL_OFFSET = 0.5  # COCO coordinate = our pixel-centre coordinate + 0.5 (as training.data)
 CAR_MAX_M = (6.5, 2.8)  # a union of two vehicle-sized parts no bigger than this is one car
 MERGE_GAP_PX = 12  # components this close may be one vehicle behind an occluder (see find_blobs)
+NS_PER_DAY = 86_400 * 10**9
 
 
 @dataclass(frozen=True)
@@ -110,13 +111,28 @@ class Blob:
     heading_xy: np.ndarray | None = None  # unit vector, site frame
 
 
+def name_clock_ns(name: str) -> int | None:
+    """The time of day a file name gives, ns after midnight, the clock `--until` reads whatever the names' time zone:
+    a date-time name's own fields as written, an epoch name's (a simulator recording's) UTC time of day. None when
+    the name carries no time."""
+    t = capture_time_from_name(name, UTC)  # read as UTC, a date and time keeps exactly the fields it is written with
+    return None if t is None else t % NS_PER_DAY
+
+
+def time_of_day_ns(until: time) -> int:
+    """A time of day (`--until`) in ns after midnight."""
+    return ((until.hour * 60 + until.minute) * 60 + until.second) * 10**9 + until.microsecond * 1000
+
+
 def list_frames(folder: str | Path, until: time | None = None, tz: tzinfo = UTC) -> list[tuple[int, Path]]:
     """(capture time ns, path) of the images in `folder`, in time order, the names read in time zone `tz` (as ingest
-    reads them with `ingest.timezone`); frames at or after the time of day `until` (read from the names, as
-    written) are left out. Raises ValueError when a name has no time."""
+    reads them with `ingest.timezone`); frames at or after the time of day `until` are left out, `until` being the
+    clock written in the names (`name_clock_ns`: not moved by `tz`; the UTC time of day for names of epoch time).
+    Raises ValueError when a name has no time."""
     folder = Path(folder)
     if not folder.is_dir():
         raise ValueError(f"frames folder not found: {folder}")
+    until_ns = None if until is None else time_of_day_ns(until)
     out = []
     for path in sorted(folder.iterdir()):
         if path.suffix.lower() not in IMAGE_SUFFIXES:
@@ -124,7 +140,7 @@ def list_frames(folder: str | Path, until: time | None = None, tz: tzinfo = UTC)
         t = capture_time_from_name(path.name, tz)
         if t is None:
             raise ValueError(f"{path}: no capture time in the file name (expected e.g. 2023-12-19 11-00-00-034395)")
-        if until is not None and datetime.fromtimestamp(t / 1e9, tz).time() >= until:
+        if until_ns is not None and name_clock_ns(path.name) >= until_ns:
             continue
         out.append((t, path))
     if not out:
@@ -150,13 +166,15 @@ class GroundView:
         self.size = (w, h)
         self.scale = scale
         ws, hs = round(w * scale), round(h * scale)
-        # working pixel centre p <-> full-resolution pixel centre q: q + 0.5 = (p + 0.5) / scale
+        # working pixel centre p <-> full-resolution position q: q + 0.5 = (p + 0.5) / scale. At scale 0.5 that is
+        # 2p + 0.5, between two full-resolution pixel centres: sampled bilinearly there (the nearest pixel, by
+        # numpy's rounding half to even always 2p, was a quarter working pixel off), valid where the lookup is
         uq = (np.arange(ws) + 0.5) / scale - 0.5
         vq = (np.arange(hs) + 0.5) / scale - 0.5
-        ui = np.clip(np.round(uq).astype(int), 0, w - 1)
-        vi = np.clip(np.round(vq).astype(int), 0, h - 1)
-        self.xy = masks.xy[vi[:, None], ui[None, :]].astype(np.float64)
-        self.valid = masks.valid[vi[:, None], ui[None, :]]
+        grid = np.stack(np.meshgrid(uq, vq), axis=2).reshape(-1, 2)
+        _, xy, ok = masks.lookup(grid, geodetic=False)
+        self.xy = xy.reshape(hs, ws, 2)
+        self.valid = ok.reshape(hs, ws)
         pos = masks.camera_position_m()
         self.foot = pos[:2]
         self.height_m = float(pos[2])
@@ -370,17 +388,25 @@ def teacher_regions(frames: list[np.ndarray], view: GroundView, detect, cfg: Aut
 
 def autolabel_camera(frames_dir: str | Path, masks_path: str | Path, out_dir: str | Path, camera: str,
                      until: time | None = None, cfg: AutolabelConfig | None = None, log=print,
-                     teacher=None, tracks=None, tz: tzinfo = UTC) -> dict:
+                     teacher=None, tracks: str | Path | None = None, tz: tzinfo = UTC) -> dict:
     """Label one camera's frames; writes `out_dir`/images/*.png and `out_dir`/labels.json (COCO-style);
     returns the report (also in `out_dir`/report.json). `teacher`: a detector (grey image -> detections
     with score, uv, box) whose detections become ignore regions (module doc, step 5); None: no teacher.
-    `tracks`: a `training.track_labels.TrackTeacher` (the pipeline's tracks of the same footage): its moving
-    vehicles away from the frame's labels and ignore regions become labels too (`from_tracks` in the file);
-    `tz`: the time zone of the frames' names (the site's `ingest.timezone`), so that they meet the tracks' times."""
+    `tracks`: a tracks file (the pipeline's tracks of the same footage, read by `training.track_labels.TrackTeacher`):
+    its moving vehicles away from the frame's labels and ignore regions become labels too (`from_tracks` in the file).
+    Only its lines before the end of the labelled slice are read (the `until` instant, or just after the last frame
+    without one), so that nothing after the slice decides which tracks moved; the report counts the lines left out
+    (`track_lines_after_slice`). `tz`: the time zone of the frames' names (the site's `ingest.timezone`), so that they
+    meet the tracks' times."""
     cfg = cfg or AutolabelConfig()
     masks = load_masks(masks_path)
     view = GroundView(masks, cfg.scale, cfg.roi_m)
     listed = list_frames(frames_dir, until, tz)
+    if tracks is not None:
+        t_last, last = listed[-1]
+        # the until instant: the last frame's capture time plus what its name's clock lacks to `until`
+        t_end = t_last + 1 if until is None else t_last + time_of_day_ns(until) - name_clock_ns(last.name)
+        tracks = TrackTeacher(tracks, t_end_ns=t_end)
     if tracks is not None and not (tracks.times[0] - 10**9 <= listed[-1][0] and listed[0][0] <= tracks.times[-1]
                                    + 10**9):
         raise ValueError(f"the tracks ({tracks.times[0]} to {tracks.times[-1]} ns) do not span the frames' capture "
@@ -470,7 +496,7 @@ def autolabel_camera(frames_dir: str | Path, masks_path: str | Path, out_dir: st
     (out_dir / "labels.json").write_text(json.dumps(doc))
     report = {"camera": camera, "frames": len(frames), "first": listed[0][1].name, "last": listed[-1][1].name,
               "tracks": n_tracks, "tracks_long_enough": sum(1 for v in lengths.values() if v >= cfg.min_track_frames),
-              **n, "dropped": counts}
+              **n, "track_lines_after_slice": tracks.lines_after_end if tracks is not None else 0, "dropped": counts}
     (out_dir / "report.json").write_text(json.dumps(report, indent=1))
     if log:
         log(f"[autolabel] {camera}: {json.dumps(report)}")
@@ -500,10 +526,11 @@ def draw(labels_json: str | Path, image_id: int) -> np.ndarray:
     return canvas
 
 
-def check_truth(frames_dir: str | Path, recording: str | Path, camera: str, until: time | None = None) -> None:
+def check_truth(frames_dir: str | Path, recording: str | Path, camera: str, until: time | None = None,
+                tz: tzinfo = UTC) -> None:
     """ValueError unless the simulator recording has the camera and ground truth at the capture time of every frame
-    in `frames_dir` (before `until`) that autolabel_camera would label: what score_labels needs, checked before
-    anything is written. The error names the first frame without it."""
+    in `frames_dir` (before `until`) that autolabel_camera would label with the same `until` and `tz`: what
+    score_labels needs, checked before anything is written. The error names the first frame without it."""
     from sim.recording import Recording
 
     rec = Recording(recording)
@@ -514,7 +541,7 @@ def check_truth(frames_dir: str | Path, recording: str | Path, camera: str, unti
         if not isinstance(g, dict) or not isinstance(g.get("t_ns"), int):
             raise ValueError(f"truth recording {rec.path}: ground truth of {camera}, line {n}: no whole t_ns")
         times.add(g["t_ns"])
-    for t_ns, path in list_frames(frames_dir, until):
+    for t_ns, path in list_frames(frames_dir, until, tz):
         if t_ns not in times:
             raise ValueError(f"{path}: the truth recording {rec.path} has no ground truth of {camera} at its capture "
                              f"time ({t_ns} ns): not a recording of these frames")
@@ -523,9 +550,10 @@ def check_truth(frames_dir: str | Path, recording: str | Path, camera: str, unti
 def score_labels(labels_json: str | Path, recording: str | Path, match_m: float = 1.5,
                  min_visible: float = 0.5) -> dict:
     """How right autolabel was on a simulator recording: labels (not ignored) within `match_m` of a true
-    vehicle's ground centre are correct (precision); true vehicles inside the labelled area (within the
-    config's roi_m of the camera's foot, at least `min_visible` visible, not parked) that got a label
-    (recall); heading error of the matched labels that have one (degrees)."""
+    vehicle's ground centre are correct (precision; any vehicle of the frame's ground truth, parked, mostly hidden
+    or outside the ROI too, one label each); true vehicles inside the labelled area (within the config's roi_m of
+    the camera's foot, at least `min_visible` visible, not parked) that got a label (recall); heading error of the
+    labels matched to those that have one (degrees)."""
     from sim.recording import Recording
 
     labels_json = Path(labels_json)
@@ -545,20 +573,26 @@ def score_labels(labels_json: str | Path, recording: str | Path, match_m: float 
         if img["t_ns"] not in truth:
             raise ValueError(f"{img.get('source', img['file_name'])}: {rec.path} has no ground truth of {camera} at "
                              f"its capture time ({img['t_ns']} ns)")
-        gt = [v for v in truth[img["t_ns"]]["vehicles"]
+        every = truth[img["t_ns"]]["vehicles"]
+        gt = [v for v in every
               if v["in_image"] and v["visible_fraction"] >= min_visible and not v.get("parked")
               and np.hypot(*(np.asarray(v["xyz"][:2]) - foot)) <= roi_m]
         labs = [a for a in by_ann.get(img["id"], []) if not a.get("iscrowd")]
         n_lab += len(labs)
         n_true += len(gt)
-        if not gt or not labs:
+        if not labs:
             continue
-        d = np.linalg.norm(np.array([a["ground_xy_m"] for a in labs])[:, None]
-                           - np.array([v["xyz"][:2] for v in gt])[None], axis=2)
+        lab_xy = np.array([a["ground_xy_m"] for a in labs])
+        if every:  # precision: a label on any true vehicle is right, one the recall leaves out (parked, hidden) too
+            d = np.linalg.norm(lab_xy[:, None] - np.array([v["xyz"][:2] for v in every])[None], axis=2)
+            rows, cols = linear_sum_assignment(d)
+            n_lab_ok += int((d[rows, cols] <= match_m).sum())
+        if not gt:
+            continue
+        d = np.linalg.norm(lab_xy[:, None] - np.array([v["xyz"][:2] for v in gt])[None], axis=2)
         rows, cols = linear_sum_assignment(d)
         for r, c in zip(rows, cols, strict=True):
             if d[r, c] <= match_m:
-                n_lab_ok += 1
                 n_true_found += 1
                 if "ground_yaw_rad" in labs[r]:
                     e = np.angle(np.exp(1j * (labs[r]["ground_yaw_rad"] - gt[c]["yaw"])))

@@ -14,6 +14,10 @@ ground: the flat-ground model `training.autolabel` uses for footprints).
 
 A track that never moved faster than `moving_mps` gives no labels: static clutter the detector fires on (lamp
 heads, painted words) makes steady tracks too, and a parked car cannot be told from it this way.
+
+With an end time (`t_end_ns`: autolabel gives the end of the slice it labels) the lines at or after it are left out
+altogether: whether a track moved is then decided from the training slice alone, so that a car that waits through
+the slice and drives off in a held-out slice after it is not labelled while it waits.
 """
 
 from __future__ import annotations
@@ -60,14 +64,16 @@ class TrackedVehicle:
 
 
 class TrackTeacher:
-    """The moving tracks of a tracks file, looked up by capture time (module doc)."""
+    """The moving tracks of a tracks file, looked up by capture time (module doc); only its lines before `t_end_ns`
+    (None: all) are used, `lines_after_end` counts the others."""
 
-    def __init__(self, path: str | Path, cfg: TrackLabelConfig | None = None) -> None:
+    def __init__(self, path: str | Path, cfg: TrackLabelConfig | None = None, t_end_ns: int | None = None) -> None:
         self.cfg = cfg or TrackLabelConfig()
         path = Path(path)
         if not path.is_file():
             raise ValueError(f"tracks file missing: {path}")
         lines: list[tuple[int, str, tuple[TrackRow, ...]]] = []
+        after = 0
         with path.open(encoding="utf-8", errors="replace") as f:  # bytes that are not text fail as bad JSON
             for n, text in enumerate(f, 1):
                 if not text.strip():
@@ -76,7 +82,14 @@ class TrackTeacher:
                     msg = parse_tracks_message(json.loads(text))
                 except (json.JSONDecodeError, ValueError) as exc:
                     raise ValueError(f"{path}: line {n}: {exc}") from None
+                if t_end_ns is not None and msg.t_ns >= t_end_ns:  # after the slice: not even to tell who moved
+                    after += 1
+                    continue
                 lines.append((msg.t_ns, msg.tracker, msg.rows))
+        if not lines and after:
+            raise ValueError(f"tracks file {path} holds no tracks before {t_end_ns} ns (the end of the frames' slice; "
+                             f"{after} lines at or after it): the tracks of a later slice or of another footage, or "
+                             "the frames' names read in another time zone than the tracks'?")
         if not lines:
             raise ValueError(f"tracks file {path} holds no tracks")
         lines.sort(key=lambda ln: ln[0])
@@ -93,6 +106,7 @@ class TrackTeacher:
         self.times = [t for t, _, _ in lines]
         self.lines = lines
         self.tracks_seen = len(seen)
+        self.lines_after_end = after
 
     def at(self, t_ns: int) -> list[TrackedVehicle]:
         """The moving tracks of the line nearest t_ns (within max_gap_s), carried to t_ns by their velocity."""
