@@ -45,6 +45,9 @@ TRACK_COLUMNS = {"id": ("<i8", ()), "xy": ("<f8", (2,)), "latlon": ("<f8", (2,))
 CHI2_2DOF_95 = 5.991  # a 2D Gaussian's 95 % ellipse: squared Mahalanobis distance within this
 ACCEL_STD_MPS2 = 1.5  # moving tracks on: the acceleration their velocities leave unknown (docs/wire-format.md)
 WGS84_A, WGS84_E2 = 6378137.0, 0.00669437999014  # the ellipsoid's semi-major axis (m), first eccentricity squared
+# a message of the tracker printed last, captured this much before the last one: a recording played again
+# (docs/wire-format.md, "Order"; shared.client.TrackClient's rule)
+REPLAYED_NS = 5 * 10**9
 
 
 class BadMessage(ValueError):
@@ -131,6 +134,14 @@ def decode_tracks(payload: bytes) -> dict:
             "tracker": msg.get("tracker", ""), "tracks": tracks}
 
 
+def seen(msg: dict, last: tuple[str, int, int] | None) -> bool:
+    """Whether a decoded message is one to skip: of the tracker of the message used last (`last`: its tracker, seq,
+    t_capture_ns) with a seq not above its seq, a duplicate or stale, unless it was captured more than REPLAYED_NS
+    before it: then the same recording is played again (`roadside play`: the tracker's seq starts at 0 again)."""
+    return (last is not None and msg["tracker"] == last[0] and msg["seq"] <= last[1]
+            and msg["t_capture_ns"] >= last[2] - REPLAYED_NS)
+
+
 def move_on(msg: dict, dt_s: float) -> dict:
     """A decoded message's tracks moved on `dt_s` seconds at their velocities, their uncertainty grown to match
     and latitude and longitude moved with them (docs/wire-format.md, "Where a vehicle is now"); `t_ns` is the time
@@ -169,7 +180,7 @@ def listen(site: str, connect: str, count: int, timeout_s: float, wait_s: float,
         conf.insert_json5("transport/link/tls/enable_mtls", "true")
         conf.insert_json5("transport/link/tls/connect_certificate", json.dumps(cert))
         conf.insert_json5("transport/link/tls/connect_private_key", json.dumps(key))
-    printed, last = 0, None  # last: (tracker, seq) of the newest message printed
+    printed, last = 0, None  # last: (tracker, seq, t_capture_ns) of the newest message printed
 
     def show(payload: bytes) -> bool:
         nonlocal printed, last
@@ -178,9 +189,9 @@ def listen(site: str, connect: str, count: int, timeout_s: float, wait_s: float,
         except BadMessage as exc:
             print(f"skipped a message: {exc}", file=sys.stderr, flush=True)
             return False
-        if last is not None and msg["tracker"] == last[0] and msg["seq"] <= last[1]:
+        if seen(msg, last):
             return False  # already printed (the answer to the query may also arrive on the subscription)
-        last = (msg["tracker"], msg["seq"])
+        last = (msg["tracker"], msg["seq"], msg["t_capture_ns"])
         print(json.dumps(move_on(msg, ahead_ms / 1000) if ahead_ms else msg), flush=True)
         printed += 1
         return True

@@ -606,7 +606,7 @@ def _run_counts_live(args, settings, junction) -> int:
             print(f"counting the live tracks of site {settings.site} in {args.bin_s:g} s bins", file=sys.stderr,
                   flush=True)
             beat = -math.inf
-            for tracks in client.stream(timeout_s=args.timeout, stop=stop):
+            for tracks in client.stream(timeout_s=args.timeout, stop=stop, latest=False):
                 if args.heartbeat is not None and time.monotonic() - beat >= HEARTBEAT_S:
                     args.heartbeat.touch()
                     beat = time.monotonic()
@@ -770,7 +770,7 @@ def _run_viz_live(args) -> int:
         rec.send_recording_name(f"{settings.site} live")
 
         def messages():
-            for n, tracks in enumerate(client.stream(timeout_s=args.timeout, stop=stop), 1):
+            for n, tracks in enumerate(client.stream(timeout_s=args.timeout, stop=stop, latest=False), 1):
                 yield tracks
                 if args.count and n >= args.count:
                     return

@@ -143,9 +143,22 @@ def _run_tracks(args) -> int:
             if others:
                 print(f"roadside tracks: no tracks of site {args.site} on this bus; it has site"
                       f"{'s' * (len(others) > 1)} {', '.join(sorted(others))} (--site)", file=sys.stderr, flush=True)
-        for tracks in client.stream(timeout_s=args.timeout, current=current):
+        # printed for a person: the newest when the terminal is slower than the ticks; a JSON line per message is a
+        # tracks file (below) and gets every one
+        stale = False  # in a run of messages too old (or too new) to move on to now
+        for tracks in client.stream(timeout_s=args.timeout, current=current, latest=not args.json):
             if args.now:
-                tracks = tracks.predicted(time.time_ns())
+                try:
+                    tracks = tracks.predicted(time.time_ns())
+                except ValueError as exc:
+                    if not n:  # the first message says whether this machine shares the cabinet's clock: refused
+                        raise
+                    if not stale:  # later, a message that waited too long on the way (or in this reader): skipped
+                        print(f"roadside tracks: warning: skipping messages that cannot be moved on to now: {exc}",
+                              file=sys.stderr, flush=True)
+                    stale = True
+                    continue
+                stale = False
             elif args.ahead_ms:
                 tracks = tracks.predicted(tracks.t_capture_ns + round(args.ahead_ms * 1e6))
             rows = tracks.rows()

@@ -4,7 +4,7 @@
     from shared.messages import err95_m
 
     with TrackClient("state_ellsworth", connect=["tcp/192.168.1.10:7447"]) as client:
-        for tracks in client.stream():          # shared.messages.Tracks, newest first
+        for tracks in client.stream():          # shared.messages.Tracks: the current ones, then the newest
             for row in tracks.rows():           # id, x, y, lat, lon, vx, vy, yaw, length, ..., cameras, xy_cov
                 print(row["id"], row["lat"], row["lon"], row["type"])
             worst = err95_m(tracks.xy_cov)      # (N,) m: each position's 95 % error ellipse, longest half-axis
@@ -17,7 +17,10 @@ on (a metre in 70 ms at 50 km/h): `Tracks.predicted(t_ns)` moves them to t_ns at
 uncertainty to match (docs/wire-format.md, "Where a vehicle is now").
 
 A client that joins late gets the current tracks at once: `stream()` first asks fuse_track's
-queryable (`roadside/<site>/tracks/latest`) for the newest message, then follows the live ones.
+queryable (`roadside/<site>/tracks/latest`) for the newest message, then follows the live ones. A loop slower than
+the cabinet's tick (10 Hz) does not fall behind: `stream()` gives the newest of the messages that came while the
+loop was busy and counts the older ones in `client.skipped`; a tool that needs every message (a recorder, counts)
+asks for them with `stream(latest=False)`.
 `connect` is the cabinet's Zenoh router (or, on the embedded default, any service's loopback port); without it, the
 router of a `bus` in client mode (a site's settings at the cabinet), else fuse_track's port of the bus; over TLS
 (`tls/HOST:7448`) give the cabinet's CA certificate as `bus=BusSettings(tls_root_ca=...)`, and the client refuses a
@@ -73,6 +76,7 @@ class TrackClient:
         set_tls(conf, bus)
         self.site = site
         self.bad = BadInput("tracks-client")
+        self.skipped = 0  # messages stream() passed over for a newer one (the caller's loop was slower than them)
         try:
             self.session = zenoh.open(conf)
         except zenoh.ZError as exc:
@@ -105,9 +109,14 @@ class TrackClient:
         return found
 
     def stream(self, timeout_s: float | None = None, poll_s: float = 0.1,
-               stop: threading.Event | None = None, current: Tracks | object | None = ...) -> Iterator[Tracks]:
-        """The current tracks at once, then every new message; stops after `timeout_s` without one, or within
+               stop: threading.Event | None = None, current: Tracks | object | None = ...,
+               latest: bool = True) -> Iterator[Tracks]:
+        """The current tracks at once, then the new messages; stops after `timeout_s` without one, or within
         `poll_s` of `stop` being set (e.g. by a signal handler: the caller's loop then ends normally).
+        `latest`: of the messages that arrived while the caller was busy with the last one, only the newest is
+        given and the others are counted in `self.skipped` (a vehicle's loop slower than the tick would otherwise
+        fall further and further behind, its tracks too old for `Tracks.predicted` to move on to now); False: every
+        message, in order (a recorder, counts, a viewer's timeline).
         Messages of the same tracker not newer than the last one given (queued when the current one was asked
         for, duplicates, out of order) are skipped; a restarted fuse_track (another tracker id, seq from 0) is
         followed at once, and so is a recording played again (`roadside play`: the same tracker, its seq and
@@ -122,15 +131,19 @@ class TrackClient:
             yield current
         quiet_since = time.monotonic()
         while stop is None or not stop.is_set():
-            got = False
-            for msg in self.receiver.poll():
-                got = True
+            received = self.receiver.poll()
+            fresh = []  # the new ones, in the order they came
+            for msg in received:
                 if (last is not None and msg.tracker == last[0] and msg.seq <= last[1]
                         and msg.t_capture_ns >= last[2] - REPLAYED_NS):
                     continue  # a duplicate or one older than what the caller already has
                 last = (msg.tracker, msg.seq, msg.t_capture_ns)
-                yield msg  # type: ignore[misc]
-            if got:
+                fresh.append(msg)
+            if latest and len(fresh) > 1:
+                self.skipped += len(fresh) - 1
+                fresh = fresh[-1:]
+            yield from fresh  # type: ignore[misc]
+            if received:
                 quiet_since = time.monotonic()
             elif timeout_s is not None and time.monotonic() - quiet_since > timeout_s:
                 return

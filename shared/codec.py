@@ -4,7 +4,8 @@ A message is a msgpack map `{"kind": "<frame|detections|objects|tracks|status>",
 travels as `{"dtype": "<f4", "shape": [N, 2], "data": <bytes>}` with its dtype from a small
 allow-list and is decoded with `numpy.frombuffer` (little-endian, C order); a field declared as a map (a Status
 message's counts) travels as a plain msgpack map. `decode` raises
-`DecodeError` with the reason for anything else: garbage bytes, an unknown kind, a wrong schema
+`DecodeError` with the reason for anything else: garbage bytes, more lists or map entries than any message holds
+(refused while msgpack reads them: MAX_LIST_LEN, MAX_MAP_LEN, MAX_ITEMS), an unknown kind, a wrong schema
 version, a disallowed dtype, a shape that does not match the bytes, a field that fails validation.
 """
 
@@ -18,11 +19,22 @@ import msgpack
 import numpy as np
 from pydantic import ValidationError
 
-from shared.messages import MAX_STAMPS, MESSAGE_TYPES, Message
+from shared.messages import MAX_ROWS, MAX_STAMPS, MAX_STATUS_ENTRIES, MESSAGE_TYPES, Message
 
 ALLOWED_DTYPES = frozenset({"|u1", "|i1", "<u2", "<i2", "<i4", "<u4", "<i8", "<f4", "<f8", "|b1"})
 MAX_MESSAGE_BYTES = 48 * 1024 * 1024
 MAX_ARRAY_ITEMS = 10_000_000
+# What msgpack may build of a payload before any check runs: an empty list is one byte on the wire and some 60 in
+# memory, so a payload of them (or of short lists nested in lists) would cost gigabytes. Each limit is the most a
+# valid message holds. The longest list: a Tracks message's cameras or frames, one per row (stamps: MAX_STAMPS).
+MAX_LIST_LEN = MAX_ROWS
+# the largest map: a Status message's counts, rates, bad or gauges, or a message's own fields (and its "kind")
+MAX_MAP_LEN = max(MAX_STATUS_ENTRIES, *(len(cls.model_fields) + 1 for cls in MESSAGE_TYPES.values()))
+# the entries of all the lists and maps of a message (every list or map but the message's own map is one, so nested
+# short lists count): a Tracks message of MAX_ROWS rows holds at most 286,720, each row an entry of `cameras` holding
+# up to 64 names and one of `frames` holding 4 values; the rest of any message fits in the 4096 over that (a Status
+# message's maps hold 1200)
+MAX_ITEMS = MAX_ROWS * (1 + 64 + 1 + 4) + 4096
 
 
 class DecodeError(ValueError):
@@ -81,9 +93,25 @@ def decode(payload: bytes | bytearray | memoryview, expect: type[Message] | None
     """msgpack bytes -> a validated message (of type `expect` when given); DecodeError says why not."""
     if len(payload) > MAX_MESSAGE_BYTES:
         raise DecodeError(f"message of {len(payload)} bytes exceeds the {MAX_MESSAGE_BYTES}-byte limit")
+    items = 0
+
+    def counted(container: list | dict) -> list | dict:  # each list and map, once msgpack has built it
+        nonlocal items
+        items += len(container)
+        if items > MAX_ITEMS:
+            raise DecodeError(f"more than {MAX_ITEMS} entries in lists and maps, more than any message holds")
+        return container
+
     try:
-        raw = msgpack.unpackb(bytes(payload), raw=False, strict_map_key=True)
+        # a string or bin costs the bytes it brings: the message's own limit is theirs
+        raw = msgpack.unpackb(bytes(payload), raw=False, strict_map_key=True, list_hook=counted, object_hook=counted,
+                              max_array_len=MAX_LIST_LEN, max_map_len=MAX_MAP_LEN, max_bin_len=MAX_MESSAGE_BYTES,
+                              max_str_len=MAX_MESSAGE_BYTES)
+    except DecodeError:
+        raise
     except Exception as exc:  # msgpack raises several unrelated exception types for garbage
+        if "exceeds max_" in str(exc):  # msgpack's "5000 exceeds max_array_len(4096)": a limit above
+            raise DecodeError(f"a list or map longer than any message holds ({exc})") from None
         raise DecodeError(f"not msgpack ({type(exc).__name__}: {exc})") from None
     if not isinstance(raw, dict):
         raise DecodeError(f"expected a map, got {type(raw).__name__}")

@@ -385,9 +385,13 @@ class Tracks(Message):
             if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in values) or (
                     integer and not all(isinstance(v, int) for v in values)):
                 raise ValueError(f"tracks record: {'/'.join(keys)} must be {'integers' if integer else 'numbers'}")
+            out_of_range = f"tracks record: {'/'.join(keys)} out of the range of {np.dtype(dtype).name}"
             if integer and values and not (np.iinfo(dtype).min <= min(values) and max(values) <= np.iinfo(dtype).max):
-                raise ValueError(f"tracks record: {'/'.join(keys)} out of the range of {np.dtype(dtype).name}")
-            return np.array(values, dtype).reshape(len(rows), len(keys))
+                raise ValueError(out_of_range)
+            try:
+                return np.array(values, dtype).reshape(len(rows), len(keys))
+            except OverflowError:  # an integer too large for a float (1e400 written without its exponent)
+                raise ValueError(out_of_range) from None
 
         def matrices(key: str) -> np.ndarray:
             if not all(isinstance(m, list) and len(m) == 2 and all(
@@ -395,7 +399,10 @@ class Tracks(Message):
                         isinstance(v, int | float) and not isinstance(v, bool) for v in row) for row in m)
                        for m in (r[key] for r in rows)):
                 raise ValueError(f"tracks record: {key} must be 2x2 matrices of numbers")
-            return np.array([r[key] for r in rows], np.float32).reshape(len(rows), 2, 2)
+            try:
+                return np.array([r[key] for r in rows], np.float32).reshape(len(rows), 2, 2)
+            except OverflowError:  # an integer too large for a float
+                raise ValueError(f"tracks record: {key} out of the range of float32") from None
 
         if not all(isinstance(r["cameras"], list) and all(isinstance(c, str) for c in r["cameras"]) for r in rows):
             raise ValueError("tracks record: cameras must be lists of names")

@@ -138,8 +138,7 @@ def parse_covariance(value: Any, where: str = "",
     prefix = f"{where}: " if where else ""
     if not (isinstance(value, list | tuple) and len(value) == 2
             and all(isinstance(r, list | tuple) and len(r) == 2 for r in value)
-            and all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
-                    for r in value for v in r)):
+            and all(isinstance(v, int | float) and not isinstance(v, bool) and _finite(v) for r in value for v in r)):
         raise ValueError(f"{prefix}{name} must be [[a, b], [b, c]] of finite numbers, got {value!r:.80}")
     if not_covariances(np.array(value, np.float64)[None])[0]:
         raise ValueError(f"{prefix}{name} {value} is not a symmetric positive definite covariance")
@@ -160,22 +159,40 @@ def parse_yaw_std(value: Any, where: str = "") -> float | None:
     `where`) otherwise."""
     if value is None:
         return None
-    if isinstance(value, bool) or not isinstance(value, int | float) or not (math.isfinite(value) and value > 0):
+    if isinstance(value, bool) or not isinstance(value, int | float) or not (_finite(value) and value > 0):
         raise ValueError(f"{where + ': ' if where else ''}yaw_std must be a finite number > 0 (rad), got {value!r:.40}")
     return float(value)
+
+
+def _finite(v: int | float) -> bool:
+    """Whether a number is finite as a float: an integer too large for one (1e400 written without its exponent) is
+    not (math.isfinite raises OverflowError for it)."""
+    try:
+        return math.isfinite(v)
+    except OverflowError:
+        return False
 
 
 def _float(v: Any, key: str) -> float:
     if isinstance(v, bool) or not isinstance(v, int | float):
         raise ValueError(f"{key!r} must be a number, got {v!r}")
-    f = float(v)
+    try:
+        f = float(v)
+    except OverflowError:  # an integer too large for a float
+        raise ValueError(f"{key!r} is an integer too large for a float") from None
     if not math.isfinite(f):
         raise ValueError(f"{key!r} is {f}")
     return f
 
 
 def _int(v: Any, key: str) -> int:
-    if isinstance(v, bool) or not isinstance(v, int | float) or not float(v).is_integer():
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise ValueError(f"{key!r} must be an integer, got {v!r}")
+    try:
+        whole = float(v).is_integer()
+    except OverflowError:  # an integer too large for a float
+        raise ValueError(f"{key!r} is an integer too large for a float") from None
+    if not whole:
         raise ValueError(f"{key!r} must be an integer, got {v!r}")
     return int(v)
 

@@ -331,10 +331,49 @@ def test_capture_times_past_2_pow_62_are_a_broken_clock() -> None:
 
 def test_stamps_are_capped_before_they_are_validated() -> None:
     d = raw(make_detections(1))
-    d["stamps"] = [["x", 1]] * 100_000
-    refused(pack(d), "100000 stamps, more than the 32")
+    d["stamps"] = [["x", 1]] * 4000
+    refused(pack(d), "4000 stamps, more than the 32")
+    d["stamps"] = [["x", 1]] * 100_000  # longer than any list a message holds: msgpack stops at its length
+    refused(pack(d), "longer than any message holds")
     d["stamps"] = [["ingest", -1]]
     refused(pack(d), "stamps")
+
+
+@pytest.mark.parametrize(("make", "match"), [  # the payloads are made in the test: megabytes each
+    (lambda: b"\xdd" + (4 * 2**20).to_bytes(4, "big") + b"\x90" * (4 * 2**20), "longer than any message holds"),
+    (lambda: b"\x81\xa6stamps\xdd" + (2**20).to_bytes(4, "big") + b"\x80" * 2**20, "longer than any message holds"),
+    # short lists in lists: each within the length limit, together millions of objects
+    (lambda: b"\xdc\x0f\xa0" + (b"\xdc\x10\x00" + b"\x90" * 4096) * 4000, "more than \\d+ entries in lists and maps"),
+])
+def test_a_payload_of_millions_of_empty_lists_is_refused_before_it_is_built(make, match: str) -> None:
+    """An empty list or map is one byte on the wire and tens in memory: msgpack stops at the most a message holds
+    (else a 4 MiB payload cost 350 MB before any check ran, one of 48 MiB gigabytes)."""
+    import tracemalloc
+
+    payload = make()
+    tracemalloc.start()
+    try:
+        refused(payload, match)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 64 * 2**20, f"{peak / 2**20:.0f} MB to refuse a {len(payload) / 2**20:.0f} MiB payload"
+
+
+def test_the_largest_messages_still_decode() -> None:
+    """The codec's limits on msgpack's lists and maps let through the most a valid message holds: a Tracks message of
+    MAX_ROWS rows, each seen by 64 cameras and with a frame, MAX_STAMPS stamps; a Status message's full maps."""
+    from shared.messages import MAX_ROWS, MAX_STAMPS, MAX_STATUS_ENTRIES
+
+    n = MAX_ROWS
+    most = make_tracks(n, cameras=[[f"C{j}" for j in range(64)] for _ in range(n)],
+                       frames=[("NE", i, T0, T0 + 15) for i in range(n)], stamps=[("fuse_track", T0)] * MAX_STAMPS)
+    back = decode(encode(most), Tracks)
+    assert len(back) == n and back.cameras == most.cameras and len(back.frames) == n
+    names = {f"reason {i}": i for i in range(MAX_STATUS_ENTRIES)}
+    full = make_status(counts=names, bad=names, rates={k: 1.0 for k in names}, gauges={k: 1.0 for k in names},
+                       rss_mb=100.0)
+    assert decode(encode(full), Status).bad == names
 
 
 @pytest.mark.parametrize("scale", [5e-324, 1e-40, 1 / 65])
@@ -901,12 +940,12 @@ def test_client_stream_gives_the_current_tracks_then_only_newer_ones() -> None:
     queued = [make_tracks(1, seq=s, tracker=t) for t, s in [("tracker-a", 4), ("tracker-a", 5), ("tracker-a", 6),
                                                             ("tracker-b", 0), ("tracker-b", 5)]]
     client.receiver = Queue([queued[:3], queued[3:]])
-    got = [(t.tracker, t.seq) for t in client.stream(timeout_s=0.05, poll_s=0.001)]
+    got = [(t.tracker, t.seq) for t in client.stream(timeout_s=0.05, poll_s=0.001, latest=False)]
     # a restarted fuse_track (another tracker) starts again at seq 0 and is followed at once
     assert got == [("tracker-a", 5), ("tracker-a", 6), ("tracker-b", 0), ("tracker-b", 5)]
     # after the current one, duplicates and stragglers of the tracker followed are skipped too
     client.receiver = Queue([[make_tracks(1, seq=s, tracker="tracker-b") for s in (6, 6, 4, 7)]])
-    assert [t.seq for t in client.stream(timeout_s=0.05, poll_s=0.001)] == [5, 6, 7]
+    assert [t.seq for t in client.stream(timeout_s=0.05, poll_s=0.001, latest=False)] == [5, 6, 7]
     # a recording played again (`roadside play`: its tracker, seq and capture time from their start again) is
     # followed from its start; a stale message a few ticks old is not a replay
     s_ns = 10**9
@@ -917,7 +956,38 @@ def test_client_stream_gives_the_current_tracks_then_only_newer_ones() -> None:
     client.latest = lambda timeout_s=2.0: tick(5, 60.5)
     client.receiver = Queue([[tick(3, 60.3), tick(6, 60.6), tick(7, 60.7), tick(0, 0.0), tick(1, 0.1), tick(1, 0.1),
                               tick(2, 0.2)]])
-    assert [t.seq for t in client.stream(timeout_s=0.05, poll_s=0.001)] == [5, 6, 7, 0, 1, 2]
+    assert [t.seq for t in client.stream(timeout_s=0.05, poll_s=0.001, latest=False)] == [5, 6, 7, 0, 1, 2]
+
+
+def test_client_stream_gives_a_slow_loop_the_newest_tracks() -> None:
+    """A vehicle's loop slower than the tick: of the messages that came while it was busy only the newest is given
+    (after the duplicate check) and the others counted in `skipped`; `latest=False` gives every one, in order."""
+    from shared.client import TrackClient
+
+    class Queue:
+        def __init__(self, batches: list[list[Tracks]]) -> None:
+            self.batches = batches
+
+        def poll(self) -> list[Tracks]:
+            return self.batches.pop(0) if self.batches else []
+
+        def wait(self, timeout_s: float) -> None:
+            pass
+
+    def batches() -> list[list[Tracks]]:  # what the loop finds waiting after each message it worked on
+        return [[make_tracks(1, seq=s, tracker="tracker-a") for s in batch]
+                for batch in ([6, 7, 8], [9], [8, 9], [10, 11, 10])]
+
+    client = TrackClient.__new__(TrackClient)  # no Zenoh session: latest() and the receiver are stand-ins
+    client.skipped = 0
+    client.latest = lambda timeout_s=2.0: make_tracks(1, seq=5, tracker="tracker-a")
+    client.receiver = Queue(batches())
+    assert [t.seq for t in client.stream(timeout_s=0.05, poll_s=0.001)] == [5, 8, 9, 11]
+    assert client.skipped == 3  # 6, 7 and 10: the duplicates 8, 9 and 10 are not counted
+    client.skipped = 0
+    client.receiver = Queue(batches())
+    assert [t.seq for t in client.stream(timeout_s=0.05, poll_s=0.001, latest=False)] == [5, 6, 7, 8, 9, 10, 11]
+    assert client.skipped == 0
 
 
 def test_client_stream_ends_when_told_to_stop() -> None:

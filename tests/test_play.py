@@ -83,6 +83,10 @@ def test_a_recorded_line_gives_back_the_message_that_was_recorded(tmp_path):
     (lambda r: r["tracks"][0].update(id=1.5), "id must be integers"),
     (lambda r: r["tracks"][0].update(score=True), "score must be numbers"),
     (lambda r: r["tracks"][0].update(xy_cov=[[1.0, "0"], [0.0, 1.0]]), "xy_cov must be 2x2 matrices of numbers"),
+    # an integer too large for a float (1e400 written without its exponent): a ValueError, not an OverflowError
+    (lambda r: r["tracks"][0].update(x=10**400), "x/y out of the range of float64"),
+    (lambda r: r["tracks"][1].update(yaw_std=10**400), "yaw_std out of the range of float32"),
+    (lambda r: r["tracks"][0].update(xy_cov=[[10**400, 0], [0, 1]]), "xy_cov out of the range of float32"),
 ])
 def test_a_broken_record_is_named(change, named):
     record = record_of(message(4))
@@ -91,6 +95,34 @@ def test_a_broken_record_is_named(change, named):
         Tracks.from_record(record)
     with pytest.raises(ValueError, match="must be a JSON object, got list"):
         Tracks.from_record([record])
+
+
+def test_a_line_with_a_number_too_large_for_a_float_is_counted_and_skipped(tmp_path):
+    """`roadside play` counts such a line as bad and goes on; the tracks file's other readers (the Rerun sink,
+    autolabel's teacher: shared.tracks_file) refuse it with a ValueError naming the field."""
+    from services.fuse_track.player import records
+    from shared.tracks_file import parse_tracks_message
+
+    huge = record_of(message(1))
+    huge["tracks"][0]["x"] = 10**400
+    path = tmp_path / "tracks.jsonl"
+    path.write_text("\n".join(json.dumps(r) for r in (record_of(message(0)), huge, record_of(message(2)))) + "\n")
+    bad: list[tuple[str, str]] = []
+    assert [m.seq for _, m in records([path], lambda reason, where: bad.append((where, reason)))] == [0, 2]
+    assert bad == [(f"{path}:2", "tracks record: x/y out of the range of float64")]
+    for field, value, named in [("x", 10**400, "track 0: 'x' is an integer too large for a float"),
+                                ("id", 10**400, "track 0: 'id' is an integer too large for a float"),
+                                ("vx", 10**400, "track 0: 'vx' is an integer too large for a float"),
+                                ("xy_cov", [[10**400, 0], [0, 1]], "track 0: xy_cov must be [[a, b], [b, c]]"),
+                                ("yaw_std", 10**400, "track 0: yaw_std must be a finite number > 0")]:
+        line = record_of(message(1))
+        line["tracks"][0][field] = value
+        with pytest.raises(ValueError, match=re.escape(named)):
+            parse_tracks_message(line)
+    line = record_of(message(1))
+    line["t_ns"] = 10**400
+    with pytest.raises(ValueError, match="'t_ns' is an integer too large for a float"):
+        parse_tracks_message(line)
 
 
 # --- the playback ------------------------------------------------------------------------------------------------
@@ -204,6 +236,43 @@ def test_roadside_play_refuses_missing_files_and_a_bad_pace(tmp_path, capsys):
 
 
 # --- on the bus --------------------------------------------------------------------------------------------------
+
+
+def test_the_latest_tracks_are_answered_only_while_they_are_current():
+    """The latest-tracks query (the player's, and fuse_track's with the same `current_payload`) answers with the
+    newest message only while it was published within LATEST_MAX_AGE_S: with every camera down nothing is sent, and a
+    client that joins then must not get old tracks as the current ones (nor a loop restarting stream() the same old
+    message each time)."""
+    import zenoh
+
+    from services.fuse_track.player import LATEST_MAX_AGE_S, TracksPublisher, current_payload
+    from shared.codec import decode
+    from shared.keys import latest_tracks_key
+
+    assert current_payload([]) is None
+    assert current_payload([(time.monotonic(), b"new")]) == b"new"
+    assert current_payload([(time.monotonic() - LATEST_MAX_AGE_S - 0.1, b"old")]) is None
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("listen/endpoints", "[]")
+    with zenoh.open(conf) as session:
+        publish = TracksPublisher(session)
+        try:
+            publish(message(7))
+
+            def answers() -> list[int]:
+                return [decode(r.ok.payload.to_bytes(), Tracks).seq
+                        for r in session.get(latest_tracks_key("se"), timeout=1.0) if r.ok is not None]
+
+            assert answers() == [7]
+            when, payload = publish.latest[-1]
+            publish.latest[:] = [(when - LATEST_MAX_AGE_S - 0.5, payload)]  # as if nothing was sent since
+            assert answers() == []
+            publish(message(8))
+            assert answers() == [8]
+        finally:
+            publish.close()
 
 
 def looping_player(path: Path, port_base: int) -> subprocess.Popen:

@@ -541,7 +541,7 @@ def test_the_cabinet_layout_services_in_client_mode_through_the_router(site, sit
             tokens = re.search(r"pace max; (\d+) liveliness tokens", ingest.log())
             assert tokens and int(tokens.group(1)) >= 4, ingest.log()  # the other three's, through the router
             seen: set[tuple[str, int]] = set()
-            for msg in client.stream(timeout_s=WAIT_S):
+            for msg in client.stream(timeout_s=WAIT_S, latest=False):
                 seen |= {(c, s) for c, s, _, _ in msg.frames}
                 if (CAMERA, 1) in seen:
                     break

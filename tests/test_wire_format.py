@@ -290,6 +290,86 @@ def test_roadside_tracks_moves_the_tracks_on_when_asked_and_refuses_a_clock_that
     assert len(done.stderr.strip().splitlines()) == 1
 
 
+def test_the_listener_follows_a_recording_played_again_as_the_client_does() -> None:
+    """`roadside play` run a second time sends the same tracker with seq from 0 again: the listener (and the document's
+    "Order" rule) takes it when its capture time is more than the client's replay margin before the last one's, as
+    shared.client.TrackClient does; a duplicate or a straggler a few ticks old is still skipped."""
+    from shared.client import REPLAYED_NS
+
+    assert listener.REPLAYED_NS == REPLAYED_NS
+    assert f"more than {REPLAYED_NS // 10**9} s before" in " ".join(DOC.read_text().split())
+
+    def decoded(seq: int, t_s: float, tracker: str = "tracker-3f9c2a") -> dict:
+        msg = example_message(seq=seq).model_copy(update={"t_capture_ns": round(t_s * 1e9), "tracker": tracker})
+        return listener.decode_tracks(encode(msg))
+
+    printed, last = [], None
+    for msg in [decoded(68, 66.8), decoded(69, 66.9), decoded(69, 66.9), decoded(66, 66.6),  # a duplicate, a straggler
+                decoded(0, 60.0), decoded(1, 60.1),  # the same recording again, from its start
+                decoded(0, 70.0, tracker="tracker-b"), decoded(1, 70.1, tracker="tracker-b")]:  # another tracker
+        if not listener.seen(msg, last):
+            printed.append(msg["seq"])
+            last = (msg["tracker"], msg["seq"], msg["t_capture_ns"])
+    assert printed == [68, 69, 0, 1, 0, 1]
+
+
+def run_tracks_against(messages: list[Tracks], *flags: str, monkeypatch, capsys) -> tuple[int, list[str], str, list]:
+    """`roadside tracks --site state_ellsworth FLAGS` reading `messages` (the first one the current tracks) from a
+    stand-in for TrackClient; returns its status, the lines it printed, its stderr and the `latest` it asked for."""
+    import shared.client
+    from roadside.cli import main
+
+    asked = []
+
+    class Client:
+        def __init__(self, *args, **kw) -> None:
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc) -> None:
+            pass
+
+        def latest(self, timeout_s: float = 2.0) -> Tracks:
+            return messages[0]
+
+        def sites(self, timeout_s: float = 1.0) -> set[str]:
+            return {SITE}
+
+        def stream(self, timeout_s=None, poll_s=0.1, stop=None, current=..., latest=True):
+            asked.append(latest)
+            yield current
+            yield from messages[1:]
+
+    monkeypatch.setattr(shared.client, "TrackClient", Client)
+    status = main(["tracks", "--site", SITE, *flags])
+    out, err = capsys.readouterr()
+    return status, out.splitlines(), err, asked
+
+
+def test_roadside_tracks_now_skips_a_message_too_old_to_move_on_and_goes_on(monkeypatch, capsys) -> None:
+    """A message that waited too long (a slow reader, a link that held it) for `Tracks.predicted` to move it on to
+    now is skipped with one warning per run of them, not the end of `roadside tracks --now`; the first message still
+    says whether this machine shares the cabinet's clock (a recording's or a year-old one is refused, above)."""
+    import time
+
+    now = time.time_ns()
+    ages = {5: 0.0, 6: 3.0, 7: 2.9, 8: 0.0, 9: 2.5, 10: 0.0}  # seconds since capture
+    messages = [example_message(seq=s).model_copy(update={"t_capture_ns": now - round(a * 1e9)})
+                for s, a in ages.items()]
+    status, lines, err, asked = run_tracks_against(messages, "--now", "--json", monkeypatch=monkeypatch, capsys=capsys)
+    assert status == 0, err
+    assert [json.loads(line)["seq"] for line in lines] == [5, 8, 10]
+    warnings = err.strip().splitlines()
+    assert len(warnings) == 2 and all("warning: skipping messages that cannot be moved on to now" in w
+                                      for w in warnings), err
+    assert asked == [False]  # a JSON line per message is a tracks file: every one
+    status, lines, err, asked = run_tracks_against(messages[:1], "--count", "1", monkeypatch=monkeypatch,
+                                                   capsys=capsys)
+    assert status == 0 and lines[0].endswith("2 tracks") and asked == [True]  # printed for a person: the newest
+
+
 def test_the_listener_says_in_one_line_when_no_cabinet_answers() -> None:
     port = free_port_base(span=1)
     done = subprocess.run([sys.executable, str(LISTENER), "--site", SITE, "--connect", f"tcp/127.0.0.1:{port}",

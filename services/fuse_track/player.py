@@ -4,12 +4,13 @@ A vehicle developer, or a researcher with a recorded session, needs the cabinet'
 subscriber against, and not the four services, their models and the cameras' footage. `play` reads the JSON lines
 fuse_track's recorder wrote (one Tracks message per line: `Tracks.from_record`; rotated files one after the other)
 and publishes each message on `roadside/<site>/tracks` at its recorded pace (its capture times, 1 = real time, N
-times as fast, or `max`), answering `roadside/<site>/tracks/latest` with the newest one published and holding a
-liveliness token `roadside/<site>/alive/fuse_track/playback` and reporting its Status as fuse_track's instance
-`playback` (`roadside status`, `roadside health --service fuse_track`), as fuse_track does: every subscriber (`roadside
-tracks`, `shared.client.TrackClient`, the standalone listener of docs/wire-format.md, `roadside viz --live`) reads
-it as it reads a cabinet. The site is the first record's; in the
-embedded default the player listens where fuse_track would (`bus.port_base` + 3), so it stands in for it.
+times as fast, or `max`), answering `roadside/<site>/tracks/latest` with the newest one published (when it was
+published within the last LATEST_MAX_AGE_S) and holding a liveliness token `roadside/<site>/alive/fuse_track/playback`
+and reporting its Status as fuse_track's instance `playback` (`roadside status`, `roadside health --service
+fuse_track`), as fuse_track does: every subscriber (`roadside tracks`, `shared.client.TrackClient`, the standalone
+listener of docs/wire-format.md, `roadside viz --live`) reads it as it reads a cabinet. The site is the first
+record's; in the embedded default the player listens where fuse_track would (`bus.port_base` + 3), so it stands in
+for it.
 
 A line that does not parse, or breaks the contract, or names another site, is counted, logged once per reason with
 its file and line, and skipped. With `loop` the files start again when they end, each pass's capture times moved
@@ -38,6 +39,19 @@ log = logging.getLogger("roadside.play")
 DEFAULT_GAP_NS = 100_000_000  # a loop's step from the last message to the first of the next pass, if one message
 TOKEN = "playback"  # the liveliness token's instance: roadside/<site>/alive/fuse_track/playback
 MAX_LINE_BYTES = 64 * 1024 * 1024  # a longer line is not a Tracks message (4096 tracks of ~500 bytes is 2 MB)
+# the latest-tracks query is answered with a message published at most this long ago (monotonic clock; fuse_track's
+# too): longer than the longest tick (1 s) and its wait; with every camera down, or a playback paused between
+# messages far apart, nothing is sent and an older message is not "the current tracks" (docs/wire-format.md)
+LATEST_MAX_AGE_S = 2.0
+
+
+def current_payload(latest: list[tuple[float, bytes]]) -> bytes | None:
+    """The payload to answer the latest-tracks query with: the newest of `latest` ([(monotonic time it was published,
+    payload)], fuse_track's and the player's) when it was published within LATEST_MAX_AGE_S, else None."""
+    held = latest[-1] if latest else None  # one read: the publishing thread replaces the entry meanwhile
+    if held is None or time.monotonic() - held[0] > LATEST_MAX_AGE_S:
+        return None
+    return held[1]
 
 
 def records(paths: Iterable[Path], bad: Callable[[str, str], None]) -> Iterator[tuple[str, Tracks]]:
@@ -133,7 +147,7 @@ class TracksPublisher:
 
     def __init__(self, session, block: bool = False, status_period_s: float = 2.0) -> None:
         self.session, self.block, self.status_period_s = session, block, status_period_s
-        self.latest: list[bytes] = []
+        self.latest: list[tuple[float, bytes]] = []  # (monotonic time it was published, the newest payload)
         self.pub = self.queryable = self.status = None
         self.tokens: list = []
 
@@ -144,8 +158,9 @@ class TracksPublisher:
         self.pub = self.session.declare_publisher(tracks_key(site), congestion_control=congestion)
 
         def answer(query) -> None:  # Zenoh's thread: bytes already encoded
-            if self.latest:
-                query.reply(latest_tracks_key(site), self.latest[-1])
+            payload = current_payload(self.latest)
+            if payload is not None:
+                query.reply(latest_tracks_key(site), payload)
 
         self.queryable = self.session.declare_queryable(latest_tracks_key(site), answer)
         # a Status report as fuse_track's (its instance "playback"): `roadside status` and `health` see the player
@@ -158,7 +173,7 @@ class TracksPublisher:
             self._declare(msg.site)
         msg.stamps = [("playback", time.time_ns())]  # when it was sent (the recording keeps no stamps)
         payload = encode(msg)
-        self.latest[:] = [payload]
+        self.latest[:] = [(time.monotonic(), payload)]
         self.pub.put(payload)
         self.status.count("tracks_out", output=True)
 
