@@ -1,5 +1,6 @@
-"""JPEG headers, read before decoding: a header can claim any size up to 65535 x 65535, and OpenCV allocates
-what it claims (or raises past 2**30 pixels). Services compare the claim with what the image must be first."""
+"""JPEG headers (and PNG's and BMP's), read before decoding: a header can claim any size up to 65535 x 65535 (PNG and
+BMP more), and OpenCV allocates what it claims (or raises past 2**30 pixels). Services compare the claim with what the
+image must be first."""
 
 from __future__ import annotations
 
@@ -39,17 +40,34 @@ def jpeg_size(data: bytes) -> tuple[int, int] | None:
     return None
 
 
+def png_bmp_size(data: bytes) -> tuple[str, int, int] | None:
+    """("PNG" or "BMP", width, height) from a PNG's IHDR chunk or a BMP's info header, or None when `data` is neither
+    (or is cut before its size)."""
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR" and len(data) >= 24:
+        return "PNG", int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    if data[:2] == b"BM" and len(data) >= 26:
+        if int.from_bytes(data[14:18], "little") == 12:  # OS/2 BITMAPCOREHEADER: 16-bit sizes
+            return "BMP", int.from_bytes(data[18:20], "little"), int.from_bytes(data[20:22], "little")
+        # BITMAPINFOHEADER and later: 32-bit signed sizes, a negative height for rows stored top-down
+        return "BMP", abs(int.from_bytes(data[18:22], "little", signed=True)), \
+            abs(int.from_bytes(data[22:26], "little", signed=True))
+    return None
+
+
 def decode_grey(data: bytes, width: int, height: int, flags: int = cv2.IMREAD_GRAYSCALE, reduce: int = 1,
                 what: str = "image") -> np.ndarray:
     """An image that must be `width` x `height` (each within `reduce` pixels: a camera's size, decoded at
-    1/`reduce` by `flags`) decoded to grey; ValueError naming `what` for a JPEG whose header claims another size,
-    an empty or corrupt file, or one OpenCV refuses. Other formats (PNG, BMP) are decoded without the header check:
-    their callers check the decoded size."""
+    1/`reduce` by `flags`) decoded to grey; ValueError naming `what` for a JPEG, PNG or BMP whose header claims another
+    size, an empty or corrupt file, or one OpenCV refuses. Other formats are decoded without the header check: their
+    callers check the decoded size."""
     size = jpeg_size(data)
     if size is None and (not data or data[:2] == b"\xff\xd8"):
         raise ValueError(f"{what}: corrupt JPEG ({len(data)} bytes): no frame header")
     if size is not None and (abs(size[0] - width) > reduce or abs(size[1] - height) > reduce):
         raise ValueError(f"{what}: JPEG is {size[0]}x{size[1]}, expected {width}x{height}")
+    other = png_bmp_size(data) if size is None else None  # decoded in full, however large: checked first as well
+    if other is not None and (abs(other[1] - width) > reduce or abs(other[2] - height) > reduce):
+        raise ValueError(f"{what}: {other[0]} is {other[1]}x{other[2]}, expected {width}x{height}")
     try:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
     except cv2.error as exc:

@@ -179,6 +179,10 @@ class IngestSettings(Strict):
     # their local time, and a capture time is UTC on the wire (an IANA name, e.g. America/Detroit). A name in the hour
     # that the autumn clock change repeats is ambiguous and taken in its first pass: name such files in UTC
     timezone: str = "UTC"
+    # when the source ends: "exit" (status 0: `roadside up` ends the run) or "idle": stay up, publishing nothing more
+    # and reporting status, until told to stop (compose.yaml: compose restarts a service that exits, and each restart
+    # would play the source's last frames again, late for fuse_track)
+    at_end: Literal["exit", "idle"] = "exit"
 
     @field_validator("timezone")
     @classmethod

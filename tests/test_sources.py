@@ -206,3 +206,157 @@ def test_a_restarted_ingest_goes_on_after_the_tracks_fuse_track_holds(tmp_path):
     assert resume_point(session(50), "se", files) is None and resume_point(session(300), "se", files) is None
     assert resume_point(session(), "se", files) is None
     assert resume_point(session(250), "se", SimpleNamespace()) is None  # a stream: no files to skip
+
+
+def _still(folder, *names, size=(48, 64)):
+    """Tiny grey images named `names` in `folder` (made)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        cv2.imwrite(str(folder / name), np.full(size, 90, np.uint8))
+    return folder
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_a_live_camera_down_at_start_is_reported_and_opened_again(monkeypatch):
+    """A camera not up yet when the cabinet boots is no configuration error: its failed opens are frames carrying the
+    reason until it comes up; a file or a file:// URL that cannot be opened still stops ingest at start."""
+    port = _free_port()
+    url = f"http://127.0.0.1:{port}/stream.mjpg"
+    monkeypatch.setattr(VideoSource, "RECONNECT_S", 0.05)
+    source = VideoSource(url, "NE")  # nothing listens yet
+    frames = iter(source)
+    down = next(frames)
+    assert down.error == f"camera NE: cannot open stream {url}; trying again in 0.05 s" and down.image is None
+    server = ThreadingHTTPServer(("127.0.0.1", port), _Camera)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        got = _take(frames, good=2)
+    finally:
+        server.shutdown()
+    assert sum(not f.error for f in got) >= 2, [f.error for f in got]
+    with pytest.raises(ValueError, match=r"OpenCV cannot open file:///nowhere/clip\.avi"):
+        VideoSource("file:///nowhere/clip.avi", "NE")
+
+
+def test_a_stop_ends_a_live_camera_s_hung_open_and_its_wait_to_reconnect(monkeypatch):
+    """Cameras that take the connection and never answer: each open gives up after `STREAM_TIMEOUT_MS` (OpenCV's own
+    wait is 30 s), and a stop ends the wait before the next attempt and the merged cameras' frames at once."""
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(16)
+    held = []
+    threading.Thread(target=lambda: [held.append(server.accept()) for _ in range(16)], daemon=True).start()
+    url = f"http://127.0.0.1:{server.getsockname()[1]}/stream.mjpg"
+    monkeypatch.setattr(VideoSource, "STREAM_TIMEOUT_MS", 500)
+    monkeypatch.setattr(VideoSource, "RECONNECT_S", 30.0)
+    stop = threading.Event()
+    t = time.monotonic()
+    parts = [VideoSource(url, "NE", stop=stop), VideoSource(url, "SW", stop=stop)]
+    assert time.monotonic() - t < 5.0
+    frames = iter(MergedSource(parts, stop))
+    assert "cannot open stream" in next(frames).error
+    stop.set()
+    t = time.monotonic()
+    rest = list(frames)
+    assert time.monotonic() - t < 2.0 and all(f.error for f in rest)
+    server.close()
+
+
+def test_merged_camera_folders_have_items_to_resume_from(tmp_path):
+    """Each camera's own image folder (cameras[].source): one source with the files of all, in time order, so a
+    restarted ingest asks fuse_track where to go on; with a video file among them, none."""
+    from types import SimpleNamespace
+
+    from services.ingest.__main__ import resume_point
+    from services.ingest.sources import open_source
+
+    t0 = 1_700_000_000_000_000_000
+    _still(tmp_path / "NE", f"{t0}.png", f"{t0 + 200_000_000}.png")
+    _still(tmp_path / "SW", f"{t0 + 100_000_000}.png")
+    source = open_source("", ["NE", "SW"], {"NE": str(tmp_path / "NE"), "SW": str(tmp_path / "SW")})
+    assert isinstance(source, MergedSource)
+    assert [(t - t0, cam) for t, cam, _ in source.items] == [(0, "NE"), (100_000_000, "SW"), (200_000_000, "NE")]
+    assert [(f.t_capture_ns, f.camera) for f in source] == [(t, cam) for t, cam, _ in source.items]
+    asked = []
+    resume_point(SimpleNamespace(get=lambda key, timeout: asked.append(key) or iter(())), "se", source)
+    assert asked == ["roadside/se/tracks/latest"]
+    clip = VideoSource(str(_clip(tmp_path / "clip.avi")), "SW")
+    assert MergedSource([source, clip]).items is None
+
+
+def test_hidden_files_in_an_image_folder_are_not_frames(tmp_path):
+    """macOS's AppleDouble `._<name>` files beside each image (a copy over SMB or to a FAT drive), other hidden
+    files and a sub-folder named like an image are no frames: with epoch names the folder was refused, with date-time
+    names every frame had a twin."""
+    from services.ingest.sources import ImageFolderSource
+
+    for names in (["1700000000000000000.jpg", "1700000000100000000.jpg"],
+                  ["2023-12-19 11-00-00-034395.jpg", "2023-12-19 11-00-01-034395.jpg"]):
+        folder = _still(tmp_path / names[0][:4], *names)
+        for n in names:
+            (folder / f"._{n}").write_bytes(b"\x00\x05\x16\x07\x00\x02\x00\x00Mac OS X        " + bytes(100))
+        _still(folder, ".hidden.jpg")
+        (folder / "dir.jpg").mkdir()
+        assert [p.name for _, _, p in ImageFolderSource({"NE": folder}).items] == names
+
+
+def test_a_camera_folder_holding_sub_folders_is_still_that_camera_s(tmp_path):
+    """A one-camera image folder holding a NAS's `@eaDir`, a `.thumbnails` or a `bad/` folder is that camera's; in a
+    parent of camera folders, `@*` and `.*` folders are not cameras."""
+    from services.ingest.sources import ImageFolderSource, open_source
+
+    folder = _still(tmp_path / "cam", "1700000000000000000.jpg", "1700000000100000000.jpg")
+    for sub in ("@eaDir", ".thumbnails", "bad"):
+        _still(folder / sub, "1700000000000000000.jpg")
+    source = open_source(str(folder), ["NE"], {})
+    assert isinstance(source, ImageFolderSource) and [p.parent for _, _, p in source.items] == [folder, folder]
+    for cam in ("NE", "SW"):
+        _still(tmp_path / "parent" / cam, "1700000000000000000.jpg")
+    (tmp_path / "parent" / "@eaDir").mkdir()
+    (tmp_path / "parent" / ".thumbnails").mkdir()
+    assert {cam for _, cam, _ in open_source(str(tmp_path / "parent"), ["NE", "SW"], {}).items} == {"NE", "SW"}
+    with pytest.raises(ValueError, match=r"found none among \['NE', 'SW'\]"):
+        open_source(str(tmp_path / "parent"), ["NE", "T_SW"], {})
+
+
+def test_cameras_whose_clocks_differ_are_refused_naming_them(tmp_path):
+    """A frame rate times only folders whose names carry no time (one stray name among dated ones is named, not
+    taken for a reason to replace every time by the wall clock); cameras whose first times lie more than 10 min
+    apart (a video file timed from when it is opened beside dated folders, a folder named in another time zone)
+    are refused, naming the cameras and their first times."""
+    from services.ingest.sources import ImageFolderSource, open_source
+
+    dated = ["2023-12-19 11-00-00-000000.jpg", "2023-12-19 11-00-01-000000.jpg"]
+    _still(tmp_path / "gs_NE", *dated)
+    _still(tmp_path / "gs_SW", *dated, "preview.jpg")
+    with pytest.raises(ValueError, match=r"camera SW: .* file name 'preview.jpg' while other names in .*gs_SW carry"):
+        open_source(str(tmp_path), ["NE", "SW"], {}, fps=5.0)
+    (tmp_path / "gs_SW" / "preview.jpg").unlink()
+    assert len(open_source(str(tmp_path), ["NE", "SW"], {}, fps=5.0).items) == 4  # their own times
+    clip = _clip(tmp_path / "SW.avi")
+    with pytest.raises(ValueError, match=r"first capture times lie .* apart \(NE 2023-12-19T11:00:00\+00:00, SW 20"):
+        open_source(str(tmp_path), ["NE", "SW"], {"SW": str(clip)})
+    _still(tmp_path / "local" / "SW", "2023-12-19 06-00-05-000000.jpg")  # named in Detroit's clock, read as UTC
+    with pytest.raises(ValueError, match=r"lie 5.0 h apart \(SW 2023-12-19T06:00:05\+00:00, NE 2023-12-19T11:00"):
+        ImageFolderSource({"NE": tmp_path / "gs_NE", "SW": tmp_path / "local" / "SW"})
+    _still(tmp_path / "late" / "SW", "2023-12-19 11-09-00-000000.jpg")  # a camera started 9 min later: played
+    assert len(ImageFolderSource({"NE": tmp_path / "gs_NE", "SW": tmp_path / "late" / "SW"}).items) == 3
+
+
+@pytest.mark.parametrize("ext", [".png", ".bmp"])
+def test_an_oversized_png_or_bmp_is_refused_from_its_header_before_it_is_decoded(ext, monkeypatch):
+    """Its header's size is checked as a JPEG's: a 2000x2000 image in a 64x48 camera's folder is not decoded (a
+    20000x20000 PNG of 0.4 MB took ingest past its memory limit); the camera's own size still decodes."""
+    from shared.jpeg import decode_grey
+
+    big = cv2.imencode(ext, np.zeros((2000, 2000), np.uint8))[1].tobytes()
+    own = cv2.imencode(ext, np.full((48, 64, 3), 90, np.uint8))[1].tobytes()
+    assert decode_grey(own, 64, 48).shape == (48, 64)
+    monkeypatch.setattr(cv2, "imdecode", lambda *a: pytest.fail("decoded"))
+    with pytest.raises(ValueError, match=rf"big{ext}: {ext[1:].upper()} is 2000x2000, expected 64x48"):
+        decode_grey(big, 64, 48, what=f"big{ext}")

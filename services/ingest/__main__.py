@@ -6,10 +6,11 @@ Playback pace: `1` real time, `N` N x real time, `max` as fast as the pipeline t
 `max_in_flight` frames published and not yet detected, by default as many as detect has workers, and
 never more of one camera than detect's ring keeps; an acknowledgement that does not come within
 `ingest.ack_timeout_s` is given up, so a detect restart does not stall playback). With `loop`, the source
-repeats with capture times shifted so event time keeps increasing. A frame that cannot be decoded
-(corrupt JPEG) is counted, logged and skipped. Exits 0 when the source ends, 143 when told to stop before (SIGTERM,
-Ctrl-C). Started again while fuse_track runs (a restart), it goes on from fuse_track's latest tracks in recorded
-files rather than from their start (`resume_point`).
+repeats with capture times shifted so event time keeps increasing (each round `loop_period` after the one before). A
+frame that cannot be decoded (corrupt JPEG) is counted, logged and skipped. Exits 0 when the source ends (with
+`ingest.at_end` `idle`, as in compose.yaml, it stays up publishing nothing more until told to stop), 143 when told to
+stop (SIGTERM, Ctrl-C). Started again while fuse_track runs (a restart), it goes on from fuse_track's latest tracks in
+recorded files rather than from their start, in the round of a loop they reached (`resume_point`).
 """
 
 from __future__ import annotations
@@ -32,8 +33,10 @@ from shared.status import StatusReporter
 
 log = logging.getLogger("roadside.ingest")
 PIPELINE_WAIT_S = 60.0
+LOOP_GAP_NS = 100_000_000  # with ingest.loop: from a round's last frame to the next round's first
 RESUME_ASK_S = 1.0  # how long a starting ingest waits for fuse_track's latest tracks
-STOPPED = 128 + 15  # the exit status of an ingest told to stop (SIGTERM, Ctrl-C) before its source ended
+# the exit status of an ingest told to stop (SIGTERM, Ctrl-C) before its source ended, or idle after it (at_end)
+STOPPED = 128 + 15
 REDUCED = {1: cv2.IMREAD_GRAYSCALE, 2: cv2.IMREAD_REDUCED_GRAYSCALE_2, 4: cv2.IMREAD_REDUCED_GRAYSCALE_4}
 
 
@@ -130,11 +133,20 @@ class Acks:
         self.pending[(camera, seq)] = time.monotonic()
 
 
-def resume_point(session, site: str, source) -> int | None:
+def loop_period(source) -> int | None:
+    """With ingest.loop, the time from one round's first frame to the next's: the whole source's span and
+    `LOOP_GAP_NS`, for recorded files (a source with `items`, whose rounds a restart must find again); None for a
+    video file (its rounds are spaced as played)."""
+    items = getattr(source, "items", None)
+    return items[-1][0] - items[0][0] + LOOP_GAP_NS if items else None
+
+
+def resume_point(session, site: str, source, loop: bool = False) -> int | None:
     """Where a restarted ingest playing recorded files (a recording, image folders) goes on: the capture time of the
-    newest tracks fuse_track holds (its latest-tracks query), when that lies within the files' own times; None
-    otherwise (a first start, a live or video source, another recording), when it plays from the start. Without
-    it a restart would play the files from their start again, every frame late for fuse_track's closed ticks."""
+    newest tracks fuse_track holds (its latest-tracks query), when that lies within the files' own times (with
+    `loop`, from their first on: in a later round, `loop_period`); None otherwise (a first start, a live or video
+    source, another recording), when it plays from the start. Without it a restart would play the files from their
+    start again, every frame late for fuse_track's closed ticks."""
     items = getattr(source, "items", None)
     if not items:
         return None
@@ -145,7 +157,7 @@ def resume_point(session, site: str, source) -> int | None:
             t = decode(reply.ok.payload.to_bytes(), Tracks).t_capture_ns
         except DecodeError:
             return None
-        return t if items[0][0] <= t < items[-1][0] else None
+        return t if items[0][0] <= t and (loop or t < items[-1][0]) else None
     return None
 
 
@@ -156,7 +168,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
         return src if not src or "://" in src else str(settings.path(src))
 
     source = open_source(resolve(cfg.source) or "", list(cams), {c.name: resolve(c.source) for c in settings.cameras},
-                         cfg.fps, cfg.tzinfo())
+                         cfg.fps, cfg.tzinfo(), stopper.event)
     bad = BadInput("ingest")
     session = open_session(settings, "ingest")
     try:
@@ -174,15 +186,20 @@ def main(settings: Settings, stopper: Stopper) -> int:
                  cfg.pace, seen)
         scales = {c: decode_scale_for(cam.width, cam.height, cfg.decode_long_side) for c, cam in cams.items()}
         log.info("decoded at 1/n of full size, n per camera: %s", scales)
-        resume_ns = resume_point(session, settings.site, source)
+        resume_ns = resume_point(session, settings.site, source, cfg.loop)
+        period_ns = loop_period(source) if cfg.loop else None
+        offset_ns = 0
         if resume_ns is not None:
-            log.info("fuse_track's tracks reach %d: resuming the files after it", resume_ns)
+            if period_ns is not None:  # the round fuse_track's tracks reached: its times shifted as it played them
+                offset_ns = (resume_ns - source.items[0][0]) // period_ns * period_ns
+            log.info("fuse_track's tracks reach %d: resuming the files after it (round %d)", resume_ns,
+                     offset_ns // period_ns if period_ns else 0)
         pacer = Pacer(cfg.pace, stopper)
         seq = dict.fromkeys(cams, 0)
         published = 0
-        loop_idx, offset_ns = 0, 0
+        loop_idx = 0  # rounds played by this process (ingest.max_frames counts per round)
         while not stopper.is_set():
-            first = last = None
+            first = last = None  # this round's first and last capture times in the source, skipped on resuming or not
             for sf in source:
                 if stopper.is_set():
                     break
@@ -192,11 +209,11 @@ def main(settings: Settings, stopper: Stopper) -> int:
                     if all(n >= cfg.max_frames * (loop_idx + 1) for n in seq.values()):
                         break
                     continue
+                first = sf.t_capture_ns if first is None else first
+                last = sf.t_capture_ns
                 t = sf.t_capture_ns + offset_ns
-                if resume_ns is not None and loop_idx == 0 and t <= resume_ns:
+                if resume_ns is not None and t <= resume_ns:
                     continue  # played before this restart: fuse_track has closed its tick
-                first = t if first is None else first
-                last = t
                 pacer.wait(t)
                 try:
                     if sf.error:
@@ -220,7 +237,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
             if not cfg.loop or first is None:
                 break
             loop_idx += 1
-            offset_ns += last - first + 100_000_000
+            offset_ns += period_ns if period_ns is not None else last - first + LOOP_GAP_NS
         if acks is not None:
             deadline = time.monotonic() + cfg.ack_timeout_s
             while acks.pending and time.monotonic() < deadline and not stopper.is_set():
@@ -228,6 +245,12 @@ def main(settings: Settings, stopper: Stopper) -> int:
                 time.sleep(0.005)
         log.info("done: %d frames published, %d bad, %d ack timeouts", published, bad.total,
                  acks.timeouts if acks else 0)
+        if cfg.at_end == "idle" and not stopper.is_set():
+            # under a supervisor that restarts a process that exits (compose), an exit would replay the source's
+            # last frames (resumed after fuse_track's latest tracks) for ever: stay up, reporting, until told to stop
+            log.info("the source is finished: publishing nothing more until told to stop (ingest.at_end idle)")
+            while not stopper.wait(1.0):
+                pass
         status.close()
         del tokens
     finally:

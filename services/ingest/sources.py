@@ -7,6 +7,7 @@ Every source yields `SourceFrame`s in capture-time order (merged over its camera
   from 2000 on) or a date and time (`2023-12-19 11-00-00-034395.jpg`, as in the real State/Ellsworth footage;
   in the time zone `ingest.timezone` names, UTC by default) — or, when names carry no time, from a frame rate,
   the files in the order of their names with numbers compared as numbers (`frame2.png` before `frame10.png`).
+  Hidden files (a name starting with "."; macOS's `._<name>` AppleDouble files beside each image) are not frames.
 - `VideoSource`: a video file or an RTSP/HTTP stream through OpenCV; capture time from the stream's
   position (files) or the wall clock at grab (live streams).
 
@@ -17,6 +18,7 @@ passed through) by ingest.
 from __future__ import annotations
 
 import re
+import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -34,6 +36,12 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
 EPOCH_DIGITS = {19: 1, 16: 1_000, 13: 1_000_000}  # a name of so many digits: ns, us or ms since the epoch
 T_NAME_MIN = 946_684_800 * 10**9  # 2000-01-01: a number in a name below it is a frame counter, not a time
 DATETIME_RE = re.compile(r"(\d{4})-(\d{2})-(\d{2})[ _T](\d{2})[-:_](\d{2})[-:_](\d{2})(?:[-._](\d{1,9}))?")
+# cameras played together whose first capture times lie further apart than this do not share a clock: a video file's
+# frames timed from when it is opened beside dated file names, a folder named in another time zone (whole hours
+# off). Footage of one site is recorded together and starts within seconds, a camera started a few minutes late
+# still plays (the others alone until it starts); past this the pipeline would play one camera alone for that
+# long at pace 1, or hang for years.
+FIRST_TIMES_APART_MAX_NS = 10 * 60 * 10**9
 
 
 @dataclass
@@ -78,6 +86,31 @@ def _read(camera: str, t_ns: int, path: Path) -> SourceFrame:
         return SourceFrame(camera, t_ns, origin=str(path), error=f"camera {camera}: cannot read {path}: {exc}")
 
 
+def _images(folder: Path) -> list[Path]:
+    """The image files of a folder, in no order: not hidden files (a name starting with "."; macOS's `._<name>`
+    AppleDouble files copied beside each image), sub-folders or pipes; a dangling link is kept (reported as
+    unreadable when it is read)."""
+    return [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")
+            and (p.is_file() or (p.is_symlink() and not p.exists()))]
+
+
+def check_first_times(firsts: dict[str, int]) -> None:
+    """ValueError naming the cameras and their first capture times when those lie further apart than
+    `FIRST_TIMES_APART_MAX_NS` (ns since the epoch by camera): their clocks differ, and fuse_track, putting frames
+    of one time into one tick, would wait for the later camera for as long."""
+    if len(firsts) < 2 or max(firsts.values()) - min(firsts.values()) <= FIRST_TIMES_APART_MAX_NS:
+        return
+    apart_s = (max(firsts.values()) - min(firsts.values())) / 1e9
+    apart = f"{apart_s / 86400:.1f} days" if apart_s >= 86400 else f"{apart_s / 3600:.1f} h" if apart_s >= 3600 \
+        else f"{apart_s / 60:.0f} min"
+    when = ", ".join(f"{cam} {datetime.fromtimestamp(t / 1e9, UTC).isoformat(timespec='seconds')}"
+                     for cam, t in sorted(firsts.items(), key=lambda kv: kv[1]))
+    raise ValueError(f"the cameras' first capture times lie {apart} apart ({when}; at most "
+                     f"{FIRST_TIMES_APART_MAX_NS // 60 // 10**9} min): their clocks differ (a video file is timed from "
+                     "when it is opened, file names by their own clock and time zone), so fuse_track could not put "
+                     "their frames in one tick; play cameras recorded together, with times in one clock")
+
+
 def _natural(path: Path) -> list:
     """A sort key for file names with numbers compared as numbers: frame2 before frame10."""
     return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.name)]
@@ -116,19 +149,25 @@ class ImageFolderSource:
             folder = Path(folder)
             if not folder.is_dir():
                 raise ValueError(f"camera {cam}: image folder not found: {folder}")
-            files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+            files = sorted(_images(folder))
             if not files:
                 raise ValueError(f"camera {cam}: no images ({', '.join(IMAGE_SUFFIXES)}) in {folder}")
             times = [capture_time_from_name(p.name, tz) for p in files]
-            if any(t is None for t in times):
+            if None in times and any(t is not None for t in times):
+                # a frame rate times a folder whose names carry none; with it here, one stray name would replace the
+                # others' real times with wall-clock ones, years away from the other cameras'
+                bad = files[times.index(None)].name
+                raise ValueError(f"camera {cam}: no capture time (or one outside 1970-2116) in file name {bad!r} "
+                                 f"while other names in {folder} carry one; move it out of the folder")
+            if None in times:
                 if fps is None:
-                    bad = files[times.index(None)].name
-                    raise ValueError(f"camera {cam}: no capture time (or one outside 1970-2116) in file name {bad!r}; "
-                                     f"give a frame rate (fps)")
+                    raise ValueError(f"camera {cam}: no capture time (or one outside 1970-2116) in file name "
+                                     f"{files[0].name!r}; give a frame rate (fps)")
                 t0 = time.time_ns() if start_ns is None else start_ns
                 files = sorted(files, key=_natural)
                 times = [t0 + round(i * 1e9 / fps) for i in range(len(files))]
             streams[cam] = sorted(zip(times, files, strict=True))
+        check_first_times({cam: items[0][0] for cam, items in streams.items()})
         self.items = _merge(streams)
 
     def __iter__(self) -> Iterator[SourceFrame]:
@@ -137,33 +176,51 @@ class ImageFolderSource:
 
 
 class VideoSource:
-    """A video file or a live stream (rtsp://, http://...) of one camera, through OpenCV. A live stream that drops
-    is opened again, every `RECONNECT_S` seconds doubling up to `RECONNECT_MAX_S`, for as long as ingest runs; each
-    failed attempt yields a frame carrying the reason (ingest counts and logs it), so a camera that goes down is
-    reported and comes back by itself instead of ending the playback."""
+    """A video file or a live stream (rtsp://, http://...) of one camera, through OpenCV. A live stream that drops, or
+    that cannot be opened at start (a camera not up yet when the cabinet boots), is opened again, every `RECONNECT_S`
+    seconds doubling up to `RECONNECT_MAX_S`, for as long as ingest runs; each failed attempt yields a frame carrying
+    the reason (ingest counts and logs it), so a camera that goes down is reported and comes back by itself instead
+    of ending the playback. A stream's open and each of its reads give up after `STREAM_TIMEOUT_MS` (OpenCV's own
+    wait, for a camera that takes the connection and never answers, is 30 s), and the wait between attempts ends
+    when `stop` (ingest's `Stopper.event`) is set, which ends the frames: a stop during a reconnect takes no longer
+    than one such timeout."""
 
     RECONNECT_S = 0.5
     RECONNECT_MAX_S = 5.0
+    STREAM_TIMEOUT_MS = 3000
 
-    def __init__(self, url: str, camera: str, fps: float | None = None) -> None:
-        self.url, self.camera = url, camera
+    def __init__(self, url: str, camera: str, fps: float | None = None, stop: threading.Event | None = None) -> None:
+        self.url, self.camera, self.stop = url, camera, stop
         self.live = url.split("://")[0].lower() in STREAM_SCHEMES if "://" in url else False
         if "://" not in url and not Path(url).is_file():
             raise ValueError(f"camera {camera}: video file not found: {url}")
-        self.cap = cv2.VideoCapture(url)
-        if not self.cap.isOpened():
+        self.cap = self._open()
+        if not self.cap.isOpened() and not self.live:  # a live camera that is down is reported as it is read
             raise ValueError(f"camera {camera}: OpenCV cannot open {url}")
         self.fps = fps or self.cap.get(cv2.CAP_PROP_FPS) or 10.0
         if self.live and url.lower().startswith(("http://", "https://")) and self.cap.get(cv2.CAP_PROP_FRAME_COUNT) > 0:
-            self.live = False  # a video file served over HTTP: it ends, it is not reopened
+            self.live = False  # a video file served over HTTP: it ends, it is not reopened (one down at start: live)
         self.t0_ns = time.time_ns()
+
+    def _open(self) -> cv2.VideoCapture:
+        if not self.live:
+            return cv2.VideoCapture(self.url)
+        return cv2.VideoCapture(self.url, cv2.CAP_FFMPEG, [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, self.STREAM_TIMEOUT_MS,
+                                                           cv2.CAP_PROP_READ_TIMEOUT_MSEC, self.STREAM_TIMEOUT_MS])
+
+    def _wait(self, seconds: float) -> bool:
+        """Wait before opening a stream again; True when told to stop meanwhile."""
+        if self.stop is None:
+            time.sleep(seconds)
+            return False
+        return self.stop.wait(seconds)
 
     def __iter__(self) -> Iterator[SourceFrame]:
         n = 0
         wait_s = self.RECONNECT_S
-        if not self.cap.isOpened():  # played before (ingest.loop): from the start again
-            self.cap = cv2.VideoCapture(self.url)
-            if not self.cap.isOpened() and not self.live:
+        if not self.cap.isOpened() and not self.live:  # played before (ingest.loop): from the start again
+            self.cap = self._open()
+            if not self.cap.isOpened():
                 yield SourceFrame(self.camera, self.t0_ns, origin=self.url,
                                   error=f"camera {self.camera}: OpenCV cannot open {self.url} again")
                 return
@@ -172,13 +229,15 @@ class VideoSource:
             if not ok:
                 if not self.live:
                     break
+                why = (f"stream {self.url} lost; opening it again" if self.cap.isOpened()
+                       else f"cannot open stream {self.url}; trying again")
                 yield SourceFrame(self.camera, time.time_ns(), origin=self.url,
-                                  error=f"camera {self.camera}: stream {self.url} lost; opening it again in "
-                                        f"{wait_s:g} s")
+                                  error=f"camera {self.camera}: {why} in {wait_s:g} s")
                 self.cap.release()
-                time.sleep(wait_s)
+                if self._wait(wait_s):
+                    break
                 wait_s = min(2 * wait_s, self.RECONNECT_MAX_S)
-                self.cap = cv2.VideoCapture(self.url)  # a failed open fails the next read: the wait doubles
+                self.cap = self._open()  # a failed open fails the next read: the wait doubles
                 continue
             wait_s = self.RECONNECT_S
             if self.live:
@@ -190,15 +249,29 @@ class VideoSource:
         self.cap.release()
 
 
+def _first_times(source) -> dict[str, int]:
+    """Each camera's first capture time in a source of recorded frames."""
+    items = getattr(source, "items", None)
+    if items is None:  # a video file: timed from when it was opened
+        return {source.camera: source.t0_ns}
+    firsts: dict[str, int] = {}
+    for t, cam, _ in items:  # in time order
+        firsts.setdefault(cam, t)
+    return firsts
+
+
 def open_source(source: str, cameras: list[str], camera_sources: dict[str, str | None],
-                fps: float | None = None, tz: tzinfo = UTC
+                fps: float | None = None, tz: tzinfo = UTC, stop: threading.Event | None = None
                 ) -> RecordingSource | ImageFolderSource | VideoSource | MergedSource:
-    """The source a site's settings describe (`tz`: the time zone of date-time file names).
+    """The source a site's settings describe (`tz`: the time zone of date-time file names; `stop`: ingest's
+    `Stopper.event`, which ends a live stream's wait to reconnect).
 
     `source` is a simulator recording, a folder of per-camera image folders (matched to camera names:
-    the sub-folder named `<camera>`, in any case, else the one whose name ends with `_<camera>`), one image folder,
-    a video file or a stream URL. `camera_sources` (camera -> its own source) take precedence; live streams and
-    recorded frames are not mixed (their clocks differ: ValueError).
+    the sub-folder named `<camera>`, in any case, else the one whose name ends with `_<camera>`; sub-folders named
+    `.*` or `@*`, a NAS's or a file browser's, are not cameras'), one image folder (one that holds images, for one
+    camera, even beside sub-folders), a video file or a stream URL. `camera_sources` (camera -> its own source) take
+    precedence; live streams and recorded frames are not mixed, nor recorded cameras whose first capture times lie
+    more than `FIRST_TIMES_APART_MAX_NS` apart (their clocks differ: ValueError).
     """
     own = {c: s for c, s in camera_sources.items() if s}
     if own:
@@ -206,33 +279,35 @@ def open_source(source: str, cameras: list[str], camera_sources: dict[str, str |
         if rest and not source:
             raise ValueError(f"no source for camera{'s' * (len(rest) > 1)} {', '.join(rest)}: give each camera its "
                              "own source, or ingest.source for the cameras without one")
-        parts = [open_source(s, [c], {}, fps, tz) for c, s in own.items()]
+        parts = [open_source(s, [c], {}, fps, tz, stop) for c, s in own.items()]
         if rest:
-            parts.append(open_source(source, rest, {}, fps, tz))
+            parts.append(open_source(source, rest, {}, fps, tz, stop))
         live = [p for p in parts if getattr(p, "live", False)]
         if live and len(live) < len(parts):
             raise ValueError(f"camera{'s' * (len(live) > 1)} {', '.join(p.camera for p in live)} stream live (the "
                              "wall clock) and the others play recorded frames (their own capture times): the two do "
                              "not share a clock, so fuse_track could not put them in one tick; give every camera a "
                              "live stream, or play them all from recordings")
-        return parts[0] if len(parts) == 1 else MergedSource(parts)
+        if not live:
+            check_first_times({cam: t for p in parts for cam, t in _first_times(p).items()})
+        return parts[0] if len(parts) == 1 else MergedSource(parts, stop)
     if not source:
         raise ValueError("no source: set ingest.source in the site file or pass --source")
     if "://" in source:
         if len(cameras) != 1:
             raise ValueError(f"a stream URL feeds one camera; give each camera its own source ({cameras})")
-        return VideoSource(source, cameras[0], fps)
+        return VideoSource(source, cameras[0], fps, stop)
     path = Path(source).expanduser()
     if not path.exists():
         raise ValueError(f"source not found: {path}")
     if path.is_file():
         if len(cameras) != 1:
             raise ValueError(f"a video file feeds one camera; give each camera its own source ({cameras})")
-        return VideoSource(str(path), cameras[0], fps)
+        return VideoSource(str(path), cameras[0], fps, stop)
     if (path / "recording.json").is_file():
         return RecordingSource(path, cameras)
-    subdirs = {p.name: p for p in path.iterdir() if p.is_dir()}
-    if not subdirs:
+    subdirs = {p.name: p for p in path.iterdir() if p.is_dir() and not p.name.startswith((".", "@"))}
+    if not subdirs or (len(cameras) == 1 and _images(path)):
         if len(cameras) != 1:
             raise ValueError(f"{path} holds images of one camera; the site has {len(cameras)} cameras")
         return ImageFolderSource({cameras[0]: path}, fps, tz)
@@ -250,10 +325,14 @@ def open_source(source: str, cameras: list[str], camera_sources: dict[str, str |
 
 class MergedSource:
     """Several sources merged in capture-time order; live streams in the order their frames arrive, each read in
-    its own thread, so that one camera that stalls or reconnects does not hold up the others."""
+    its own thread, so that one camera that stalls or reconnects does not hold up the others (until `stop` is set).
+    `items`, as a single source's, when every part has them (recorded files: a restart resumes after fuse_track's
+    latest tracks), else None."""
 
-    def __init__(self, parts: list) -> None:
-        self.parts = parts
+    def __init__(self, parts: list, stop: threading.Event | None = None) -> None:
+        self.parts, self.stop = parts, stop
+        items = [getattr(p, "items", None) for p in parts]
+        self.items = sorted(i for part in items for i in part) if all(items) else None
 
     def __iter__(self) -> Iterator[SourceFrame]:
         if all(getattr(p, "live", False) for p in self.parts):
@@ -277,7 +356,6 @@ class MergedSource:
 
     def _arrivals(self) -> Iterator[SourceFrame]:
         import queue
-        import threading
 
         frames: queue.Queue = queue.Queue(maxsize=8 * len(self.parts))
         ended = object()
@@ -292,8 +370,11 @@ class MergedSource:
         for part in self.parts:  # daemons: ingest stops by leaving this generator, and they end with the process
             threading.Thread(target=pump, args=(part,), daemon=True, name="stream").start()
         running = len(self.parts)
-        while running:
-            f = frames.get()
+        while running and not (self.stop is not None and self.stop.is_set()):
+            try:
+                f = frames.get(timeout=0.1)  # not for ever: a stop ends the frames while a camera reconnects
+            except queue.Empty:
+                continue
             if f is ended:
                 running -= 1
                 continue

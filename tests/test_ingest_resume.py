@@ -1,0 +1,136 @@
+"""ingest's main() on a fake bus: a restart while looping goes on in the round fuse_track's tracks reached, capture
+times never going back; at the source's end it exits (`roadside up`) or stays up idle (compose)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from types import SimpleNamespace
+from typing import ClassVar
+
+import cv2
+import numpy as np
+import pytest
+from test_movements import tracks_message
+
+import services.ingest.__main__ as ingest
+from shared.bus import Stopper
+from shared.codec import decode, encode
+from shared.messages import Frame
+from shared.settings import load_settings
+
+T0 = 1_700_000_000_000_000_000
+S = 1_000_000_000
+
+
+class _Bus:
+    """What main() asks of a Zenoh session: publishers (frames kept, decoded) and fuse_track's latest tracks."""
+
+    def __init__(self, latest_ns: int | None, stopper: Stopper, stop_after: int) -> None:
+        self.frames: list[Frame] = []
+        self.latest_ns, self.stopper, self.stop_after = latest_ns, stopper, stop_after
+
+    def declare_publisher(self, key):
+        return SimpleNamespace(put=self._put)
+
+    def _put(self, payload: bytes) -> None:
+        self.frames.append(decode(payload, Frame))
+        if len(self.frames) >= self.stop_after:
+            self.stopper.stop()
+
+    def get(self, key, timeout):
+        if self.latest_ns is None:
+            return iter(())
+        payload = encode(tracks_message(self.latest_ns, []))
+        return iter([SimpleNamespace(ok=SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: payload)))])
+
+    def close(self) -> None:
+        pass
+
+
+class _Status:
+    """StatusReporter's part main() uses; each one made is kept, to see whether it was closed."""
+
+    made: ClassVar[list[_Status]] = []
+
+    def __init__(self, *args, **kwargs) -> None:
+        self.closed = False
+        _Status.made.append(self)
+
+    def count(self, *args, **kwargs) -> None:
+        pass
+
+    def gauge(self, *args, **kwargs) -> None:
+        pass
+
+    def close(self) -> None:
+        self.closed = True
+
+
+@pytest.fixture
+def site(tmp_path, monkeypatch):
+    """A site of cameras A and B, each 5 frames 1 s apart from T0 in its own folder of a parent; main()'s bus faked."""
+    for cam in "AB":
+        (tmp_path / "frames" / cam).mkdir(parents=True)
+        for i in range(5):
+            cv2.imwrite(str(tmp_path / "frames" / cam / f"{T0 + i * S}.jpg"), np.full((48, 64), 90, np.uint8))
+    (tmp_path / "site.yaml").write_text(
+        "site: se\norigin: {lat_deg: 42.2, lon_deg: -83.7, alt_m: 265.0}\ncameras:\n"
+        + "".join(f"  - {{name: {c}, kind: pinhole, width: 64, height: 48, masks: m.npz}}\n" for c in "AB"))
+    monkeypatch.setattr(ingest, "declare_alive", lambda *a, **k: [])
+    monkeypatch.setattr(ingest, "wait_for_peers", lambda *a, **k: 0)
+    monkeypatch.setattr(ingest, "StatusReporter", _Status)
+    _Status.made = []
+    return tmp_path
+
+
+def _bus(monkeypatch, latest_ns: int | None = None, stop_after: int = 10**9) -> _Bus:
+    bus = _Bus(latest_ns, Stopper(install_signals=False), stop_after)
+    monkeypatch.setattr(ingest, "open_session", lambda *a: bus)
+    return bus
+
+
+def _settings(site, **ingest_settings):
+    return load_settings(site / "site.yaml", ingest={"source": str(site / "frames"), "pace": "1000", **ingest_settings})
+
+
+def _play(site, monkeypatch, latest_ns=None, stop_after=10**9, **ingest_settings) -> tuple[int, _Bus]:
+    bus = _bus(monkeypatch, latest_ns, stop_after)
+    return ingest.main(_settings(site, **ingest_settings), bus.stopper), bus
+
+
+def _times(bus, camera="A"):
+    """Camera's capture times as published, in s after T0."""
+    return [(f.t_capture_ns - T0) / S for f in bus.frames if f.camera == camera]
+
+
+def test_a_restart_while_looping_goes_on_in_the_round_fuse_track_reached(site, monkeypatch):
+    """Rounds 4.1 s apart (the source's 4 s and 0.1 s). Restarted at round 0's frame 2: the next round still starts
+    4.1 s after the first; restarted in round 2 (fuse_track past the files' own times): after that round's frame."""
+    rc, bus = _play(site, monkeypatch, latest_ns=T0 + 2 * S, stop_after=16, loop=True)
+    assert rc == ingest.STOPPED and _times(bus) == [3.0, 4.0, 4.1, 5.1, 6.1, 7.1, 8.1, 8.2]
+    rc, bus = _play(site, monkeypatch, latest_ns=T0 + 9_700_000_000, stop_after=8, loop=True)
+    assert _times(bus) == [10.2, 11.2, 12.2, 12.3]
+    source = ingest.open_source(str(site / "frames"), ["A", "B"], {})
+    assert ingest.resume_point(bus, "se", source) is None  # not looping: past the files' times is another recording
+    rc, bus = _play(site, monkeypatch, latest_ns=T0 + 2 * S)  # not looping: after the tracks, to the end
+    assert rc == 0 and _times(bus) == [3.0, 4.0]
+
+
+def test_at_the_end_of_its_source_ingest_exits_or_stays_up_idle_until_told_to_stop(site, monkeypatch):
+    """`exit` (the default, `roadside up`): status 0; `idle` (compose, which would restart an exit for ever): up,
+    reporting and publishing nothing more, until a stop, then at once."""
+    rc, bus = _play(site, monkeypatch)
+    assert rc == 0 and len(bus.frames) == 10 and _Status.made[-1].closed
+    bus = _bus(monkeypatch)
+    settings = _settings(site, at_end="idle")
+    out = []
+    thread = threading.Thread(target=lambda: out.append(ingest.main(settings, bus.stopper)), daemon=True)
+    thread.start()
+    time.sleep(1.5)
+    assert thread.is_alive() and len(bus.frames) == 10 and not _Status.made[-1].closed  # still reporting
+    t = time.monotonic()
+    bus.stopper.stop()
+    thread.join(5.0)
+    assert not thread.is_alive() and time.monotonic() - t < 1.5
+    assert out == [ingest.STOPPED] and _Status.made[-1].closed
