@@ -144,6 +144,8 @@ def decode(heat: np.ndarray, size: np.ndarray, heading: np.ndarray, vtype_prob: 
     box_wh = size[3:5, rows, cols].astype(np.float64).T * BOX_SCALE_PX
     box_c = uv + off[2:4].T * box_wh
     hd = heading[:, rows, cols].astype(np.float64).T
+    # a NaN heading (a broken model) gives no heading even where the axis replaces it below: its sign comes from it
+    finite = np.isfinite(hd).all(axis=1)
     if axis is not None:
         half = np.arctan2(axis[1, rows, cols], axis[0, rows, cols]).astype(np.float64) / 2
         direction = np.stack([np.cos(half), np.sin(half)], axis=1)
@@ -154,7 +156,7 @@ def decode(heat: np.ndarray, size: np.ndarray, heading: np.ndarray, vtype_prob: 
     hd /= np.maximum(norm, HEADING_EPS)
     prob = vtype_prob[:, rows, cols].astype(np.float64).T
     keep = _kept_after_votes(uv, box_wh, moved) if moved.any() else np.arange(len(uv))
-    keep = keep[norm[keep, 0] > HEADING_EPS]  # a peak with no heading at all gives no ground yaw: left out
+    keep = keep[(norm[keep, 0] > HEADING_EPS) & finite[keep]]  # a peak with no heading gives no ground yaw: left out
     return Detections(score=score[keep], uv=uv[keep],
                       box=np.concatenate([box_c - box_wh / 2, box_c + box_wh / 2], axis=1)[keep],
                       heading_uv=hd[keep], size_lwh=size[0:3, rows, cols].astype(np.float64).T[keep],

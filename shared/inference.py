@@ -22,6 +22,7 @@ from shared.heads_calibration import BOX_CALIBRATION_KEY, SIZE_CALIBRATION_KEY, 
 from shared.settings import MAX_THREADS
 
 PAD_MULTIPLE = 32
+DEFAULT_LONG_SIDE = 640  # a model's input_long_side where its metadata has none
 AREA_CONTEXT_PX = 32  # network pixels of the image kept around a camera's detect area (see `OnnxDetector.detect`)
 PREFERRED_PROVIDERS = ("TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider")
 
@@ -57,6 +58,69 @@ def input_scale(width: int, height: int, long_side: int) -> float:
     return min(1.0, long_side / max(width, height))
 
 
+def runtime_errors() -> tuple[type[Exception], ...]:
+    """ONNX Runtime's own exception types (InvalidArgument, Fail, RuntimeException, ...: they derive from Exception
+    only, not from ValueError), for catching what one inference raises."""
+    from onnxruntime.capi import onnxruntime_pybind11_state as state
+
+    return tuple(v for v in vars(state).values() if isinstance(v, type) and issubclass(v, Exception))
+
+
+def detector_config(text: str, path: Path) -> dict:
+    """A model's `CONFIG_KEY` metadata (training.export: the DetectorConfig as JSON), the keys read here checked:
+    ValueError naming the file, at start, rather than a traceback or every frame refused later."""
+    try:
+        config = json.loads(text)
+        if not isinstance(config, dict):
+            raise ValueError(f"not a JSON object: {text[:80]!r}")
+        if "stride" not in config:
+            raise ValueError(f"no 'stride' in {sorted(config)}")
+        # the input is padded to a multiple of PAD_MULTIPLE: the output maps cover it exactly at a stride dividing it
+        _whole(config, "stride", lambda v: v >= 1 and PAD_MULTIPLE % v == 0, f">= 1 dividing {PAD_MULTIPLE}")
+        _whole(config, "input_long_side", lambda v: v >= PAD_MULTIPLE, f">= {PAD_MULTIPLE}")
+        _whole(config, "num_types", lambda v: v >= 1, ">= 1")
+    except (KeyError, TypeError, AttributeError, ValueError) as e:
+        raise ValueError(f"{path}: metadata {CONFIG_KEY}: {e}") from e
+    return config
+
+
+def _whole(config: dict, key: str, ok, what: str) -> None:
+    """ValueError unless `config[key]` (where present) is a whole number (not a bool) for which `ok` holds."""
+    if key in config:
+        v = config[key]
+        if isinstance(v, bool) or not isinstance(v, int) or not ok(v):
+            raise ValueError(f"{key} must be a whole number {what}, got {v!r}")
+
+
+def check_input(inputs: list, path: Path, batch: int) -> str:
+    """The name of a model's one input, a (batch, 1, height, width) float grey image with free height and width
+    (frames and detect areas come in any size) and a free batch or one of `batch` (2 for `mirror`); ValueError naming
+    the file otherwise, at start rather than at the first frame. A free dimension: a name, or None / -1."""
+    if len(inputs) != 1:
+        raise ValueError(f"{path}: {len(inputs)} inputs {[i.name for i in inputs]}, a detector has one (its image)")
+    name, shape, dtype = inputs[0].name, inputs[0].shape, inputs[0].type
+
+    def free(d) -> bool:
+        return not isinstance(d, int) or d < 0
+
+    wrong = []
+    if dtype != "tensor(float)":
+        wrong.append(f"its type is {dtype}, not tensor(float)")
+    if len(shape) != 4:
+        wrong.append(f"it has {len(shape)} dimensions, not 4 (batch, 1, height, width)")
+    else:
+        if not free(shape[0]) and shape[0] != batch:
+            mirror = " (mirror infers a batch of 2: the image and its mirror)" if batch == 2 else ""
+            wrong.append(f"its batch is fixed at {shape[0]}{mirror}")
+        if shape[1] != 1:
+            wrong.append(f"its channels are {shape[1]!r}, not 1 (a grey image)")
+        if not (free(shape[2]) and free(shape[3])):
+            wrong.append("its height and width are fixed (frames and detect areas come in any size: export it "
+                         "with free height and width)")
+    if wrong:
+        raise ValueError(f"{path}: input {name!r} {list(shape)} is not a detector's: {'; '.join(wrong)}")
+    return name
+
 
 class OnnxDetector:
     """An exported detector. `detect(grey)` -> Detections in the image's own pixels."""
@@ -85,24 +149,24 @@ class OnnxDetector:
         meta = self.session.get_modelmeta().custom_metadata_map
         if CONFIG_KEY not in meta:
             raise ValueError(f"{path}: model metadata has no {CONFIG_KEY!r} (export it with `roadside export`)")
-        self.config = json.loads(meta[CONFIG_KEY])
+        self.config = detector_config(meta[CONFIG_KEY], path)
         self.size_calibration = self.box_calibration = None
         if calibrated_heads and SIZE_CALIBRATION_KEY in meta:
             self.size_calibration = SizeCalibration.from_json(meta[SIZE_CALIBRATION_KEY], f"{path}: metadata")
         if calibrated_heads and BOX_CALIBRATION_KEY in meta:
             self.box_calibration = BoxCalibration.from_json(meta[BOX_CALIBRATION_KEY], f"{path}: metadata")
-            types = int(self.config.get("num_types", self.box_calibration.num_types))
+            types = self.config.get("num_types", self.box_calibration.num_types)
             if self.box_calibration.num_types != types:
                 raise ValueError(f"{path}: metadata: the box calibration is for {self.box_calibration.num_types} "
                                  f"vehicle types, the model has {types}")
-        self.stride = int(self.config["stride"])
-        self.long_side = int(self.config.get("input_long_side", 640))
-        self.input_name = self.session.get_inputs()[0].name
+        self.stride = self.config["stride"]
+        self.long_side = self.config.get("input_long_side", DEFAULT_LONG_SIDE)
         self.output_names = tuple(o.name for o in self.session.get_outputs())
         missing = {"heat", "size", "heading", "vtype_prob", "offset"} - set(self.output_names)
         if missing or not set(self.output_names) <= OUTPUT_NAMES:
             raise ValueError(f"{path}: outputs {list(self.output_names)} are not a detector's "
                              f"(heat, size, heading, vtype_prob, offset and optionally axis, vote)")
+        self.input_name = check_input(self.session.get_inputs(), path, 2 if mirror else 1)
         self.path = path
         self.score_thr = score_thr
         self.top_k = top_k

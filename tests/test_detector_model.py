@@ -680,6 +680,19 @@ def test_axis_targets_are_the_doubled_angle_and_decode_takes_the_sign_from_the_h
         decode(heat, size, heading, prob, offset, stride=4, axis=axis[:1])
 
 
+def test_a_nan_heading_drops_the_peak_even_where_the_axis_gives_the_direction():
+    """The heading head gives the axis its sign: a NaN there leaves the direction's sign unknown, so the peak is
+    dropped as one with no heading, as it is without an axis head."""
+    heat, size, heading, prob, offset = hand_maps()
+    heading[:, 2, 3] = [np.nan, 0.4]
+    axis = np.zeros((2, *heat.shape[1:]), np.float32)
+    axis[0] = 1.0  # the axis along u everywhere
+    for with_axis in (None, axis):
+        d = decode(heat, size, heading, prob, offset, stride=4, axis=with_axis)
+        np.testing.assert_allclose(d.score, [0.7], rtol=1e-6)  # the peak at (3, 2) is left out
+        np.testing.assert_allclose(d.heading_uv, [[-1.0, 0.0]], atol=1e-6)
+
+
 def test_axis_head_trains_exports_and_loads(tmp_path, one_torch_thread):
     from shared.inference import OnnxDetector
     from training.export import export_onnx

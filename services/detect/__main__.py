@@ -12,7 +12,8 @@ run from a thread pool; the runtime releases the GIL): on a CPU two single-threa
 take 47 % more frames per second than one two-threaded inference, at a higher latency per frame
 (shared/settings.py). Each camera's detections are published in capture order all the same: a frame whose
 inference ends before that of an older frame of its camera waits for it (fuse_track takes a camera's newer frame
-to mean its older ones have come).
+to mean its older ones have come), and a frame that comes after a newer one of its camera was taken for inference is
+skipped (counted in `frames_skipped`; unless it is a minute or more older: a clock that stepped back).
 A frame decoded smaller than the model's input needs (`Frame.scale`: ingest's `decode_long_side` below the
 model's `input_long_side`) is enlarged back to the scale the model was trained at, with one warning per camera.
 A camera's `detect_area_px` (its fisheye image circle) limits the inference to that rectangle, at the whole
@@ -32,7 +33,7 @@ import numpy as np
 
 from shared.bus import BadInput, Receiver, Stopper, declare_alive, open_session
 from shared.codec import encode
-from shared.inference import OnnxDetector, available_providers
+from shared.inference import OnnxDetector, available_providers, runtime_errors
 from shared.jpeg import decode_grey
 from shared.keys import camera_key
 from shared.messages import Detections, Frame
@@ -42,6 +43,10 @@ from shared.status import StatusReporter
 
 log = logging.getLogger("roadside.detect")
 IDLE_WAIT_S = 0.1
+# a frame captured this much before its camera's newest frame taken for inference is one of a clock that stepped
+# back, not a late one: it is inferred (fuse_track's max_lead_ms, services/fuse_track/ticks.py: it takes such a frame
+# for a clock jump and starts again once the jump is confirmed; a frame less far back is late there too)
+CLOCK_STEP_NS = 60_000_000_000
 
 
 def frame_image(frame: Frame, camera_size: tuple[int, int] | None = None) -> np.ndarray:
@@ -100,8 +105,19 @@ def load_detector(settings: Settings) -> OnnxDetector:
         path = settings.path(cfg.model)
     if not path.is_file():
         raise ValueError(f"detector model not found: {path} (set detect.model in the site file)")
-    return OnnxDetector(path, providers=providers, threads=cfg.threads, score_thr=cfg.score_thr, spin=cfg.spin,
-                        mirror=cfg.mirror, votes=cfg.votes)
+    detector = OnnxDetector(path, providers=providers, threads=cfg.threads, score_thr=cfg.score_thr, spin=cfg.spin,
+                            mirror=cfg.mirror, votes=cfg.votes)
+    # a GPU provider this ONNX Runtime lists can still fail to start (no GPU passed through, a driver too old): the
+    # session then runs on the CPU, where the fp16 model is slower than the fp32 one (shared/inference.py)
+    if path != settings.path(cfg.model) and not any(p != "CPUExecutionProvider" for p in detector.providers):
+        log.warning("%s: ONNX Runtime runs it on %s, not on %s: the fp32 model on the CPU instead", path.name,
+                    ", ".join(detector.providers), ", ".join(p for p in providers if p != "CPUExecutionProvider"))
+        path = settings.path(cfg.model)
+        if not path.is_file():
+            raise ValueError(f"detector model not found: {path} (set detect.model in the site file)")
+        detector = OnnxDetector(path, providers=["CPUExecutionProvider"], threads=cfg.threads,
+                                score_thr=cfg.score_thr, spin=cfg.spin, mirror=cfg.mirror, votes=cfg.votes)
+    return detector
 
 
 def detections_message(frame: Frame, det, infer_ms: float, t_in_ns: int) -> Detections:
@@ -138,6 +154,8 @@ def main(settings: Settings, stopper: Stopper) -> int:
         waiting: list[tuple[int, Frame]] = []
         running: list[tuple[Future, Frame, int]] = []
         warned: set[str] = set()  # cameras whose frames come too small for the model
+        taken: dict[str, int] = {}  # capture time of each camera's newest frame taken for inference
+        ort_errors = runtime_errors()
         done = 0
 
         areas = {c.name: c.detect_area_px for c in settings.cameras}
@@ -170,11 +188,20 @@ def main(settings: Settings, stopper: Stopper) -> int:
                 except ValueError as exc:
                     bad(str(exc), frame.camera)
                     continue
+                newest = taken.get(frame.camera)
+                if newest is not None and newest - CLOCK_STEP_NS < frame.t_capture_ns <= newest:
+                    # a frame that comes after a newer one of its camera was taken: skipped for that newer one, as
+                    # the ring skips frames (status frames_skipped: "skipped for newer ones"); published, it would
+                    # come after the newer frame's detections, which fuse_track reads as the end of the camera's
+                    # older frames. Checked after the frame itself: a broken frame is bad input whatever its time
+                    status.count("frames_skipped")
+                    continue
                 if frame.camera not in warned and detector.input_shape(*img.shape, frame.scale)[0] > 1.0:
                     warned.add(frame.camera)
                     log.warning("camera %s: frames come at %dx%d, smaller than the model's input (longer side %d); "
                                 "enlarged, detail lost: set ingest.decode_long_side to %d", frame.camera,
                                 frame.width, frame.height, detector.long_side, detector.long_side)
+                taken[frame.camera] = frame.t_capture_ns
                 future = pool.submit(infer, img, frame.scale, areas[frame.camera])
                 future.add_done_callback(lambda _: wake.set())
                 running.append((future, frame, t_in))
@@ -191,6 +218,10 @@ def main(settings: Settings, stopper: Stopper) -> int:
                 except cv2.error as exc:  # e.g. an image too thin to resize to the network's input
                     bad(f"camera {frame.camera} seq {frame.seq}: cannot detect on a {frame.width}x{frame.height} "
                         f"image ({str(exc).strip().splitlines()[-1]})", frame.camera)
+                    continue
+                except ort_errors as exc:  # ONNX Runtime's own (not ValueErrors): the model refused this input
+                    bad(f"camera {frame.camera} seq {frame.seq}: inference failed on a {frame.width}x{frame.height} "
+                        f"image ({' '.join(str(exc).split())[:300]})", frame.camera)
                     continue
                 try:
                     msg = detections_message(frame, det, infer_ms, t_in)

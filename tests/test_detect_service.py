@@ -1,0 +1,273 @@
+"""The detect service's run-time path: a model file that cannot work is refused at start (its input, its
+`detector_config` metadata), the fp16 model is not run on a CPU that ONNX Runtime fell back to, and the loop (on a
+stand-in for the bus) survives a frame the model refuses and publishes no camera's frame after a newer one."""
+
+from __future__ import annotations
+
+import json
+import queue
+import threading
+import warnings
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from pipeline_fixtures import REPO, wait_until
+
+import services.detect.__main__ as detect
+from shared.bus import Stopper
+from shared.codec import decode
+from shared.decode import CONFIG_KEY
+from shared.inference import OnnxDetector
+from shared.messages import Frame
+from shared.settings import load_settings
+
+FP32 = REPO / "models" / "detector_fp32.onnx"
+FP16 = REPO / "models" / "detector_fp16.onnx"
+T0 = 1_703_001_700_000_000_000
+W, H = 128, 96  # the test camera's image
+WAIT_S = 30.0
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    import onnx
+
+    return onnx.load(str(FP32))
+
+
+def edited(proto, path: Path, config: str | None = None, dims: tuple | None = None) -> Path:
+    """A copy of the shipped model at `path` with its `detector_config` metadata and/or its input's dimensions
+    (ints fixed, strings free) replaced."""
+    import onnx
+
+    proto = onnx.ModelProto.FromString(proto.SerializeToString())
+    if config is not None:
+        onnx.helper.set_model_props(proto, {**{p.key: p.value for p in proto.metadata_props}, CONFIG_KEY: config})
+    if dims is not None:
+        for dim, v in zip(proto.graph.input[0].type.tensor_type.shape.dim, dims, strict=True):
+            dim.Clear()
+            if isinstance(v, int):
+                dim.dim_value = v
+            else:
+                dim.dim_param = v
+    onnx.save(proto, str(path))
+    return path
+
+
+# --- the model, checked at start --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("dims, mirror, match", [
+    ((1, 1, 480, 640), False, r"\[1, 1, 480, 640\] is not a detector's: its height and width are fixed"),
+    (("batch", 1, "height", 640), False, "its height and width are fixed"),
+    (("batch", 3, "height", "width"), False, "its channels are 3, not 1"),
+    ((1, 1, "height", "width"), True, "its batch is fixed at 1 .mirror infers a batch of 2"),
+    ((2, 1, "height", "width"), False, "its batch is fixed at 2"),
+])
+def test_a_model_whose_input_is_not_a_free_grey_image_is_refused_at_start(shipped, tmp_path, dims, mirror, match):
+    """ONNX Runtime loads such a model and refuses it at the first frame of another size (or of a batch of two):
+    detect would die on every restart. ValueError at start: detect's one error line and exit status 2."""
+    path = edited(shipped, tmp_path / "site.onnx", dims=dims)
+    with pytest.raises(ValueError, match=r"site\.onnx: input 'image' .*" + match):
+        OnnxDetector(path, threads=1, mirror=mirror)
+
+
+def test_a_batch_fixed_at_one_is_enough_without_mirror(shipped, tmp_path):
+    path = edited(shipped, tmp_path / "one.onnx", dims=(1, 1, "height", "width"))
+    assert len(OnnxDetector(path, threads=1, score_thr=0.0).detect(np.zeros((H, W), np.uint8))) > 0
+
+
+@pytest.mark.parametrize("config, match", [
+    (json.dumps({"num_types": 5, "input_long_side": 640}), r"no 'stride' in \['input_long_side', 'num_types'\]"),
+    ("[4]", r"not a JSON object: '\[4\]'"),
+    ("{stride: 4", "Expecting property name"),
+    (json.dumps({"stride": "four"}), "stride must be a whole number >= 1 dividing 32, got 'four'"),
+    (json.dumps({"stride": 0, "input_long_side": 640}), "stride must be a whole number >= 1 dividing 32, got 0"),
+    (json.dumps({"stride": 3}), "stride must be a whole number >= 1 dividing 32, got 3"),
+    (json.dumps({"stride": True}), "stride must be a whole number >= 1 dividing 32, got True"),
+    (json.dumps({"stride": 4, "input_long_side": 0}), "input_long_side must be a whole number >= 32, got 0"),
+    (json.dumps({"stride": 4, "input_long_side": None}), "input_long_side must be a whole number >= 32, got None"),
+    (json.dumps({"stride": 4, "num_types": "5"}), "num_types must be a whole number >= 1, got '5'"),
+])
+def test_bad_detector_config_metadata_is_named_at_start(shipped, tmp_path, config, match):
+    """Before: a KeyError or AttributeError traceback (exit 1, restarted), or a stride or input size of 0 accepted
+    and every frame refused."""
+    path = edited(shipped, tmp_path / "site.onnx", config=config)
+    with pytest.raises(ValueError, match=rf"site\.onnx: metadata {CONFIG_KEY}: {match}"):
+        OnnxDetector(path, threads=1)
+
+
+def test_a_good_detector_config_is_read(shipped, tmp_path):
+    path = edited(shipped, tmp_path / "site.onnx", config=json.dumps({"stride": 2, "num_types": 5}))
+    d = OnnxDetector(path, threads=1)
+    assert (d.stride, d.long_side) == (2, 640)
+
+
+def site_settings(tmp_path: Path, **detect_settings):
+    site = {"site": "t", "cameras": [{"name": "NE", "kind": "fisheye", "width": W, "height": H}],
+            "detect": {"model": str(FP32), "model_gpu": None, "providers": ["CPUExecutionProvider"],
+                       "threads": 1, **detect_settings}}
+    (tmp_path / "site.yaml").write_text(yaml.safe_dump(site))
+    return load_settings(tmp_path / "site.yaml")
+
+
+def test_the_fp16_model_is_not_run_on_a_cpu_that_onnx_runtime_fell_back_to(tmp_path, monkeypatch, caplog):
+    """ONNX Runtime may list a GPU provider that then fails to start (no GPU passed through, a driver too old) and
+    run the session on the CPU: there the fp16 model is slower than the fp32 one, which detect loads instead."""
+    import onnxruntime as ort
+
+    if "CUDAExecutionProvider" in ort.get_available_providers():
+        pytest.skip("this machine's ONNX Runtime has CUDA: nothing falls back")
+    available = ort.get_available_providers
+    monkeypatch.setattr(ort, "get_available_providers", lambda: ["CUDAExecutionProvider", *available()])
+    settings = site_settings(tmp_path, model_gpu=str(FP16), providers=None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # ONNX Runtime's own: CUDA is not in this build
+        d = detect.load_detector(settings)
+    assert d.path == FP32 and d.providers == ["CPUExecutionProvider"]
+    assert "detector_fp16.onnx: ONNX Runtime runs it on CPUExecutionProvider, not on CUDAExecutionProvider" \
+        in caplog.text
+    # a GPU session that did start keeps the fp16 model
+    monkeypatch.setattr(OnnxDetector, "providers", property(lambda self: ["CUDAExecutionProvider"]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert detect.load_detector(settings).path == FP16
+
+
+# --- the loop, on a stand-in for the bus --------------------------------------------------------------------------
+
+
+class FakeBus:
+    """Stands in for Zenoh in detect's main: frames given to `send` come out of the camera's Receiver, the
+    detections put are kept (decoded) in `published`, the status counts in `counts`, the bad input in `bad`."""
+
+    def __init__(self, monkeypatch) -> None:
+        self.frames: queue.Queue[Frame] = queue.Queue()
+        self.published: list = []
+        self.counts: Counter[str] = Counter()
+        self.bad = None
+        self.wake: threading.Event | None = None
+        bus = self
+
+        class Receiver:
+            def __init__(self, session, key, expect, bad, ring=0, wake=None, **_) -> None:
+                bus.wake, self.skipped = wake, 0
+
+            def poll(self) -> list[Frame]:
+                out = []
+                while not bus.frames.empty():
+                    out.append(bus.frames.get())
+                return out
+
+        class Publisher:
+            def put(self, payload: bytes) -> None:
+                bus.published.append(decode(payload))
+
+        class Session:
+            def declare_publisher(self, key: str) -> Publisher:
+                return Publisher()
+
+            def close(self) -> None:
+                pass
+
+        class StatusReporter:
+            def __init__(self, session, site, service, bad, period_s) -> None:
+                bus.bad = bad
+
+            def count(self, name: str, n: int = 1, output: bool = False) -> None:
+                bus.counts[name] += n
+
+            def gauge(self, name: str, value: float) -> None:
+                pass
+
+            def close(self) -> None:
+                pass
+
+        monkeypatch.setattr(detect, "Receiver", Receiver)
+        monkeypatch.setattr(detect, "open_session", lambda settings, name: Session())
+        monkeypatch.setattr(detect, "declare_alive", lambda *args: object())
+        monkeypatch.setattr(detect, "StatusReporter", StatusReporter)
+
+    def send(self, seq: int, t_capture_ns: int) -> None:
+        img = np.random.default_rng(seq).integers(0, 256, (H, W), dtype=np.uint8)
+        self.frames.put(Frame(site="t", camera="NE", seq=seq, t_capture_ns=t_capture_ns, camera_kind="fisheye",
+                              encoding="gray8", width=W, height=H, data=img.tobytes()))
+        if self.wake is not None:
+            self.wake.set()
+
+    def run(self, settings, script) -> None:
+        """detect's main in a thread while `script(done)` sends frames and waits (`done`: main has returned or
+        raised); then stopped. Re-raises what main raised."""
+        stopper = Stopper(install_signals=False)
+        result: dict = {}
+
+        def target() -> None:
+            try:
+                result["rc"] = detect.main(settings, stopper)
+            except BaseException as e:  # the test reports it
+                result["error"] = e
+
+        thread = threading.Thread(target=target, name="detect-main")
+        thread.start()
+        try:
+            script(lambda: not thread.is_alive())
+        finally:
+            stopper.stop()
+            thread.join(WAIT_S)
+        if "error" in result:
+            raise result["error"]
+        assert result == {"rc": 0}
+
+
+def test_a_frame_onnx_runtime_refuses_is_bad_input_and_detect_goes_on(shipped, tmp_path, monkeypatch):
+    """ONNX Runtime's errors are not ValueErrors: before, the first frame a model refused ended detect."""
+    import onnxruntime as ort
+
+    settings = site_settings(tmp_path)
+    fixed = edited(shipped, tmp_path / "fixed.onnx", dims=(1, 1, 64, 64))
+
+    def load_detector(settings):  # a model that passed the start checks and still refuses a frame
+        d = OnnxDetector(FP32, providers=["CPUExecutionProvider"], threads=1)
+        d.session = ort.InferenceSession(str(fixed), providers=["CPUExecutionProvider"])
+        return d
+
+    monkeypatch.setattr(detect, "load_detector", load_detector)
+    bus = FakeBus(monkeypatch)
+
+    def script(done) -> None:
+        for seq in (1, 2):
+            bus.send(seq, T0 + seq * 100_000_000)
+            assert wait_until(lambda seq=seq: done() or (bus.bad is not None and bus.bad.total >= seq), WAIT_S)
+        assert not done()
+
+    bus.run(settings, script)
+    assert bus.published == [] and bus.bad.total == 2
+    (reason,) = bus.bad.counts
+    assert reason.startswith("camera NE seq #: inference failed on a #x# image ([ONNXRuntimeError] : # : INVALID_ARG")
+
+
+def test_a_frame_older_than_one_already_detected_is_skipped(tmp_path, monkeypatch):
+    """fuse_track reads a camera's newer frame as the end of its older ones: a frame that comes after a newer one of
+    its camera was detected is skipped before inference (frames_skipped), unless a minute or more older, as a clock
+    that stepped back sends them (fuse_track follows that clock once it is confirmed)."""
+    settings = site_settings(tmp_path)
+    bus = FakeBus(monkeypatch)
+
+    def script(done) -> None:
+        bus.send(3, T0 + 300_000_000)
+        assert wait_until(lambda: done() or len(bus.published) == 1, WAIT_S)
+        bus.send(2, T0 + 200_000_000)  # late
+        assert wait_until(lambda: done() or len(bus.published) > 1 or bus.counts["frames_skipped"] >= 1, WAIT_S)
+        bus.send(3, T0 + 300_000_000)  # again
+        assert wait_until(lambda: done() or len(bus.published) > 1 or bus.counts["frames_skipped"] >= 2, WAIT_S)
+        bus.send(9, T0 - 120_000_000_000)  # the camera's clock stepped back two minutes
+        assert wait_until(lambda: done() or len(bus.published) > 1, WAIT_S)
+        bus.send(10, T0 - 119_900_000_000)
+        assert wait_until(lambda: done() or len(bus.published) > 2, WAIT_S)
+
+    bus.run(settings, script)
+    assert [m.seq for m in bus.published] == [3, 9, 10]
+    assert bus.counts["frames_skipped"] == 2 and bus.bad.total == 0
