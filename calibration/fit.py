@@ -619,18 +619,23 @@ def _sectors(uv: np.ndarray, nadir: np.ndarray, p: int) -> tuple[np.ndarray, np.
 
 
 def calibrate(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame,
-              segment_polygons: dict[int, np.ndarray] | None = None) -> Calibration:
+              segment_polygons: dict[int, np.ndarray] | None = None, exclude: int | None = None) -> Calibration:
     """Fit one camera's pixel -> ground model. Gross mistakes are rejected and reported.
 
     The ground segments are automatic (fisheye sectors around the nadir, pinhole range bands) unless the user
     names them: by the landmarks' segment column, or by `segment_polygons` (label -> (M, 2) polygon in site
     metres; landmarks without a segment then take the polygon they lie in or nearest). Either way each segment's
-    plane is fitted to its own landmarks (`labelled_segments`)."""
+    plane is fitted to its own landmarks (`labelled_segments`). `exclude`: the index of a landmark rejected before
+    the fit starts (`single_gross_mistake`'s), reported as rejected like the others."""
     xy = lm.to_local(geo)
     n = len(lm)
     obj = np.column_stack([xy, np.zeros(n)])
-    p, dxy, _ = fit_camera(lm.uv, obj, cfg)  # robust: a start that gross mistakes do not drag far
     use = np.ones(n, bool)
+    if exclude is None:
+        p, dxy, _ = fit_camera(lm.uv, obj, cfg)  # robust: a start that gross mistakes do not drag far
+    else:
+        use[exclude] = False
+        p, dxy, _ = fit_camera(lm.uv[use], obj[use], cfg)
     # Segments the user named: the camera and their planes are fitted together from the start, so that a landmark
     # where the ground bends is not taken for a mistake against one plane.
     named = labelled_segments(lm, xy, use, segment_polygons)
@@ -715,6 +720,41 @@ def calibrate(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame,
     cal = Calibration(cfg, geo, cam, planes, centres, nadir_px, edges, use, test_sigma=test_sigma,
                       detectable_map_m=detectable_map, detectable_pixel_px=detectable_px, labelled=named)
     return _finish(cal, lm, obj, xy, warnings)
+
+
+def single_gross_mistake(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame) -> tuple[int, float] | None:
+    """The one landmark that a failed fit of all of them (most rejected, the camera under the ground) trips on:
+    (its index, how far (m) its map point lies from where the others place its pixel on level ground), or None.
+
+    One mistyped digit of a latitude or longitude (tens of metres) drags `calibrate`'s robust start so far that
+    the one-at-a-time rejection then drops good landmarks instead. So each landmark is left out in turn and the
+    same robust start fitted to the rest: the mistake is the landmark whose leaving out leaves every other one
+    within `outlier_sigma` while it itself lies off the fit by more than that. None when no landmark, or more than
+    one, is such (several mistakes, swapped columns, another camera's pixels), and with `MIN_LANDMARKS` or fewer."""
+    xy = lm.to_local(geo)
+    n = len(lm)
+    if n <= MIN_LANDMARKS:  # too few to tell a mistake from the rest (`calibrate`)
+        return None
+    obj = np.column_stack([xy, np.zeros(n)])
+    found = []
+    for i in range(n):
+        keep = np.arange(n) != i
+        try:
+            p, _, sol = fit_camera(lm.uv[keep], obj[keep], cfg)
+        except ValueError:  # no initial pose from the rest
+            continue
+        r = np.asarray(sol.fun[: 4 * (n - 1)]).reshape(2, n - 1, 2)  # pixel rows, then map rows (normalised)
+        if np.sqrt(np.sum(r**2, axis=(0, 2))).max() > cfg.outlier_sigma:
+            continue  # the rest still disagree
+        cam = camera_from_params(p, cfg)
+        proj, ok = cam.project(obj[i : i + 1])
+        if ok[0] and np.linalg.norm(proj[0] - lm.uv[i]) <= cfg.outlier_sigma * cfg.pixel_sigma_px:
+            continue  # it agrees with them too: not the mistake
+        dirs, _ = cam.unproject(lm.uv[i : i + 1])
+        o = cam.pose.position_m
+        t = -o[2] / dirs[0, 2] if dirs[0, 2] < 0 else math.inf  # its pixel's ray onto the level ground (z = 0)
+        found.append((i, float(np.linalg.norm(o[:2] + t * dirs[0, :2] - xy[i])) if math.isfinite(t) else math.inf))
+    return found[0] if len(found) == 1 else None
 
 
 def _finish(cal: Calibration, lm: Landmarks, obj: np.ndarray, xy: np.ndarray, warnings: list[str]) -> Calibration:

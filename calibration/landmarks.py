@@ -24,6 +24,11 @@ import numpy as np
 from shared.geo import GeoFrame
 
 FAR_FROM_OTHERS_M = 2000.0
+# A landmark further than this from the others' median, and than FAR_SPREADS times the others' own spread (the
+# median distance of the others from it), is a typo: a roadside camera's landmarks lie within ~140 m of each other
+# (the simulator's pinhole cameras: at most 0.65 of this limit; the real site's: 0.2)
+FAR_FLOOR_M = 200.0
+FAR_SPREADS = 5.0
 MIN_SPREAD_M = 2.0  # landmarks narrower than this (the standard deviation across their spread) fix no camera
 MIN_SPREAD_PX = 10.0
 MAX_SEGMENTS = 8
@@ -74,8 +79,15 @@ def load_landmarks(path: str | Path) -> tuple[Landmarks, dict]:
                 reader = csv.DictReader(f)
                 if reader.fieldnames:  # " segment" or "Segment" in a spreadsheet's header is the segment column
                     reader.fieldnames = [name.strip().lower() for name in reader.fieldnames]
-                rows = list(reader)
+                rows, row_names = [], []
+                for row in reader:
+                    if not _blank(row):  # a spreadsheet saves the empty rows under a table as ",,,,"
+                        rows.append(row)
+                        row_names.append(f"row {reader.line_num}")  # the header is row 1, as in the spreadsheet
                 columns = set(reader.fieldnames or ())
+            if len(columns) == 1 and any(sep in next(iter(columns)) for sep in ";\t"):
+                raise ValueError(f"{path}: the header {next(iter(columns))!r} is one column: the columns must be "
+                                 "separated by commas (id,u,v,lat,lon), not semicolons or tabs")
             missing = {"id", "u", "v", "lat", "lon"} - columns
             if missing:
                 raise ValueError(f"{path}: CSV header lacks column(s) {', '.join(sorted(missing))}")
@@ -86,7 +98,7 @@ def load_landmarks(path: str | Path) -> tuple[Landmarks, dict]:
                 raise ValueError(f"{path}: not valid JSON: {exc}") from None
             if not isinstance(data, dict) or not isinstance(data.get("landmarks"), list):
                 raise ValueError(f"{path}: expected an object with a 'landmarks' list")
-            rows = data["landmarks"]
+            rows, row_names = data["landmarks"], None
             header = {k: data[k] for k in ("camera", "kind", "width", "height") if k in data}
     except UnicodeDecodeError as exc:
         raise ValueError(f"{path}: not a UTF-8 text file ({exc.reason} at byte {exc.start})") from None
@@ -95,17 +107,27 @@ def load_landmarks(path: str | Path) -> tuple[Landmarks, dict]:
             raise ValueError(f"{path}: {k} must be a whole number of pixels > 0, got {header[k]!r}")
     if "kind" in header and header["kind"] not in ("pinhole", "fisheye"):
         raise ValueError(f"{path}: kind must be pinhole or fisheye, got {header['kind']!r}")
-    return landmarks_from_rows(rows, str(path)), header
+    return landmarks_from_rows(rows, str(path), row_names), header
 
 
-def landmarks_from_rows(rows: list[dict], where: str) -> Landmarks:
+def _blank(row: dict) -> bool:
+    """Whether every cell of a CSV row is empty (csv.DictReader: None for a missing cell, a list for extra ones)."""
+    cells = [c for v in row.values() for c in (v if isinstance(v, list) else [v])]
+    return all(c is None or not str(c).strip() for c in cells)
+
+
+def landmarks_from_rows(rows: list[dict], where: str, row_names: list[str] | None = None) -> Landmarks:
     """Landmarks from dicts with id, u, v, lat, lon and an optional segment (extra keys are ignored);
-    `where` (a file name) starts every error message."""
+    `where` (a file name) starts every error message, `row_names` (a CSV file's "row 7") name a row without an id
+    (default: "landmark entry N")."""
     ids, uv, latlon, seg = [], [], [], []
     for n, row in enumerate(rows, 1):
         if not isinstance(row, dict):
             raise ValueError(f"{where}: landmark entry {n} must be an object with id, u, v, lat, lon, got {row!r}")
         lid = str(row.get("id", f"#{n}")).strip()
+        if not lid:
+            place = row_names[n - 1] if row_names else f"landmark entry {n}"
+            raise ValueError(f"{where}: {place} has no id: give every landmark one (the report names them by it)")
         try:
             vals = [float(row[k]) for k in ("u", "v", "lat", "lon")]
         except (KeyError, TypeError, ValueError):
@@ -182,6 +204,17 @@ def validate_landmarks(
         d = float(np.hypot(*p))
         if d > FAR_FROM_OTHERS_M:
             raise ValueError(f"landmark {lid!r} is {d / 1000:.1f} km from the others (a typo or swapped lat/lon?)")
+    # Nearer, but still far for the others: one mistyped digit drags the fit so far that it rejects good landmarks
+    # with it, and fails without naming the culprit. Measured against the others alone (the median and the median
+    # distance from it), which the one far point cannot move.
+    for i, lid in enumerate(lm.ids):
+        others = np.delete(xy, i, axis=0)
+        centre = np.median(others, axis=0)
+        spread = float(np.median(np.linalg.norm(others - centre, axis=1)))
+        d = float(np.linalg.norm(xy[i] - centre))
+        if d > max(FAR_FLOOR_M, FAR_SPREADS * spread):
+            raise ValueError(f"landmark {lid!r} is {d:.0f} m from the other landmarks' median position, half of them "
+                             f"lying within {spread:.0f} m of it: a typo in its latitude or longitude?")
     _check_spread(lm.ids, xy, "map", MIN_SPREAD_M, "m")
     _check_spread(lm.ids, lm.uv, "image", MIN_SPREAD_PX, "px")
 

@@ -210,7 +210,8 @@ def roi_mask(xy: np.ndarray, roi: dict | None) -> np.ndarray:
 
 
 def default_roi(cal: Calibration) -> dict:
-    """The paper's ROI: 25 m around a fisheye camera; 200 m in front of a pinhole/thermal one."""
+    """The paper's ROI: 25 m around a fisheye camera; 200 m around a pinhole/thermal one (the report's coverage
+    check counts only the part of it the camera sees, in front of it)."""
     o = cal.camera.pose.position_m[:2]
     return {"center_m": [float(o[0]), float(o[1])], "radius_m": 25.0 if cal.config.kind == "fisheye" else 200.0}
 

@@ -12,6 +12,7 @@ from calibration.site_ground import refit_on_surface
 
 MIN_IN_ROI = 4  # fewer landmarks inside the ROI leave it mostly extrapolated (warned about)
 INNER_SHARE = 0.5  # warn when no in-ROI landmark lies within this share of the ROI radius from its centre
+MAX_GAP_DEG = 150.0  # warn when no in-ROI landmark lies in a wedge this wide around the ROI centre (of 360 seen)
 
 
 def _stats(x: np.ndarray) -> dict:
@@ -30,6 +31,29 @@ def _opt(values: np.ndarray, k: int, digits: int) -> float | None:
     return None if k >= len(values) or not np.isfinite(values[k]) else round(float(values[k]), digits)
 
 
+def seen_gap_deg(cal: Calibration, xy: np.ndarray, centre: np.ndarray, radius_m: float) -> tuple[float, float]:
+    """(the widest wedge around `centre` without a landmark of xy (N, 2), the wedges the camera sees), in degrees,
+    counting only the directions in which the camera sees some of the ROI (a disc of `radius_m`): a pinhole camera's
+    ROI is a disc around its foot, most of it behind or beside the camera, where no landmark can be."""
+    ang = np.radians(np.arange(360) + 0.5)  # one-degree wedges
+    ring = np.arange(1, 21) / 20 * radius_m
+    pts = centre + ring[None, :, None] * np.stack([np.cos(ang), np.sin(ang)], -1)[:, None, :]
+    pts = pts.reshape(-1, 2)
+    if cal.ground is not None:
+        z = cal.ground.height(pts)
+    else:
+        a, b, c = cal.planes.mean(axis=0)
+        z = a * pts[:, 0] + b * pts[:, 1] + c
+    uv, ok = cal.camera.project(np.column_stack([pts, z]))
+    seen = (ok & cal.camera.in_image(uv)).reshape(len(ang), len(ring)).any(axis=1)
+    if len(xy) == 0:
+        return float(seen.sum()), float(seen.sum())
+    marks = np.unique(np.floor(np.degrees(np.arctan2(xy[:, 1] - centre[1], xy[:, 0] - centre[0]))).astype(int) % 360)
+    before = np.concatenate([[0], np.cumsum(np.concatenate([seen, seen]))])  # seen wedges below each one
+    ends = np.append(marks[1:], marks[0] + 360)
+    return float(max(before[b] - before[a + 1] for a, b in zip(marks, ends, strict=True))), float(seen.sum())
+
+
 def build_report(cal: Calibration, lm: Landmarks, cfg: CalibConfig, roi: dict, leave_one_out: bool = True) -> dict:
     xy = lm.to_local(cal.geo)
     got, ok = cal.pixel_to_xy(lm.uv)
@@ -38,31 +62,47 @@ def build_report(cal: Calibration, lm: Landmarks, cfg: CalibConfig, roi: dict, l
     res_px = np.where(pok, np.linalg.norm(proj - lm.uv, axis=1), np.nan)
     in_roi = roi_mask(xy, roi)
     loo = np.full(len(lm), np.nan)
+    loo_note: list[str | None] = [None] * len(lm)  # why a landmark has no leave-one-out figure
     if leave_one_out:
+        for i in np.nonzero(~cal.inliers)[0]:
+            loo_note[i] = "rejected by the fit: none (the refits leave the rejected landmarks out)"
         for i in np.nonzero(cal.inliers)[0]:
-            keep = np.ones(len(lm), bool)
+            # the other inliers only: a rejected landmark would be rejected again in every refit, or drag it
+            keep = cal.inliers.copy()
             keep[i] = False
             try:
                 if cal.ground is None:
                     sub = calibrate(lm.subset(np.nonzero(keep)[0]), cfg, cal.geo, cal.segment_polygons)
                 else:  # on the site's surface: this camera refitted on it without the landmark (the surface keeps it)
-                    sub = refit_on_surface(cal, lm, cfg, cal.ground, keep & cal.inliers)
-            except ValueError:
+                    sub = refit_on_surface(cal, lm, cfg, cal.ground, keep)
+            except ValueError as exc:
+                loo_note[i] = f"the refit without it failed: {exc}"
                 continue
             p, pok_i = sub.pixel_to_xy(lm.uv[i : i + 1])
             if pok_i[0]:
                 loo[i] = float(np.linalg.norm(p[0] - xy[i]))
+            else:
+                loo_note[i] = "its pixel is off the ground of the refit without it"
     inl = cal.inliers
     warnings = list(cal.warnings)
     if (lm.segment >= 0).any() and cal.ground is not None:
         warnings.append("the landmarks' segment column is not used: the site's ground surface (--shared-ground) "
                         "replaces this camera's planes")
-    gap = angular_coverage_deg(xy[inl & in_roi], np.asarray(roi.get("center_m", xy[inl].mean(0))))
-    if "radius_m" in roi and gap > 150:
-        warnings.append(
-            f"landmarks leave part of the ROI unconstrained: no in-ROI landmark in a {gap:.0f} degree "
-            "wedge around the ROI centre; add landmarks on that side"
-        )
+    centre = np.asarray(roi.get("center_m", xy[inl].mean(0)))
+    if cfg.kind == "pinhole" and "radius_m" in roi:  # only the part of the ROI the camera sees can hold landmarks
+        gap, seen = seen_gap_deg(cal, xy[inl & in_roi], centre, float(roi["radius_m"]))
+        if seen > 0 and gap > MAX_GAP_DEG * seen / 360.0:
+            warnings.append(
+                f"landmarks leave part of the ROI unconstrained: no in-ROI landmark in a {gap:.0f} degree wedge "
+                f"around the ROI centre, of the {seen:.0f} degrees the camera sees; add landmarks on that side"
+            )
+    else:
+        gap = angular_coverage_deg(xy[inl & in_roi], centre)
+        if "radius_m" in roi and gap > MAX_GAP_DEG:
+            warnings.append(
+                f"landmarks leave part of the ROI unconstrained: no in-ROI landmark in a {gap:.0f} degree "
+                "wedge around the ROI centre; add landmarks on that side"
+            )
     n_roi = int((inl & in_roi).sum())
     if n_roi < MIN_IN_ROI:
         # `roadside bench calibration`'s simulated landmarks: fisheye fits from 10-20 landmarks with fewer than 4
@@ -102,6 +142,7 @@ def build_report(cal: Calibration, lm: Landmarks, cfg: CalibConfig, roi: dict, l
                 "residual_m": None if np.isnan(res[k]) else round(float(res[k]), 4),
                 "reprojection_px": None if np.isnan(res_px[k]) else round(float(res_px[k]), 2),
                 "leave_one_out_m": None if np.isnan(loo[k]) else round(float(loo[k]), 4),
+                "leave_one_out_note": loo_note[k],  # why leave_one_out_m is null (rejected, refit failed)
                 "outlier_test_sigma": _opt(cal.test_sigma, k, 2),
                 "detectable_map_mistake_m": _opt(cal.detectable_map_m, k, 2),
                 "detectable_pixel_mistake_px": _opt(cal.detectable_pixel_px, k, 1),
@@ -142,6 +183,9 @@ def plot_residuals(
     import cv2
 
     cfg = cal.config
+    if image is not None and image.shape[:2] != (cfg.height, cfg.width):
+        raise ValueError(f"the image is {image.shape[1]}x{image.shape[0]}, the landmarks are for a "
+                         f"{cfg.width}x{cfg.height} image")
     canvas = np.full((cfg.height, cfg.width, 3), 40, np.uint8) if image is None else image.copy()
     if canvas.ndim == 2:
         canvas = cv2.cvtColor(canvas, cv2.COLOR_GRAY2BGR)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.fit import CalibConfig, calibrate, check_segments, simplified_polygon
+from calibration.fit import CalibConfig, calibrate, check_segments, simplified_polygon, single_gross_mistake
 from calibration.landmarks import (
     FAR_FROM_OTHERS_M,
     load_landmarks,
@@ -109,6 +109,21 @@ def camera_height_m(cal) -> float:
     return float(pos[2] - np.median(cal.planes[:, 0] * pos[0] + cal.planes[:, 1] * pos[1] + cal.planes[:, 2]))
 
 
+def _fit_failure(cal, lm) -> str | None:
+    """Why a fit says the landmark file is wrong rather than the camera (the camera under its ground, a third of
+    the landmarks rejected), or None."""
+    height = camera_height_m(cal)
+    if height < MIN_CAMERA_HEIGHT_M:
+        return (f"the fit puts the camera {height:.1f} m above the ground it sees, under it or on it: pixels "
+                "mirrored (u counted from the right), u and v swapped, or the landmarks of another camera? A roadside "
+                "camera looks down from a pole")
+    if len(cal.rejected) >= 3 and 3 * len(cal.rejected) > len(lm):  # a third: not a few slips, a wrong file
+        return (f"{len(cal.rejected)} of {len(lm)} landmarks disagree with the rest beyond what clicking and map "
+                f"errors explain: latitude and longitude swapped, pixels from another camera or image size, or the "
+                f"wrong --kind? ({', '.join(i for i, _ in cal.rejected[:5])} ...)")
+    return None
+
+
 def run_calibration(job: CalibrateJob) -> dict:
     """Fit, then write the masks, the report and the plot; every input is checked before anything is written."""
     lm, header = load_landmarks(job.landmarks)
@@ -165,6 +180,10 @@ def run_calibration(job: CalibrateJob) -> dict:
         image = cv2.imread(str(job.image))
         if image is None:
             raise ValueError(f"cannot read image {job.image}")
+        if image.shape[:2] != (cfg.height, cfg.width):
+            raise ValueError(f"--image is {image.shape[1]}x{image.shape[0]}, the landmarks are for a "
+                             f"{cfg.width}x{cfg.height} image: give a frame of the camera at the size they were "
+                             "clicked on")
     t0 = time.perf_counter()
     if job.shared_ground:
         if cfg.kind == "fisheye":
@@ -180,16 +199,28 @@ def run_calibration(job: CalibrateJob) -> dict:
         cal = calibrate_site([(str(job.landmarks), lm.without_segments(), cfg), *others], geo)[str(job.landmarks)]
     else:
         cal = calibrate(lm, cfg, geo, polygons_xy)
+    failure = _fit_failure(cal, lm)
+    if failure is not None:
+        # One mistyped digit of a latitude or longitude (tens of metres off) drags the whole fit and fails it on
+        # good landmarks: if leaving one landmark out makes the others agree, it is that one's mistake.
+        typo = single_gross_mistake(lm, cfg, geo)
+        if typo is None:
+            raise ValueError(failure)
+        k, off_m = typo
+        culprit = (f"landmark {lm.ids[k]!r}: its map point is "
+                   + (f"{off_m:.0f} m from" if math.isfinite(off_m) else "far from")
+                   + " where the other landmarks place its pixel: a typo in its latitude or longitude?")
+        if job.shared_ground:  # the site's surface is fitted to every camera's landmarks: fix the file first
+            raise ValueError(f"{culprit} With it the fit fails, without it the others agree: correct it or leave it "
+                             f"out")
+        cal = calibrate(lm, cfg, geo, polygons_xy, exclude=k)
+        failure = _fit_failure(cal, lm)
+        if failure is not None:
+            raise ValueError(f"{culprit} Without it the fit still fails: {failure}")
+        cal.rejected = [(lid, f"{reason}; with it the fit of all the landmarks failed, without it the others agree: "
+                              "a typo in its latitude or longitude?" if lid == lm.ids[k] else reason)
+                        for lid, reason in cal.rejected]
     t_fit = time.perf_counter() - t0
-    height = camera_height_m(cal)
-    if height < MIN_CAMERA_HEIGHT_M:
-        raise ValueError(f"the fit puts the camera {height:.1f} m above the ground it sees, under it or on it: "
-                         "pixels mirrored (u counted from the right), u and v swapped, or the landmarks of another "
-                         "camera? A roadside camera looks down from a pole")
-    if len(cal.rejected) >= 3 and 3 * len(cal.rejected) > len(lm):  # a third: not a few slips, a wrong file
-        raise ValueError(f"{len(cal.rejected)} of {len(lm)} landmarks disagree with the rest beyond what clicking and "
-                         f"map errors explain: latitude and longitude swapped, pixels from another camera or image "
-                         f"size, or the wrong --kind? ({', '.join(i for i, _ in cal.rejected[:5])} ...)")
     xy = lm.to_local(geo)
     area = calibrated_area(cal, xy)
     t0 = time.perf_counter()

@@ -390,6 +390,9 @@ def test_landmark_files_json_and_csv_agree(tmp_path):
         ),
         (lambda r: r[1].update(lat=95.0), "landmark 'P1': latitude 95.0 is out of range"),
         (lambda r: r[4].update(lat=42.2994), "landmark 'P4' is 7.8 km from the others"),
+        # one mistyped digit of a longitude: 244 m, where the others lie within 17 m of each other
+        (lambda r: r[4].update(lon=-83.736), "landmark 'P4' is 244 m from the other landmarks' median position, "
+                                             "half of them lying within 17 m of it: a typo in its latitude or"),
         (lambda r: r[3].update(u=700.0), "landmark 'P3': pixel (700.0, 380.0) is outside the 640x480 image"),
         (lambda r: r[0].update(u="abc"), "landmark 'P0': u, v, lat and lon must all be numbers"),
         (lambda r: r[0].update(v=float("nan")), "landmark 'P0': u, v, lat, lon must be finite"),
@@ -458,9 +461,32 @@ def test_malformed_entries_and_header_fields_are_named(tmp_path):
         load_landmarks(tmp_path / "latin.csv")
 
 
+def test_spreadsheet_csv_files_blank_rows_missing_ids_and_other_separators(tmp_path):
+    """Excel saves the empty rows under a table as ",,,,": skipped. A row without an id is named by its row number;
+    a header of one column holding semicolons or tabs (another list separator) is told to use commas."""
+    rows = _rows()
+    body = "".join(f"{r['id']},{r['u']},{r['v']},{r['lat']},{r['lon']}\r\n" for r in rows)
+    path = tmp_path / "lm.csv"
+    path.write_bytes(("id,u,v,lat,lon\r\n" + body + ",,,,\r\n , ,,,\r\n").encode("utf-8-sig"))
+    assert load_landmarks(path)[0].ids == tuple(r["id"] for r in rows)
+    path.write_text("id,u,v,lat,lon\n" + body.replace("P2,", ",", 1))  # the header is row 1: P2's is row 4
+    with pytest.raises(ValueError, match=re.escape(f"{path}: row 4 has no id: give every landmark one")):
+        load_landmarks(path)
+    path.write_text("id,u,v,lat,lon\n" + body + ",1,,,\n")
+    with pytest.raises(ValueError, match="row 7 has no id"):
+        load_landmarks(path)
+    for sep in (";", "\t"):
+        path.write_text(sep.join("id,u,v,lat,lon".split(",")) + "\n" + body.replace(",", sep))
+        with pytest.raises(ValueError, match=r"is one column: the columns must be separated by commas"):
+            load_landmarks(path)
+
+
 def test_calibrate_checks_every_input_before_it_writes(tmp_path):
     """A swapped origin or ROI centre, a file for another kind of camera, a folder for an output, an unreadable
-    image for the plot, a swapped lat/lon column: refused, and masks already there are left as they were."""
+    image for the plot or one of another size, a swapped lat/lon column: refused, and masks already there are left
+    as they were."""
+    import cv2
+
     from calibration.run import CalibrateJob, run_calibration
 
     cam = _fisheye()
@@ -474,12 +500,15 @@ def test_calibrate_checks_every_input_before_it_writes(tmp_path):
     circle = (639.5, 479.5, cam.image_circle_radius_px())
     job = CalibrateJob(path, "fisheye", out, image_circle=circle, segments=1)
     (tmp_path / "folder").mkdir()
+    small = tmp_path / "half.png"  # a frame of the camera at half size
+    cv2.imwrite(str(small), np.zeros((480, 640, 3), np.uint8))
     for change, message in [
         ({"origin": (-83.739, 42.2294, 265.0)}, "--origin .* km from the landmarks"),
         ({"roi": {"center_latlon": [-83.739, 42.2294], "radius_m": 25.0}}, "the ROI centre .* km from the landmarks"),
         ({"kind": "pinhole"}, "is for a fisheye camera, not --kind pinhole"),
         ({"report": tmp_path / "folder"}, "--report .* is a folder"),
         ({"plot": tmp_path / "p.png", "image": tmp_path / "missing.png"}, "cannot read image"),
+        ({"plot": tmp_path / "p.png", "image": small}, "--image is 640x480, the landmarks are for a 1280x960 image"),
         ({"fov_deg": -5.0}, "fov_deg must be a field of view between 0 and 360"),
         ({"width": 1920}, "--width 1920 but .*lm.json says its pixels are of a 1280x960 image"),
         ({"plot": tmp_path / "p.pdf"}, r"--plot .*p\.pdf: not an image file name OpenCV can write"),
@@ -726,3 +755,71 @@ def test_report_warns_where_the_roi_is_extrapolated_not_landmarked():
     assert any("no landmark within 16 m of the ROI centre" in w for w in ring)
     spread = warnings([3, 8, 12, 16, 20, 24, 30, 35, 40, 45])
     assert not any("inside the ROI" in w or "ROI centre" in w for w in spread)
+
+
+def test_one_mistyped_map_point_that_fails_the_fit_is_rejected_by_name(tmp_path):
+    """A longitude 100 m off (one digit): the fit of all the landmarks is dragged so far that it rejects good ones
+    too, a third of them, and the file was refused blaming another camera or swapped columns. Leaving that one
+    landmark out makes the others agree: it is rejected, named as a likely typo, and the rest fitted."""
+    from calibration.run import CalibrateJob, run_calibration
+
+    cam = _fisheye()
+    lm = _synthetic_landmarks(cam, 10, np.random.default_rng(0), 40.0, pixel_sigma=1.0, map_sigma=0.05)
+    rows = [{"id": i, "u": float(u), "v": float(v), "lat": float(a), "lon": float(b)}
+            for i, (u, v), (a, b) in zip(lm.ids, lm.uv, lm.latlon, strict=True)]
+    rows[1]["lon"] += 100.0 / (111320.0 * math.cos(math.radians(42.2294)))
+    path = tmp_path / "lm.json"
+    path.write_text(json.dumps({"width": 1280, "height": 960, "landmarks": rows}))
+    report = run_calibration(CalibrateJob(path, "fisheye", tmp_path / "m.npz", origin=(42.2294, -83.739, 265.0),
+                                          image_circle=(639.5, 479.5, cam.image_circle_radius_px())))
+    assert [r["id"] for r in report["rejected"]] == ["L1"]
+    assert "(100.0" in report["rejected"][0]["reason"] and "a typo in its latitude or longitude" in (
+        report["rejected"][0]["reason"])
+    assert report["residual_in_roi"]["max_m"] < 0.5
+
+
+def test_leave_one_out_refits_leave_the_rejected_landmarks_out(monkeypatch):
+    """Each fold refits on the other inliers: a rejected landmark in it would be rejected again (slow) or drag the
+    fold. The rejected landmark gets no figure, and the report says why."""
+    import calibration.report as report_module
+
+    cam = _fisheye()
+    cfg = CalibConfig("fisheye", 1280, 960, image_circle=(639.5, 479.5, cam.image_circle_radius_px()), fov_deg=188.0)
+    lm = _synthetic_landmarks(cam, 10, np.random.default_rng(1), 40.0, pixel_sigma=1.0, map_sigma=0.05)
+    xy = lm.to_local(GEO)
+    xy[3] += [6.0, 3.0]  # the neighbouring stripe's corner on the map
+    ll = GEO.to_geodetic(np.column_stack([xy, np.zeros(len(xy))]))[:, :2]
+    lm = Landmarks(lm.ids, lm.uv, ll, lm.segment)
+    cal = calibrate(lm, cfg, GEO)
+    assert [i for i, _ in cal.rejected] == ["L3"]
+    folds = []
+    real = report_module.calibrate
+    monkeypatch.setattr(report_module, "calibrate", lambda sub, *a, **k: folds.append(sub.ids) or real(sub, *a, **k))
+    report = report_module.build_report(cal, lm, cfg, {"center_m": cam.pose.position_m[:2].tolist(),
+                                                       "radius_m": 25.0})
+    assert len(folds) == 9 and all("L3" not in ids and len(ids) == 8 for ids in folds)
+    rows = {r["id"]: r for r in report["landmarks"]}
+    assert rows["L3"]["leave_one_out_m"] is None and rows["L3"]["leave_one_out_note"].startswith("rejected")
+    assert all(r["leave_one_out_m"] is not None and r["leave_one_out_note"] is None
+               for k, r in rows.items() if k != "L3")
+
+
+def test_a_pinhole_camera_s_roi_gaps_are_measured_over_what_it_sees():
+    """The default pinhole ROI is a disc around the camera's foot, most of it behind and beside the camera: a gap
+    there is no gap. Landmarks over the whole view: no warning; landmarks on the left half of the view only: the
+    right half is a gap, warned about."""
+    from calibration.masks import default_roi
+    from calibration.report import build_report
+
+    cam = _pinhole()
+    cfg = CalibConfig("pinhole", 640, 512)
+    lm = _synthetic_landmarks(cam, 20, np.random.default_rng(3), 60.0)
+
+    def gap_warnings(sub: Landmarks) -> list[str]:
+        cal = calibrate(sub, cfg, GEO)
+        return [w for w in build_report(cal, sub, cfg, default_roi(cal), leave_one_out=False)["warnings"]
+                if "unconstrained" in w]
+
+    assert gap_warnings(lm) == []
+    left = gap_warnings(lm.subset(np.nonzero(lm.uv[:, 0] < 320)[0]))
+    assert len(left) == 1 and "of the" in left[0] and "degrees the camera sees" in left[0]
