@@ -249,25 +249,19 @@ def test_a_frame_onnx_runtime_refuses_is_bad_input_and_detect_goes_on(shipped, t
     assert reason.startswith("camera NE seq #: inference failed on a #x# image ([ONNXRuntimeError] : # : INVALID_ARG")
 
 
-def test_a_frame_older_than_one_already_detected_is_skipped(tmp_path, monkeypatch):
-    """fuse_track reads a camera's newer frame as the end of its older ones: a frame that comes after a newer one of
-    its camera was detected is skipped before inference (frames_skipped), unless a minute or more older, as a clock
-    that stepped back sends them (fuse_track follows that clock once it is confirmed)."""
+def test_a_frame_older_than_one_already_detected_is_still_detected(tmp_path, monkeypatch):
+    """A restarted ingest replays a few frames older than detect's newest: each is detected and published all the same.
+    Skipping them (a review's idea, tried) left ingest at pace max waiting ack_timeout_s (2 s) for each one's
+    detections; fuse_track drops such a frame as late where its tick has closed."""
     settings = site_settings(tmp_path)
     bus = FakeBus(monkeypatch)
 
     def script(done) -> None:
         bus.send(3, T0 + 300_000_000)
         assert wait_until(lambda: done() or len(bus.published) == 1, WAIT_S)
-        bus.send(2, T0 + 200_000_000)  # late
-        assert wait_until(lambda: done() or len(bus.published) > 1 or bus.counts["frames_skipped"] >= 1, WAIT_S)
-        bus.send(3, T0 + 300_000_000)  # again
-        assert wait_until(lambda: done() or len(bus.published) > 1 or bus.counts["frames_skipped"] >= 2, WAIT_S)
-        bus.send(9, T0 - 120_000_000_000)  # the camera's clock stepped back two minutes
-        assert wait_until(lambda: done() or len(bus.published) > 1, WAIT_S)
-        bus.send(10, T0 - 119_900_000_000)
-        assert wait_until(lambda: done() or len(bus.published) > 2, WAIT_S)
+        bus.send(2, T0 + 200_000_000)  # late: a replayed frame
+        assert wait_until(lambda: done() or len(bus.published) == 2, WAIT_S)
 
     bus.run(settings, script)
-    assert [m.seq for m in bus.published] == [3, 9, 10]
-    assert bus.counts["frames_skipped"] == 2 and bus.bad.total == 0
+    assert [m.seq for m in bus.published] == [3, 2]
+    assert bus.counts["frames_skipped"] == 0 and bus.bad.total == 0

@@ -12,8 +12,9 @@ run from a thread pool; the runtime releases the GIL): on a CPU two single-threa
 take 47 % more frames per second than one two-threaded inference, at a higher latency per frame
 (shared/settings.py). Each camera's detections are published in capture order all the same: a frame whose
 inference ends before that of an older frame of its camera waits for it (fuse_track takes a camera's newer frame
-to mean its older ones have come), and a frame that comes after a newer one of its camera was taken for inference is
-skipped (counted in `frames_skipped`; unless it is a minute or more older: a clock that stepped back).
+to mean its older ones have come). A frame that comes after a newer one of its camera was published (a restarted
+ingest replaying some frames) is detected and published all the same: ingest at pace `max` waits for each frame's
+detections, and fuse_track drops it as late if its tick has closed.
 A frame decoded smaller than the model's input needs (`Frame.scale`: ingest's `decode_long_side` below the
 model's `input_long_side`) is enlarged back to the scale the model was trained at, with one warning per camera.
 A camera's `detect_area_px` (its fisheye image circle) limits the inference to that rectangle, at the whole
@@ -43,10 +44,6 @@ from shared.status import StatusReporter
 
 log = logging.getLogger("roadside.detect")
 IDLE_WAIT_S = 0.1
-# a frame captured this much before its camera's newest frame taken for inference is one of a clock that stepped
-# back, not a late one: it is inferred (fuse_track's max_lead_ms, services/fuse_track/ticks.py: it takes such a frame
-# for a clock jump and starts again once the jump is confirmed; a frame less far back is late there too)
-CLOCK_STEP_NS = 60_000_000_000
 
 
 def frame_image(frame: Frame, camera_size: tuple[int, int] | None = None) -> np.ndarray:
@@ -154,7 +151,6 @@ def main(settings: Settings, stopper: Stopper) -> int:
         waiting: list[tuple[int, Frame]] = []
         running: list[tuple[Future, Frame, int]] = []
         warned: set[str] = set()  # cameras whose frames come too small for the model
-        taken: dict[str, int] = {}  # capture time of each camera's newest frame taken for inference
         ort_errors = runtime_errors()
         done = 0
 
@@ -188,20 +184,11 @@ def main(settings: Settings, stopper: Stopper) -> int:
                 except ValueError as exc:
                     bad(str(exc), frame.camera)
                     continue
-                newest = taken.get(frame.camera)
-                if newest is not None and newest - CLOCK_STEP_NS < frame.t_capture_ns <= newest:
-                    # a frame that comes after a newer one of its camera was taken: skipped for that newer one, as
-                    # the ring skips frames (status frames_skipped: "skipped for newer ones"); published, it would
-                    # come after the newer frame's detections, which fuse_track reads as the end of the camera's
-                    # older frames. Checked after the frame itself: a broken frame is bad input whatever its time
-                    status.count("frames_skipped")
-                    continue
                 if frame.camera not in warned and detector.input_shape(*img.shape, frame.scale)[0] > 1.0:
                     warned.add(frame.camera)
                     log.warning("camera %s: frames come at %dx%d, smaller than the model's input (longer side %d); "
                                 "enlarged, detail lost: set ingest.decode_long_side to %d", frame.camera,
                                 frame.width, frame.height, detector.long_side, detector.long_side)
-                taken[frame.camera] = frame.t_capture_ns
                 future = pool.submit(infer, img, frame.scale, areas[frame.camera])
                 future.add_done_callback(lambda _: wake.set())
                 running.append((future, frame, t_in))
