@@ -26,8 +26,12 @@ def tracks_key(site: str) -> str:
 
 
 def latest_tracks_key(site: str) -> str:
-    """Queryable answering with the newest Tracks message, for a subscriber that joins late."""
+    """Queryable answering with the newest Tracks message, for a subscriber that joins late (when it is current: sent
+    within the last 2 s, docs/wire-format.md; whatever its age to a query with the parameter LATEST_ANY_AGE)."""
     return f"roadside/{check_name('site', site)}/tracks/latest"
+
+
+LATEST_ANY_AGE = "any_age"  # `roadside/<site>/tracks/latest?any_age`: the newest Tracks however old (ingest's resume)
 
 
 def alive_key(site: str, service: str, instance: str) -> str:

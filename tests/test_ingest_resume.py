@@ -117,6 +117,15 @@ def test_a_restart_while_looping_goes_on_in_the_round_fuse_track_reached(site, m
     assert rc == 0 and _times(bus) == [3.0, 4.0]
 
 
+def test_looping_rounds_of_max_frames_are_spaced_by_what_they_play(site, monkeypatch):
+    """ingest.max_frames with loop: each round plays its first 2 frames and the next starts 0.1 s after them (spaced by
+    the whole source, as a restart's resume needs without max_frames, the rounds left most of their time empty: 3 s at
+    pace 1 here, 57 s of every minute in a review's 60 s recording)."""
+    rc, bus = _play(site, monkeypatch, stop_after=12, loop=True, max_frames=2)
+    assert rc == ingest.STOPPED
+    assert _times(bus) == [0.0, 1.0, 1.1, 2.1, 2.2, 3.2]
+
+
 def test_at_the_end_of_its_source_ingest_exits_or_stays_up_idle_until_told_to_stop(site, monkeypatch):
     """`exit` (the default, `roadside up`): status 0; `idle` (compose, which would restart an exit for ever): up,
     reporting and publishing nothing more, until a stop, then at once."""

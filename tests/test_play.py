@@ -247,11 +247,14 @@ def test_the_latest_tracks_are_answered_only_while_they_are_current():
 
     from services.fuse_track.player import LATEST_MAX_AGE_S, TracksPublisher, current_payload
     from shared.codec import decode
-    from shared.keys import latest_tracks_key
+    from shared.keys import LATEST_ANY_AGE, latest_tracks_key
 
     assert current_payload([]) is None
-    assert current_payload([(time.monotonic(), b"new")]) == b"new"
-    assert current_payload([(time.monotonic() - LATEST_MAX_AGE_S - 0.1, b"old")]) is None
+    assert current_payload([(time.monotonic(), 0.1, b"new")]) == b"new"
+    assert current_payload([(time.monotonic() - LATEST_MAX_AGE_S - 0.1, 0.1, b"old")]) is None
+    # a playback slowed down (`--pace 0.05`: 4 s between messages): current for twice the time between them
+    assert current_payload([(time.monotonic() - LATEST_MAX_AGE_S - 0.1, 4.0, b"slow")]) == b"slow"
+    assert current_payload([(time.monotonic() - 8.1, 4.0, b"slow")]) is None
     conf = zenoh.Config()
     conf.insert_json5("mode", '"peer"')
     conf.insert_json5("scouting/multicast/enabled", "false")
@@ -266,9 +269,12 @@ def test_the_latest_tracks_are_answered_only_while_they_are_current():
                         for r in session.get(latest_tracks_key("se"), timeout=1.0) if r.ok is not None]
 
             assert answers() == [7]
-            when, payload = publish.latest[-1]
-            publish.latest[:] = [(when - LATEST_MAX_AGE_S - 0.5, payload)]  # as if nothing was sent since
+            when, gap, payload = publish.latest[-1]
+            publish.latest[:] = [(when - LATEST_MAX_AGE_S - 0.5, gap, payload)]  # as if nothing was sent since
             assert answers() == []
+            # a restarted ingest asks where the tracks reached, however long fuse_track has been silent
+            assert [decode(r.ok.payload.to_bytes(), Tracks).seq for r in session.get(
+                f"{latest_tracks_key('se')}?{LATEST_ANY_AGE}", timeout=1.0) if r.ok is not None] == [7]
             publish(message(8))
             assert answers() == [8]
         finally:

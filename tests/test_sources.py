@@ -284,7 +284,7 @@ def test_merged_camera_folders_have_items_to_resume_from(tmp_path):
     assert [(f.t_capture_ns, f.camera) for f in source] == [(t, cam) for t, cam, _ in source.items]
     asked = []
     resume_point(SimpleNamespace(get=lambda key, timeout: asked.append(key) or iter(())), "se", source)
-    assert asked == ["roadside/se/tracks/latest"]
+    assert asked == ["roadside/se/tracks/latest?any_age"]  # whatever its age: fuse_track is silent while ingest is down
     clip = VideoSource(str(_clip(tmp_path / "clip.avi")), "SW")
     assert MergedSource([source, clip]).items is None
 
@@ -326,9 +326,9 @@ def test_a_camera_folder_holding_sub_folders_is_still_that_camera_s(tmp_path):
 
 def test_cameras_whose_clocks_differ_are_refused_naming_them(tmp_path):
     """A frame rate times only folders whose names carry no time (one stray name among dated ones is named, not
-    taken for a reason to replace every time by the wall clock); cameras whose first times lie more than 10 min
-    apart (a video file timed from when it is opened beside dated folders, a folder named in another time zone)
-    are refused, naming the cameras and their first times."""
+    taken for a reason to replace every time by the wall clock); a camera whose frames lie more than 10 min from
+    every other camera's (a video file timed from when it is opened beside dated folders, a folder named in another
+    time zone) is refused, naming the cameras and their spans; one that starts late while the others record plays."""
     from services.ingest.sources import ImageFolderSource, open_source
 
     dated = ["2023-12-19 11-00-00-000000.jpg", "2023-12-19 11-00-01-000000.jpg"]
@@ -339,13 +339,21 @@ def test_cameras_whose_clocks_differ_are_refused_naming_them(tmp_path):
     (tmp_path / "gs_SW" / "preview.jpg").unlink()
     assert len(open_source(str(tmp_path), ["NE", "SW"], {}, fps=5.0).items) == 4  # their own times
     clip = _clip(tmp_path / "SW.avi")
-    with pytest.raises(ValueError, match=r"first capture times lie .* apart \(NE 2023-12-19T11:00:00\+00:00, SW 20"):
+    with pytest.raises(ValueError, match=r"camera .*'s frames lie .* from every other camera's \(NE 2023-12-19T11:00:00"
+                                         r"\+00:00 to 2023-12-19T11:00:01\+00:00, SW 20"):
         open_source(str(tmp_path), ["NE", "SW"], {"SW": str(clip)})
     _still(tmp_path / "local" / "SW", "2023-12-19 06-00-05-000000.jpg")  # named in Detroit's clock, read as UTC
-    with pytest.raises(ValueError, match=r"lie 5.0 h apart \(SW 2023-12-19T06:00:05\+00:00, NE 2023-12-19T11:00"):
+    with pytest.raises(ValueError, match=r"camera (NE|SW)'s frames lie 5.0 h from every other camera's \(SW 2023-12"):
         ImageFolderSource({"NE": tmp_path / "gs_NE", "SW": tmp_path / "local" / "SW"})
     _still(tmp_path / "late" / "SW", "2023-12-19 11-09-00-000000.jpg")  # a camera started 9 min later: played
     assert len(ImageFolderSource({"NE": tmp_path / "gs_NE", "SW": tmp_path / "late" / "SW"}).items) == 3
+    # a camera that starts 20 min after the others while they still record: their frames overlap, played
+    _still(tmp_path / "long" / "NE", "2023-12-19 11-00-00-000000.jpg", "2023-12-19 11-30-00-000000.jpg")
+    _still(tmp_path / "long" / "SW", "2023-12-19 11-20-00-000000.jpg", "2023-12-19 11-40-00-000000.jpg")
+    assert len(ImageFolderSource({"NE": tmp_path / "long" / "NE", "SW": tmp_path / "long" / "SW"}).items) == 4
+    _still(tmp_path / "after" / "SW", "2023-12-19 11-45-00-000000.jpg")  # 15 min after NE's last frame
+    with pytest.raises(ValueError, match=r"camera (NE|SW)'s frames lie 15 min from every other camera's"):
+        ImageFolderSource({"NE": tmp_path / "long" / "NE", "SW": tmp_path / "after" / "SW"})
 
 
 @pytest.mark.parametrize("ext", [".png", ".bmp"])

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from services.fuse_track.fusion import CameraRegion, Fusion, FusionConfig, ObjectBatch
-from services.fuse_track.player import current_payload
+from services.fuse_track.player import current_payload, held_latest
 from services.fuse_track.recorder import Recorder
 from services.fuse_track.ticks import Tick, TickBuffer, TickConfig
 from services.fuse_track.tracker import Tracker, TrackerConfig, TrackState
@@ -165,13 +165,13 @@ def main(settings: Settings, stopper: Stopper) -> int:
     recorder = Recorder(settings.path(cfg.record), round(cfg.record_rotate_mb * 2**20), cfg.record_keep)
     bad = BadInput("fuse_track")
     session = open_session(settings, "fuse_track")
-    latest: list[tuple[float, bytes]] = []  # (monotonic time it was published, the newest payload)
+    latest: list[tuple[float, float, bytes]] = []  # the newest payload, as held_latest keeps it
     try:
         receiver = Receiver(session, all_cameras_key(settings.site, "objects"), Objects, bad)
         pub = session.declare_publisher(tracks_key(settings.site))
 
         def answer(query) -> None:  # runs in Zenoh's thread: only hands over bytes already encoded
-            payload = current_payload(latest)  # none while no tick was sent for a while (every camera down)
+            payload = current_payload(latest, query)  # none while no tick was sent for a while (every camera down)
             if payload is not None:
                 query.reply(latest_tracks_key(settings.site), payload)
 
@@ -213,7 +213,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
                     continue
                 payload = encode(msg)
                 pub.put(payload)
-                latest[:] = [(time.monotonic(), payload)]
+                held_latest(latest, payload)
                 recorder.write(msg)
                 status.count("tracks_out", output=True)
                 status.gauge("tracks", len(msg))

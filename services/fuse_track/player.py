@@ -30,7 +30,7 @@ from pathlib import Path
 
 from shared.bus import BadInput, declare_alive
 from shared.codec import encode
-from shared.keys import latest_tracks_key, tracks_key
+from shared.keys import LATEST_ANY_AGE, latest_tracks_key, tracks_key
 from shared.messages import Tracks
 from shared.status import StatusReporter
 from shared.tracks_file import file_lines
@@ -40,18 +40,32 @@ DEFAULT_GAP_NS = 100_000_000  # a loop's step from the last message to the first
 TOKEN = "playback"  # the liveliness token's instance: roadside/<site>/alive/fuse_track/playback
 MAX_LINE_BYTES = 64 * 1024 * 1024  # a longer line is not a Tracks message (4096 tracks of ~500 bytes is 2 MB)
 # the latest-tracks query is answered with a message published at most this long ago (monotonic clock; fuse_track's
-# too): longer than the longest tick (1 s) and its wait; with every camera down, or a playback paused between
-# messages far apart, nothing is sent and an older message is not "the current tracks" (docs/wire-format.md)
+# too), or twice the time between the last two messages where that is longer (a playback slowed down, `--pace 0.05`):
+# longer than the longest tick (1 s) and its wait; with every camera down, or a playback paused, nothing is sent and an
+# older message is not "the current tracks" (docs/wire-format.md). A query with the parameter LATEST_ANY_AGE (a
+# restarted ingest asking where fuse_track's tracks reached, services/ingest resume_point) is answered whatever its age.
 LATEST_MAX_AGE_S = 2.0
 
 
-def current_payload(latest: list[tuple[float, bytes]]) -> bytes | None:
-    """The payload to answer the latest-tracks query with: the newest of `latest` ([(monotonic time it was published,
-    payload)], fuse_track's and the player's) when it was published within LATEST_MAX_AGE_S, else None."""
+def held_latest(latest: list[tuple[float, float, bytes]], payload: bytes) -> None:
+    """Keep `payload` as the newest message published (in `latest`, fuse_track's and the player's: [(monotonic time
+    it was published, seconds since the one before, payload)])."""
+    now = time.monotonic()
+    latest[:] = [(now, now - latest[-1][0] if latest else 0.0, payload)]
+
+
+def current_payload(latest: list[tuple[float, float, bytes]], query=None) -> bytes | None:
+    """The payload to answer the latest-tracks query with: the newest of `latest` (`held_latest`) when it was published
+    within LATEST_MAX_AGE_S (or twice the gap before it, where longer), or whatever its age for a query with the
+    parameter LATEST_ANY_AGE; else None."""
     held = latest[-1] if latest else None  # one read: the publishing thread replaces the entry meanwhile
-    if held is None or time.monotonic() - held[0] > LATEST_MAX_AGE_S:
+    if held is None:
         return None
-    return held[1]
+    if query is not None and query.parameters.get(LATEST_ANY_AGE) is not None:
+        return held[2]
+    if time.monotonic() - held[0] > max(LATEST_MAX_AGE_S, 2 * held[1]):
+        return None
+    return held[2]
 
 
 def records(paths: Iterable[Path], bad: Callable[[str, str], None]) -> Iterator[tuple[str, Tracks]]:
@@ -147,7 +161,7 @@ class TracksPublisher:
 
     def __init__(self, session, block: bool = False, status_period_s: float = 2.0) -> None:
         self.session, self.block, self.status_period_s = session, block, status_period_s
-        self.latest: list[tuple[float, bytes]] = []  # (monotonic time it was published, the newest payload)
+        self.latest: list[tuple[float, float, bytes]] = []  # the newest payload, as held_latest keeps it
         self.pub = self.queryable = self.status = None
         self.tokens: list = []
 
@@ -158,7 +172,7 @@ class TracksPublisher:
         self.pub = self.session.declare_publisher(tracks_key(site), congestion_control=congestion)
 
         def answer(query) -> None:  # Zenoh's thread: bytes already encoded
-            payload = current_payload(self.latest)
+            payload = current_payload(self.latest, query)
             if payload is not None:
                 query.reply(latest_tracks_key(site), payload)
 
@@ -173,7 +187,7 @@ class TracksPublisher:
             self._declare(msg.site)
         msg.stamps = [("playback", time.time_ns())]  # when it was sent (the recording keeps no stamps)
         payload = encode(msg)
-        self.latest[:] = [(time.monotonic(), payload)]
+        held_latest(self.latest, payload)
         self.pub.put(payload)
         self.status.count("tracks_out", output=True)
 

@@ -25,7 +25,7 @@ from services.ingest.sources import SourceFrame, open_source
 from shared.bus import BadInput, Receiver, Stopper, declare_alive, open_session, wait_for_peers
 from shared.codec import DecodeError, decode, encode
 from shared.jpeg import decode_grey, jpeg_size
-from shared.keys import all_alive_key, all_cameras_key, camera_key, latest_tracks_key
+from shared.keys import LATEST_ANY_AGE, all_alive_key, all_cameras_key, camera_key, latest_tracks_key
 from shared.messages import Detections, Frame, Tracks
 from shared.service import run
 from shared.settings import CameraSettings, Settings
@@ -150,7 +150,8 @@ def resume_point(session, site: str, source, loop: bool = False) -> int | None:
     items = getattr(source, "items", None)
     if not items:
         return None
-    for reply in session.get(latest_tracks_key(site), timeout=RESUME_ASK_S):
+    # whatever its age: fuse_track sends nothing while ingest is down, and a restart takes seconds
+    for reply in session.get(f"{latest_tracks_key(site)}?{LATEST_ANY_AGE}", timeout=RESUME_ASK_S):
         if reply.ok is None:
             continue
         try:
@@ -187,7 +188,9 @@ def main(settings: Settings, stopper: Stopper) -> int:
         scales = {c: decode_scale_for(cam.width, cam.height, cfg.decode_long_side) for c, cam in cams.items()}
         log.info("decoded at 1/n of full size, n per camera: %s", scales)
         resume_ns = resume_point(session, settings.site, source, cfg.loop)
-        period_ns = loop_period(source) if cfg.loop else None
+        # rounds of max_frames frames are spaced by what they play, as before (a source's whole span would leave
+        # most of each round's time empty); a restart then skips through the rounds to fuse_track's time
+        period_ns = loop_period(source) if cfg.loop and not cfg.max_frames else None
         offset_ns = 0
         if resume_ns is not None:
             if period_ns is not None:  # the round fuse_track's tracks reached: its times shifted as it played them

@@ -36,12 +36,12 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
 EPOCH_DIGITS = {19: 1, 16: 1_000, 13: 1_000_000}  # a name of so many digits: ns, us or ms since the epoch
 T_NAME_MIN = 946_684_800 * 10**9  # 2000-01-01: a number in a name below it is a frame counter, not a time
 DATETIME_RE = re.compile(r"(\d{4})-(\d{2})-(\d{2})[ _T](\d{2})[-:_](\d{2})[-:_](\d{2})(?:[-._](\d{1,9}))?")
-# cameras played together whose first capture times lie further apart than this do not share a clock: a video file's
-# frames timed from when it is opened beside dated file names, a folder named in another time zone (whole hours
-# off). Footage of one site is recorded together and starts within seconds, a camera started a few minutes late
-# still plays (the others alone until it starts); past this the pipeline would play one camera alone for that
-# long at pace 1, or hang for years.
-FIRST_TIMES_APART_MAX_NS = 10 * 60 * 10**9
+# cameras played together whose frames lie further apart than this from every other camera's (the gap between
+# their spans of capture times) do not share a clock: a video file's frames timed from when it is opened beside dated
+# file names, a folder named in another time zone (whole hours off). Footage of one site is recorded together; a
+# camera that starts late, or stops early, still overlaps the others and plays (the others alone meanwhile); past
+# this the pipeline would play one camera alone for that long at pace 1, or hang for years.
+SPANS_APART_MAX_NS = 10 * 60 * 10**9
 
 
 @dataclass
@@ -94,21 +94,32 @@ def _images(folder: Path) -> list[Path]:
             and (p.is_file() or (p.is_symlink() and not p.exists()))]
 
 
-def check_first_times(firsts: dict[str, int]) -> None:
-    """ValueError naming the cameras and their first capture times when those lie further apart than
-    `FIRST_TIMES_APART_MAX_NS` (ns since the epoch by camera): their clocks differ, and fuse_track, putting frames
-    of one time into one tick, would wait for the later camera for as long."""
-    if len(firsts) < 2 or max(firsts.values()) - min(firsts.values()) <= FIRST_TIMES_APART_MAX_NS:
+def check_time_spans(spans: dict[str, tuple[int, int]]) -> None:
+    """ValueError naming the camera and the spans when a camera's frames (first, last capture time, ns since the
+    epoch, by camera) lie further than `SPANS_APART_MAX_NS` from every other camera's: their clocks differ, and
+    fuse_track, putting frames of one time into one tick, would wait for the other cameras for as long."""
+    if len(spans) < 2:
         return
-    apart_s = (max(firsts.values()) - min(firsts.values())) / 1e9
-    apart = f"{apart_s / 86400:.1f} days" if apart_s >= 86400 else f"{apart_s / 3600:.1f} h" if apart_s >= 3600 \
-        else f"{apart_s / 60:.0f} min"
-    when = ", ".join(f"{cam} {datetime.fromtimestamp(t / 1e9, UTC).isoformat(timespec='seconds')}"
-                     for cam, t in sorted(firsts.items(), key=lambda kv: kv[1]))
-    raise ValueError(f"the cameras' first capture times lie {apart} apart ({when}; at most "
-                     f"{FIRST_TIMES_APART_MAX_NS // 60 // 10**9} min): their clocks differ (a video file is timed from "
-                     "when it is opened, file names by their own clock and time zone), so fuse_track could not put "
-                     "their frames in one tick; play cameras recorded together, with times in one clock")
+
+    def gap(a: tuple[int, int], b: tuple[int, int]) -> int:
+        return max(0, max(a[0], b[0]) - min(a[1], b[1]))
+
+    for cam, span in spans.items():
+        apart_ns = min(gap(span, other) for c, other in spans.items() if c != cam)
+        if apart_ns <= SPANS_APART_MAX_NS:
+            continue
+        apart_s = apart_ns / 1e9
+        apart = f"{apart_s / 86400:.1f} days" if apart_s >= 86400 else f"{apart_s / 3600:.1f} h" if apart_s >= 3600 \
+            else f"{apart_s / 60:.0f} min"
+
+        def when(t: int) -> str:
+            return datetime.fromtimestamp(t / 1e9, UTC).isoformat(timespec="seconds")
+
+        each = ", ".join(f"{c} {when(a)} to {when(b)}" for c, (a, b) in sorted(spans.items(), key=lambda kv: kv[1]))
+        raise ValueError(f"camera {cam}'s frames lie {apart} from every other camera's ({each}; at most "
+                         f"{SPANS_APART_MAX_NS // 60 // 10**9} min): their clocks differ (a video file is timed from "
+                         "when it is opened, file names by their own clock and time zone), so fuse_track could not put "
+                         "their frames in one tick; play cameras recorded together, with times in one clock")
 
 
 def _natural(path: Path) -> list:
@@ -167,7 +178,7 @@ class ImageFolderSource:
                 files = sorted(files, key=_natural)
                 times = [t0 + round(i * 1e9 / fps) for i in range(len(files))]
             streams[cam] = sorted(zip(times, files, strict=True))
-        check_first_times({cam: items[0][0] for cam, items in streams.items()})
+        check_time_spans({cam: (items[0][0], items[-1][0]) for cam, items in streams.items()})
         self.items = _merge(streams)
 
     def __iter__(self) -> Iterator[SourceFrame]:
@@ -249,15 +260,17 @@ class VideoSource:
         self.cap.release()
 
 
-def _first_times(source) -> dict[str, int]:
-    """Each camera's first capture time in a source of recorded frames."""
+def _time_spans(source) -> dict[str, tuple[int, int]]:
+    """Each camera's first and last capture time in a source of recorded frames (a video file: from when it was
+    opened, for as long as its frames last at its frame rate)."""
     items = getattr(source, "items", None)
-    if items is None:  # a video file: timed from when it was opened
-        return {source.camera: source.t0_ns}
-    firsts: dict[str, int] = {}
+    if items is None:
+        frames = max(int(source.cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0), 1)
+        return {source.camera: (source.t0_ns, source.t0_ns + round((frames - 1) * 1e9 / source.fps))}
+    spans: dict[str, tuple[int, int]] = {}
     for t, cam, _ in items:  # in time order
-        firsts.setdefault(cam, t)
-    return firsts
+        spans[cam] = (spans.get(cam, (t, t))[0], t)
+    return spans
 
 
 def open_source(source: str, cameras: list[str], camera_sources: dict[str, str | None],
@@ -270,8 +283,8 @@ def open_source(source: str, cameras: list[str], camera_sources: dict[str, str |
     the sub-folder named `<camera>`, in any case, else the one whose name ends with `_<camera>`; sub-folders named
     `.*` or `@*`, a NAS's or a file browser's, are not cameras'), one image folder (one that holds images, for one
     camera, even beside sub-folders), a video file or a stream URL. `camera_sources` (camera -> its own source) take
-    precedence; live streams and recorded frames are not mixed, nor recorded cameras whose first capture times lie
-    more than `FIRST_TIMES_APART_MAX_NS` apart (their clocks differ: ValueError).
+    precedence; live streams and recorded frames are not mixed, nor recorded cameras whose frames lie more than
+    `SPANS_APART_MAX_NS` from every other camera's (their clocks differ: ValueError).
     """
     own = {c: s for c, s in camera_sources.items() if s}
     if own:
@@ -289,7 +302,7 @@ def open_source(source: str, cameras: list[str], camera_sources: dict[str, str |
                              "not share a clock, so fuse_track could not put them in one tick; give every camera a "
                              "live stream, or play them all from recordings")
         if not live:
-            check_first_times({cam: t for p in parts for cam, t in _first_times(p).items()})
+            check_time_spans({cam: span for p in parts for cam, span in _time_spans(p).items()})
         return parts[0] if len(parts) == 1 else MergedSource(parts, stop)
     if not source:
         raise ValueError("no source: set ingest.source in the site file or pass --source")
@@ -307,15 +320,21 @@ def open_source(source: str, cameras: list[str], camera_sources: dict[str, str |
     if (path / "recording.json").is_file():
         return RecordingSource(path, cameras)
     subdirs = {p.name: p for p in path.iterdir() if p.is_dir() and not p.name.startswith((".", "@"))}
-    if not subdirs or (len(cameras) == 1 and _images(path)):
+
+    def matching(cam: str) -> list[Path]:
+        return ([p for n, p in subdirs.items() if n == cam]  # NE beside T_NE: NE's folder is NE
+                or [p for n, p in subdirs.items() if n.lower() == cam.lower()]
+                or [p for n, p in subdirs.items() if n.endswith("_" + cam)])
+
+    # one camera's images, beside other sub-folders (a thumbnails folder): the folder itself, unless a sub-folder is
+    # the camera's (a parent of camera folders holding a stray map or preview image at its top)
+    if not subdirs or (len(cameras) == 1 and _images(path) and not matching(cameras[0])):
         if len(cameras) != 1:
             raise ValueError(f"{path} holds images of one camera; the site has {len(cameras)} cameras")
         return ImageFolderSource({cameras[0]: path}, fps, tz)
     folders = {}
     for cam in cameras:
-        match = ([p for n, p in subdirs.items() if n == cam]  # NE beside T_NE: NE's folder is NE
-                 or [p for n, p in subdirs.items() if n.lower() == cam.lower()]
-                 or [p for n, p in subdirs.items() if n.endswith("_" + cam)])
+        match = matching(cam)
         if len(match) != 1:
             raise ValueError(f"camera {cam}: expected one sub-folder of {path} named {cam} or *_{cam}, "
                              f"found {sorted(p.name for p in match) or 'none'} among {sorted(subdirs)}")
