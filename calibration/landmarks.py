@@ -177,8 +177,9 @@ def validate_landmarks(
     lm: Landmarks, width: int, height: int, image_circle: tuple[float, float, float] | None = None
 ) -> None:
     """Raise ValueError naming the landmark for: duplicate ids, lat/lon out of range, a landmark far
-    from the others (a swapped lat/lon, a typo), pixels outside the image or the fisheye image
-    circle (cx, cy, radius), fewer than 4 landmarks, all landmarks (nearly) collinear."""
+    from the others (a swapped lat/lon, a typo: 2 km, or for a fisheye, whose `image_circle` is given, 5 times the
+    others' spread), pixels outside the image or the fisheye image circle (cx, cy, radius), fewer than 4 landmarks,
+    all landmarks (nearly) collinear."""
     seen: dict[str, int] = {}
     for i, lid in enumerate(lm.ids):
         if lid in seen:
@@ -206,8 +207,10 @@ def validate_landmarks(
             raise ValueError(f"landmark {lid!r} is {d / 1000:.1f} km from the others (a typo or swapped lat/lon?)")
     # Nearer, but still far for the others: one mistyped digit drags the fit so far that it rejects good landmarks
     # with it, and fails without naming the culprit. Measured against the others alone (the median and the median
-    # distance from it), which the one far point cannot move.
-    for i, lid in enumerate(lm.ids):
+    # distance from it), which the one far point cannot move. A fisheye only: it sees the ground around its pole, so a
+    # point far beyond the others is a typo; a pinhole camera may look far down a road, where one landmark hundreds of
+    # metres beyond the others is right (a typo there is named when it fails the fit: calibration/run.py)
+    for i, lid in enumerate(lm.ids if image_circle is not None else ()):
         others = np.delete(xy, i, axis=0)
         centre = np.median(others, axis=0)
         spread = float(np.median(np.linalg.norm(others - centre, axis=1)))

@@ -403,7 +403,16 @@ def test_bad_landmarks_are_named(tmp_path, mutate, message):
     mutate(rows)
     with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)").replace(".", r"\.")):
         lm, _ = load_landmarks(_write(tmp_path, rows))
-        validate_landmarks(lm, 640, 480)
+        validate_landmarks(lm, 640, 480, (319.5, 239.5, 500.0))  # as a fisheye's: an image circle round the image
+
+
+def test_a_far_landmark_of_a_pinhole_camera_is_left_to_the_fit(tmp_path):
+    """A pinhole camera may look far down a road: one landmark 244 m beyond the others (refused for a fisheye, above)
+    is not refused at reading; a typo there is named when it fails the fit (the next test's rule)."""
+    rows = _rows()
+    rows[4].update(lon=-83.736)
+    lm, _ = load_landmarks(_write(tmp_path, rows))
+    validate_landmarks(lm, 640, 480)
 
 
 def test_fewer_than_four_and_collinear_landmarks_are_refused(tmp_path):
