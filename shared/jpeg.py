@@ -63,11 +63,10 @@ def decode_grey(data: bytes, width: int, height: int, flags: int = cv2.IMREAD_GR
     size = jpeg_size(data)
     if size is None and (not data or data[:2] == b"\xff\xd8"):
         raise ValueError(f"{what}: corrupt JPEG ({len(data)} bytes): no frame header")
-    if size is not None and (abs(size[0] - width) > reduce or abs(size[1] - height) > reduce):
-        raise ValueError(f"{what}: JPEG is {size[0]}x{size[1]}, expected {width}x{height}")
-    other = png_bmp_size(data) if size is None else None  # decoded in full, however large: checked first as well
-    if other is not None and (abs(other[1] - width) > reduce or abs(other[2] - height) > reduce):
-        raise ValueError(f"{what}: {other[0]} is {other[1]}x{other[2]}, expected {width}x{height}")
+    # PNG and BMP are decoded in full, however large: their headers are checked first as well
+    claimed = ("JPEG", *size) if size is not None else png_bmp_size(data)
+    if claimed is not None and (abs(claimed[1] - width) > reduce or abs(claimed[2] - height) > reduce):
+        raise ValueError(f"{what}: {claimed[0]} is {claimed[1]}x{claimed[2]}, expected {width}x{height}")
     try:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
     except cv2.error as exc:
