@@ -75,7 +75,16 @@ class LookupMasks:
         m = len(xy) if latlon_rows is None else max(0, min(int(latlon_rows), len(xy)))
         first = tuple(c[:m] for c in cells)
         latlon = np.full_like(xy, np.nan)
-        latlon[:m] = np.column_stack([bilinear(self.lat, first)[:, 0], bilinear(self.lon, first)[:, 0]])
+        # longitude as an offset from the top-left neighbour's, wrapped, so that pixel centres astride the
+        # antimeridian (179.99999 and -179.99999) do not average to about 0
+        v0, u0, fu, fv = first[0], first[1], first[2][:, 0], first[3][:, 0]
+        lon0 = self.lon[v0, u0]
+
+        def rel(dv: int, du: int) -> np.ndarray:
+            return (self.lon[v0 + dv, u0 + du] - lon0 + 180.0) % 360.0 - 180.0
+
+        lon = lon0 + (rel(0, 0) * (1 - fu) + rel(0, 1) * fu) * (1 - fv) + (rel(1, 0) * (1 - fu) + rel(1, 1) * fu) * fv
+        latlon[:m] = np.column_stack([bilinear(self.lat, first)[:, 0], (lon + 180.0) % 360.0 - 180.0])
         latlon[~ok] = np.nan
         return latlon, xy, ok
 

@@ -405,3 +405,35 @@ def test_lift_converts_only_the_bottom_centres_to_latitude_longitude(monkeypatch
         latlon, xy, _ = lookup.lookup(np.concatenate([uv, uv + 1]), latlon_rows=4)
         assert np.isnan(latlon[4:]).all() and np.isfinite(xy[4:7]).all()
         np.testing.assert_array_equal(latlon[:4], lookup.lookup(uv)[0])
+
+
+def test_a_heading_of_any_length_but_zero_is_lifted_as_its_direction():
+    """The contract accepts any non-zero heading: a tiny one stepped onto the bottom centre itself and a raw pixel
+    vector stepped off the calibrated ground; both dropped the detection as if it lay outside."""
+    h, w = 48, 64
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    xy = np.stack([u * 0.25, -v * 0.25], axis=2).astype(np.float32)  # 4 px per metre, east along u, v down = south
+    masks = GroundLookup(LookupMasks(np.zeros((0, 0)), np.zeros((0, 0)), xy, np.ones((h, w), bool),
+                                     {"geo_origin": {"lat_deg": 42.0, "lon_deg": -83.0, "alt_m": 0.0}}))
+    for heading, yaw_deg in (([1.0, 0.0], 0.0), ([1e-30, 0.0], 0.0), ([0.0, 20.0], -90.0), ([12.0, 5.0], -22.62)):
+        out = lift(masks, np.array([[32.0, 24.0]]), np.array([heading]))
+        assert out.valid.tolist() == [True], heading
+        assert np.degrees(out.yaw[0]) == pytest.approx(yaw_deg, abs=0.01), heading
+
+
+def test_latitude_longitude_astride_the_antimeridian_is_not_half_the_earth_away():
+    """Pixel centres at 179.99999 and -179.99999 deg averaged to about 0 deg of longitude."""
+    geo = GeoFrame(-16.8, 179.99997)  # Taveuni, Fiji: the 180th meridian crosses it
+    h, w = 48, 64
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    xy = np.stack([u * 0.25 - 8.0, -v * 0.25], axis=2)  # x from -8 to +7.75 m, the meridian at about 3.2 m
+    ll = geo.to_geodetic(xy.reshape(-1, 2))
+    masks = LookupMasks(ll[:, 0].reshape(h, w), ll[:, 1].reshape(h, w), xy.astype(np.float32),
+                        np.ones((h, w), bool), {"geo_origin": geo.to_dict()})
+    u180 = (geo.to_enu(np.array([-16.8]), np.array([180.0]))[0, 0] + 8.0) / 0.25
+    uv = np.array([[np.floor(u180) + 0.5, 20.0], [10.25, 7.5]])  # between the centres astride it; one west of it
+    latlon, pts, ok = masks.lookup(uv)
+    exact = geo.to_geodetic(pts)[:, :2]
+    assert ok.all() and abs(latlon[0, 1]) > 179.99
+    np.testing.assert_allclose(np.cos(np.radians(latlon - exact)), 1.0, atol=1e-15)
+    np.testing.assert_allclose(latlon[:, 0], exact[:, 0], atol=1e-9)

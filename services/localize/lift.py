@@ -87,7 +87,7 @@ class Lifted:
 
 
 def lift(masks: GroundLookup | LookupMasks, uv: np.ndarray, heading_uv: np.ndarray, step_px: float = 6.0) -> Lifted:
-    """uv (N, 2) px and heading_uv (N, 2) unit vectors in the masks' image -> Lifted."""
+    """uv (N, 2) px and heading_uv (N, 2) directions in the masks' image (any length but zero) -> Lifted."""
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     heading = np.asarray(heading_uv, np.float64).reshape(-1, 2)
     if len(heading) != len(uv):
@@ -95,6 +95,10 @@ def lift(masks: GroundLookup | LookupMasks, uv: np.ndarray, heading_uv: np.ndarr
     n = len(uv)
     if n == 0:
         return Lifted(np.zeros(0, bool), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0))
+    # the contract asks a heading of any length but zero: the step is step_px whatever its length (a raw pixel
+    # vector would step off the calibrated ground, a tiny one onto the bottom centre itself)
+    norm = np.hypot(heading[:, 0], heading[:, 1])
+    heading = heading / np.where(norm > 0, norm, 1.0)[:, None]
     # one lookup for the bottom centres and both ends (its cost is mostly per call); latitude/longitude of the
     # bottom centres only
     latlon, pts, ok_all = masks.lookup(np.concatenate([uv, uv + step_px * heading, uv - step_px * heading]),
