@@ -262,9 +262,17 @@ class OnnxDetector:
         if not self.votes:
             maps.pop("vote", None)
         det = decode(**maps, stride=self.stride, score_thr=self.score_thr, top_k=self.top_k)
-        # network pixel p (centre convention) <- image pixel q: p + 0.5 = (q + 0.5) * scale
-        inv = 1.0 / scale
-        return det.scaled(inv, inv, 0.5 * inv - 0.5, 0.5 * inv - 0.5)
+        return network_to_image(det, grey.shape, scale)
+
+
+def network_to_image(det: Detections, shape: tuple[int, int], scale: float) -> Detections:
+    """Detections in the network input of an image of `shape` (H, W) that `preprocess` resized by `scale`, in the
+    image's own pixels. Network pixel p (centre convention) <- image pixel q: p + 0.5 = (q + 0.5) * s, with s each
+    axis's own factor of the whole-pixel size it was resized to, as training's resize_sample maps its labels (the
+    nominal scale is up to 0.75 px off at the far edge of an image whose side does not scale to whole pixels)."""
+    sx = round(shape[1] * scale) / shape[1]
+    sy = round(shape[0] * scale) / shape[0]
+    return det.scaled(1.0 / sx, 1.0 / sy, 0.5 / sx - 0.5, 0.5 / sy - 0.5)
 
 
 def area_box(area_px: tuple[int, int, int, int], shape: tuple[int, int], source_scale: float = 1.0,

@@ -584,3 +584,22 @@ def test_focus_by_size_centres_the_crops_on_the_large_vehicles_more_often():
     size = np.sqrt(np.prod(box[:, 2:] - box[:, :2], axis=1))
     assert counts[False] < 400 * 0.25
     assert counts[True] > 400 * 0.8 * size[big] / size.sum() and counts[True] > 1.8 * counts[False]
+
+
+def test_detections_map_back_from_the_network_as_training_mapped_the_labels_into_it():
+    """Training resizes labels with each axis's factor of the whole-pixel size; the detect service mapped back with
+    the nominal scale, up to 0.75 px off at the far edge of a 1001x750 image."""
+    from shared.decode import Detections
+    from shared.inference import input_scale, network_to_image
+
+    for w, h in ((704, 576), (2688, 1520), (1001, 750), (1280, 960)):
+        scale = input_scale(w, h, 640)
+        uv = np.array([[w - 2.0, h - 2.0], [w / 2, h / 2], [1.0, 1.0]])  # boxes of +-1 px within the image
+        sample = Sample(np.zeros((h, w), np.uint8), uv, np.c_[uv - 1, uv + 1], np.tile([1.0, 0.0], (3, 1)),
+                        np.ones((3, 3)), [0] * 3, [1.0] * 3)
+        net = resize_sample(sample, scale)  # what the network learns to answer
+        det = Detections(np.ones(3), net.bottom_uv, net.box, net.heading_uv, np.ones((3, 3)), np.zeros(3, int),
+                         np.ones((3, 5)))
+        back = network_to_image(det, (h, w), scale)
+        np.testing.assert_allclose(back.uv, uv, atol=1e-9, err_msg=f"{w}x{h}")
+        np.testing.assert_allclose(back.box, sample.box, atol=1e-9, err_msg=f"{w}x{h}")
