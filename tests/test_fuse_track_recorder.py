@@ -105,6 +105,48 @@ def test_a_rotation_that_fails_loses_no_line_and_is_tried_again_later(tmp_path, 
     assert seqs(first) + seqs(path) == list(range(seq + 1))
 
 
+
+def test_a_rotation_that_cannot_list_its_folder_is_counted_and_recording_goes_on(tmp_path, monkeypatch, caplog):
+    """An operator clears the recordings folder while fuse_track runs: the next rotation cannot list it. That is
+    counted and logged like a failed rename, not raised out of write (which would end fuse_track), and the folder is
+    made again with a new file in it (the lines since the removal went with the old one). A folder that cannot be
+    read is tried again later."""
+    import shutil
+
+    folder = tmp_path / "records"
+    path = folder / "tracks.jsonl"
+    line = len(json.dumps({"site": "s", "seq": 0, "t_ns": 0, "tracker": "tracker-1", "tracks": [{"id": 0}]})) + 1
+    rec = Recorder(path, rotate_bytes=3 * line, keep=2)
+    rec.write(Msg(0))
+    shutil.rmtree(folder)
+    for seq in range(1, 3):  # the second line reaches the rotation size
+        rec.write(Msg(seq))
+    assert rec.rotation_failed == 1 and rec.failed == 0 and "rotation failed (No such file or directory)" in caplog.text
+    assert "its folder made again, recording goes on in a new file" in caplog.text
+    for seq in range(3, 9):
+        rec.write(Msg(seq))
+    rec.close()
+    assert [seqs(p) for _, p in rec.rotated()] + [seqs(path)] == [[3, 4, 5], [6, 7, 8], []]  # rotating on as before
+
+    path = tmp_path / "unreadable" / "tracks.jsonl"
+    rec = Recorder(path, rotate_bytes=3 * line)
+    real_iterdir = Path.iterdir
+    fails = iter([True])
+
+    def iterdir(self: Path):
+        if next(fails, False):
+            raise PermissionError(13, "Permission denied")
+        return real_iterdir(self)
+
+    monkeypatch.setattr(Path, "iterdir", iterdir)
+    for seq in range(3):
+        rec.write(Msg(seq))
+    assert rec.rotation_failed == 1 and rec.rotated() == [] and seqs(path) == [0, 1, 2]
+    assert "rotation failed (Permission denied); recording goes on in the same file" in caplog.text
+    rec.write(Msg(3))  # a tenth of the size later: rotated
+    rec.close()
+    assert [seqs(p) for _, p in rec.rotated()] + [seqs(path)] == [[0, 1, 2, 3], []]
+
 def test_the_rotation_settings_are_checked():
     from pydantic import ValidationError
 

@@ -109,6 +109,40 @@ def test_one_glitched_capture_time_costs_one_batch_not_the_camera():
     assert stuck.ahead == 98 and stuck.late == 0
 
 
+
+def test_a_camera_whose_every_batch_is_refused_is_not_waited_for_until_one_is_used_again():
+    """B's clock runs five minutes behind for 4 s: every batch of it is refused as behind. After camera_timeout_ms B
+    is not waited for, as if it were dead, so ticks close as soon as A has delivered, not by the watermark or max_wait
+    (all of the site's tracks late for as long as B runs). Once B's clock is right again it is waited for again, though
+    its first good batch comes after A has closed its tick (B's frames arrive later than A's)."""
+    buffer: TickBuffer[str] = TickBuffer(["A", "B"], TickConfig(tick_ms=100, max_lead_ms=60_000))
+    behind, t0 = 300 * 1000 * MS, 3600 * 1000 * MS
+    arrivals = []  # (wall time, camera, capture time, k): A 20 ms into each tick, 40 ms transport; B 60 ms, 50 ms
+    for k in range(100):
+        arrivals.append(((k * 100 + 60) / 1e3, "A", t0 + (k * 100 + 20) * MS, k))
+        arrivals.append(((k * 100 + 110) / 1e3, "B", t0 + (k * 100 + 60) * MS - (behind if 20 <= k < 60 else 0), k))
+    arrivals.sort()
+    closed: dict[int, tuple[str, float, list[str]]] = {}  # k: (closed by, wall time, items)
+    first = t0 // (100 * MS)
+    accepted_b = []
+    now = 0.0
+    for wall, camera, t_ns, k in arrivals:
+        while now < wall:  # pop_ready every 5 ms, as fuse_track's loop does
+            now = round(now + 0.005, 6)
+            closed.update({t.index - first: (t.closed_by, now, t.items()) for t in buffer.pop_ready(now)})
+        if buffer.add(camera, t_ns, f"{camera.lower()}{k}", wall) and camera == "B":
+            accepted_b.append(k)
+        if k == 45 and camera == "A":
+            assert buffer.live(wall) == ["A"]  # B delivers but every batch is refused: not waited for
+    assert buffer.late == 41  # 40 behind, and B's first good batch (below)
+    assert accepted_b == [*range(20), *range(61, 100)]  # 60 arrives after A closed its tick: it makes B live again
+    for k in range(32, 60):  # from camera_timeout_ms after B's last good batch: closed as soon as A's frame is in
+        reason, at, items = closed[k]
+        assert reason == "complete" and at <= (k * 100 + 65) / 1e3 and items == [f"a{k}"], (k, closed[k])
+    for k in range(61, 99):  # B waited for again: each tick closes with both cameras' frames
+        reason, at, items = closed[k]
+        assert reason == "complete" and items == [f"a{k}", f"b{k}"], (k, closed[k])
+
 def test_every_clock_stepping_back_restarts_the_buffer():
     """An NTP step of the cabinet's clock: every camera an hour back. The first camera's batch waits (a camera
     alone could be wrong), the second's confirms it: the open ticks are handed out first, then ticks go on from

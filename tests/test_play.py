@@ -214,6 +214,35 @@ def test_a_capture_time_that_steps_back_restarts_the_pace_there(tmp_path, monkey
     assert np.diff(sent[10:]) == pytest.approx([0.1] * 9)  # then at the recorded pace again
 
 
+
+def test_a_loop_over_a_recording_that_steps_back_goes_on_one_interval_after_the_last_message(tmp_path, monkeypatch):
+    """A 2 s session, then a 0.5 s one starting at the same capture time (fuse_track restarted after a clock step):
+    each loop pass starts one interval after the last message published, not after the 1.5 s the pace would still
+    count from the step back, and the capture times still go on increasing from pass to pass."""
+    import services.fuse_track.player as player
+
+    now = [100.0]
+    monkeypatch.setattr(player.time, "monotonic", lambda: now[0])
+    path = tmp_path / "tracks.jsonl"
+    recording(path, range(20))
+    with path.open("a") as f:
+        for k in range(5):
+            f.write(json.dumps(record_of(message(k, tracker="tracker-b"))) + "\n")
+    sent: list[tuple[float, int]] = []
+
+    def wait(wait_s: float) -> bool:  # the clock moves on as play waits
+        now[0] += wait_s
+        return len(sent) >= 75
+
+    done = play([path], lambda m: sent.append((now[0], m.t_capture_ns)), 1.0, True, wait, BadInput("play"))
+    assert done.passes == 3 and len(sent) == 75
+    walls, times = np.array([w for w, _ in sent]), [t for _, t in sent]
+    steps_back = [20, 45, 70]  # each pass's second session: published at once
+    assert np.diff(walls)[[k - 1 for k in steps_back]] == pytest.approx([0.0] * 3)
+    others = [k - 1 for k in range(1, 75) if k not in steps_back]  # the pass boundaries (25, 50) among them
+    assert np.diff(walls)[others] == pytest.approx([0.1] * len(others))
+    assert times[25] == max(times[:25]) + STEP_NS and times[50] == max(times[:50]) + STEP_NS  # time goes on
+
 def test_a_recording_without_a_good_line_is_refused_naming_it(tmp_path):
     path = tmp_path / "tracks.jsonl"
     path.write_text("half a li")

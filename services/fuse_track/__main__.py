@@ -183,9 +183,10 @@ def main(settings: Settings, stopper: Stopper) -> int:
         log.info("tracker %s, %d cameras, tick %g ms", tracker.id, len(fusion.regions), cfg.tick_ms)
 
         last_ref: int | None = None  # the reference time of the last tick tracked
+        record_errors = 0  # OSErrors out of the recorder (recorder.py handles its own: none expected)
 
         def close(closed: list[Tick]) -> None:
-            nonlocal seq, tracker, tokens, last_ref
+            nonlocal seq, tracker, tokens, last_ref, record_errors
             for tick in closed:
                 t_closed = time.time_ns()
                 if last_ref is not None and tick.t_ref_ns < last_ref:  # the clocks stepped back (ticks.py): start again
@@ -214,7 +215,14 @@ def main(settings: Settings, stopper: Stopper) -> int:
                 payload = encode(msg)
                 pub.put(payload)
                 held_latest(latest, payload)
-                recorder.write(msg)
+                try:
+                    recorder.write(msg)
+                except OSError as exc:  # what the recorder does not handle itself: counted, and tracking goes on
+                    recorder.failed += 1
+                    record_errors += 1  # logged the first time (with its traceback), then every 100th
+                    if record_errors == 1 or record_errors % 100 == 0:
+                        log.error("tracks recording: Tracks seq %d may not be recorded (%s; %d such errors); tracking "
+                                  "goes on", msg.seq, exc.strerror or exc, record_errors, exc_info=record_errors == 1)
                 status.count("tracks_out", output=True)
                 status.gauge("tracks", len(msg))
                 status.gauge("cameras_down", len(fusion.down))  # regions handed to their neighbours (fusion.py, 5)

@@ -15,8 +15,9 @@ for it.
 A line that does not parse, or breaks the contract, or names another site, is counted, logged once per reason with
 its file and line, and skipped. With `loop` the files start again when they end, each pass's capture times moved
 on by the recording's span plus one message interval and its sequence numbers by the largest plus one, so a
-subscriber sees time and `seq` go on increasing. A capture time that goes back within a recording (fuse_track
-restarted with a new tracker after a clock step) is published at once and the pace counts from it.
+subscriber sees time and `seq` go on increasing; each pass after the first is paced from the last message published,
+its first message one interval after it. A capture time that goes back within a recording (fuse_track restarted with
+a new tracker after a clock step) is published at once and the pace counts from it.
 """
 
 from __future__ import annotations
@@ -108,6 +109,8 @@ def play(paths: list[Path], publish: Callable[[Tracks], None], speed: float | No
     shift_ns = shift_seq = 0
     clock: tuple[int, float] | None = None  # (capture time, monotonic time) that the pace counts from
     prev: int | None = None  # the capture time of the message published last
+    published_s = 0.0  # the monotonic time it was published at
+    step_ns = 0  # a loop's step from the last pass's newest time to the next pass's first
     while True:
         first = newest = None
         max_seq, gap_ns = -1, 0
@@ -121,8 +124,10 @@ def play(paths: list[Path], publish: Callable[[Tracks], None], speed: float | No
             msg.t_capture_ns += shift_ns
             msg.seq += shift_seq
             t = msg.t_capture_ns
-            if prev is not None and t > prev:
+            if first is not None and t > prev:  # an interval of this pass (not the step from the last one)
                 gap_ns = t - prev
+            if first is None and out.passes:  # a new pass: one interval after the last message published (the pace
+                clock = (t - step_ns, published_s)  # before counts from the last step back, which may be long past)
             if clock is None or speed is None or (prev is not None and t < prev):  # the clock stepped back
                 clock = (t, time.monotonic())
             else:
@@ -132,7 +137,7 @@ def play(paths: list[Path], publish: Callable[[Tracks], None], speed: float | No
             if stopped(0):
                 return _done(out, bad)
             publish(msg)
-            prev = t
+            prev, published_s = t, time.monotonic()
             out.published += 1
             out.first_ns = t if out.first_ns is None else out.first_ns
             out.last_ns = t
@@ -145,7 +150,8 @@ def play(paths: list[Path], publish: Callable[[Tracks], None], speed: float | No
         if not loop:
             return _done(out, bad)
         # the next pass starts one interval after the newest time sent (the span, with any step back in it)
-        shift_ns += newest - first + (gap_ns or DEFAULT_GAP_NS)
+        step_ns = gap_ns or DEFAULT_GAP_NS
+        shift_ns += newest - first + step_ns
         shift_seq = max_seq + 1
 
 

@@ -9,14 +9,17 @@ A cabinet records for weeks (the demo's four cameras write about 4 MB a minute),
 (`fuse_track.record_rotate_mb`): once it reaches that size it is closed and renamed `<stem>.<n>.jsonl` beside
 it, numbered up from the highest number there (names sort oldest first), and a new file starts. Every line holds
 the whole current Tracks message, so each file reads on its own. With `fuse_track.record_keep` only that many
-rotated files are kept: the oldest beyond it are deleted. A rename or delete that fails is logged and counted, and
-recording goes on in the file it has (a failed rotation is tried again when the file has grown another tenth).
+rotated files are kept: the oldest beyond it are deleted. A listing, rename or delete that fails is logged and
+counted, and recording goes on in the file it has (a failed rotation is tried again when the file has grown another
+tenth); when the folder itself has gone (an operator clearing the recordings), it is made again and a new file
+started in it.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import os
 import re
 from pathlib import Path
 
@@ -98,9 +101,10 @@ class Recorder:
         return sorted((int(m.group(1)), p) for p in self.path.parent.iterdir() if (m := pattern.match(p.name)))
 
     def _rotate(self) -> None:
-        old = self.rotated()
-        target = self.path.with_name(f"{self.path.stem}.{old[-1][0] + 1 if old else 1:06d}{self.path.suffix}")
+        target = None
         try:
+            old = self.rotated()  # fails too when the folder has gone or cannot be read
+            target = self.path.with_name(f"{self.path.stem}.{old[-1][0] + 1 if old else 1:06d}{self.path.suffix}")
             self.path.rename(target)  # the open file keeps its lines under the new name
             try:
                 new = self.path.open("ab", buffering=0)
@@ -110,10 +114,14 @@ class Recorder:
         except OSError as exc:
             self.rotation_failed += 1
             self.next_rotation = self.size + self.rotate_bytes // 10  # not again at every line
-            log.error("tracks recording %s: rotation to %s failed (%s); recording goes on in the same file",
-                      self.path, target.name, exc.strerror or exc)
+            gone = not os.path.isdir(self.path.parent)
+            log.error("tracks recording %s: rotation%s failed (%s); %s", self.path,
+                      f" to {target.name}" if target is not None else "", exc.strerror or exc,
+                      "its folder has gone" if gone else "recording goes on in the same file")
+            if gone:
+                self._reopen()
             return
-        self.file.close()
+        self.close()
         log.info("tracks recording %s: %s closed at %d bytes", self.path, target.name, self.size)
         self.file, self.size = new, new.seek(0, 2)  # empty: the old one was renamed away
         self.next_rotation = self.rotate_bytes
@@ -125,6 +133,20 @@ class Recorder:
                     self.rotation_failed += 1
                     log.error("tracks recording %s: cannot delete the old %s (%s)", self.path, path.name,
                               exc.strerror or exc)
+
+    def _reopen(self) -> None:
+        """The recording's folder has gone (the file's lines since then with it): made again, a new file started."""
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            new = self.path.open("ab", buffering=0)
+        except OSError as exc:
+            log.error("tracks recording %s: its folder cannot be made again (%s); tried again at the next rotation",
+                      self.path, exc.strerror or exc)
+            return
+        self.close()
+        self.file, self.size = new, new.seek(0, 2)
+        self.next_rotation = self.rotate_bytes
+        log.warning("tracks recording %s: its folder made again, recording goes on in a new file", self.path)
 
     def close(self) -> None:
         if self.file is not None:

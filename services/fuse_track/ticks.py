@@ -14,9 +14,13 @@ in order, a tick as soon as one of these holds:
 - `max_wait`: max_wait_ms of wall time have passed since the tick (or a later one) got its first
   batch (nothing else arrives: the other cameras are dead, or the stream has stopped).
 
-A camera is live while it has delivered within camera_timeout_ms of wall time (cameras that never
-delivered: since the buffer's first batch); a silent camera stops being waited for and is waited
-for again as soon as it delivers. A batch for a tick already closed is late: counted and dropped.
+A camera is live (waited for) while a batch of it was used within camera_timeout_ms of wall time (cameras
+that never delivered: since the buffer's first batch): accepted, or late only because its tick closed without
+waiting for it (the newest capture time not yet past that tick's end + watermark_ms, so the tick would have waited
+for it). A silent camera stops being waited for, and so does a camera whose every batch is refused (a clock far
+off, or behind by more than the watermark: it would otherwise hold every tick until the watermark or max_wait);
+either is waited for again as soon as a batch of it is used. A batch for a tick already closed is late: counted and
+dropped.
 
 Clock jumps. A batch captured more than max_lead_ms away from the reference time (the newest capture time of the
 other live cameras not themselves in doubt, i.e. whose last batch was not a jump; with none, its own camera's
@@ -37,7 +41,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Generic, TypeVar
 
@@ -115,7 +119,8 @@ class TickBuffer(Generic[T]):
         self._tick_ns = round(self.config.tick_ms * 1e6)
         self._watermark_ns = round(self.config.watermark_ms * 1e6)
         self._lead_ns = round(self.config.max_lead_ms * 1e6)
-        self._last_seen_s: dict[str, float | None] = {}
+        self._last_seen_s: dict[str, float | None] = {}  # a camera's last batch, refused or not
+        self._last_used_s: dict[str, float] = {}  # a camera's last batch that makes it live (module docstring)
         for camera in cameras:
             self._check_camera(camera)
             self._last_seen_s[camera] = None
@@ -153,10 +158,15 @@ class TickBuffer(Generic[T]):
         return float(now_s)
 
     def live(self, now_s: float) -> list[str]:
-        """The cameras still waited for at wall time now_s."""
+        """The cameras still waited for at wall time now_s: a batch used within camera_timeout_ms (module docstring)."""
+        return self._within_timeout(self._last_used_s, now_s)
+
+    def _within_timeout(self, last_s: Mapping[str, float | None], now_s: float) -> list[str]:
+        """The cameras whose time in last_s (none: the buffer's first batch) is within camera_timeout_ms of now_s."""
         timeout_s = self.config.camera_timeout_ms / 1e3
         out = []
-        for camera, seen in self._last_seen_s.items():
+        for camera in self._last_seen_s:
+            seen = last_s.get(camera)
             since = seen if seen is not None else self._start_s
             if since is None or now_s - since <= timeout_s:
                 out.append(camera)
@@ -173,7 +183,8 @@ class TickBuffer(Generic[T]):
         now_s = self._check_now(now_s)
         if self._start_s is None:
             self._start_s = now_s
-        live = [c for c in self.live(now_s) if c != camera]
+        # the cameras delivering, refused or not: the reference, and the pending clocks that confirm a jump
+        live = [c for c in self._within_timeout(self._last_seen_s, now_s) if c != camera]
         # a camera in doubt (its last batch a jump) is no reference: its newest time may be long past
         others = [self._newest_ns[c] for c in live if c in self._newest_ns and c not in self._pending_ns]
         self._last_seen_s[camera] = now_s
@@ -203,6 +214,8 @@ class TickBuffer(Generic[T]):
         if self._next is not None and k < self._next:
             self.late += 1
             self.refusal = "late: its tick has closed"
+            if self._max_ns <= (k + 1) * self._tick_ns + self._watermark_ns:
+                self._last_used_s[camera] = now_s  # its tick would have waited for it: live again
             return False
         tick = self._open.get(k)
         if tick is not None and len(tick.batches.get(camera, ())) >= self.config.max_per_camera:
@@ -214,6 +227,7 @@ class TickBuffer(Generic[T]):
             tick = self._open[k] = Tick(k, start, start + self._tick_ns, start + self._tick_ns // 2)
             self._first_s[k] = now_s
         tick.batches.setdefault(camera, []).append((t_capture_ns, item))
+        self._last_used_s[camera] = now_s
         return True
 
     def pop_ready(self, now_s: float) -> list[Tick[T]]:
