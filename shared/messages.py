@@ -243,11 +243,19 @@ class Objects(CameraMessage):
 CHI2_2DOF_95 = 5.991  # chi-square with 2 degrees of freedom, 95th percentile: a 2D Gaussian's 95 % ellipse
 
 
+COV_MIN_RELATIVE_DET = 1e-12  # a covariance's determinant must exceed this share of a*d (its diagonal's product)
+
+
 def not_covariances(c: np.ndarray) -> np.ndarray:
     """(N, 2, 2) finite matrices -> (N,) bool: those that are not a covariance, symmetric (exactly: the project
     symmetrises what it computes) and positive definite. The one rule for Tracks, the fusion's objects and tracks
-    files."""
-    return (c[:, 0, 0] <= 0) | (c[:, 0, 0] * c[:, 1, 1] <= c[:, 0, 1] * c[:, 1, 0]) | (c[:, 0, 1] != c[:, 1, 0])
+    files. Positive definite with a margin: the determinant a*d - b*b must be more than `COV_MIN_RELATIVE_DET` times
+    a*d, so a matrix that is singular but for rounding (b*b rounds to just under a*d) is refused, and every one
+    accepted has a Cholesky factor (the Rerun sink draws its ellipse with it). Computed in float64 (the products of
+    float32 entries are exact there)."""
+    c = np.asarray(c, np.float64)
+    a, d, b = c[:, 0, 0], c[:, 1, 1], c[:, 0, 1]
+    return (a <= 0) | (a * d * (1.0 - COV_MIN_RELATIVE_DET) <= b * c[:, 1, 0]) | (b != c[:, 1, 0])
 
 
 def predict_motion(xy: np.ndarray, velocity: np.ndarray, xy_cov: np.ndarray, velocity_cov: np.ndarray, dt_s: float,

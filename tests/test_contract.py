@@ -45,10 +45,12 @@ from shared.messages import (
     Tracks,
     check_name,
     err95_m,
+    not_covariances,
 )
 from shared.position_error import POSITION_SIGMA
 from shared.service import parse_sets, run
 from shared.settings import BusSettings, load_settings
+from shared.tracks_file import parse_covariance
 
 SITE = "state_ellsworth"
 T0 = 1_703_001_600_000_000_000
@@ -183,6 +185,23 @@ def test_a_covariance_that_is_not_one_is_refused(field: str, cov, reason: str) -
     t = raw(make_tracks(2))
     t[field] = arr(np.array([[[0.09, 0.0], [0.0, 0.16]], cov], np.float32))
     refused(pack(t), f"{field}.*{reason}" if "not a" in reason else reason)
+
+
+def test_a_covariance_singular_but_for_rounding_is_refused() -> None:
+    """[[0.01, 0.21], [0.21, 4.41]] is (0.1, 2.1)'(0.1, 2.1), rank 1, but 0.01 * 4.41 rounds to just above
+    0.21 * 0.21: refused, in a tracks file too. Of matrices at or near rank 1 every one accepted has a Cholesky factor
+    (the Rerun sink draws its uncertainty ellipse with it)."""
+    assert not_covariances(np.array([[[0.01, 0.21], [0.21, 4.41]]])).tolist() == [True]
+    with pytest.raises(ValueError, match="not a symmetric positive definite"):
+        parse_covariance([[0.01, 0.21], [0.21, 4.41]])
+    rng = np.random.default_rng(0)
+    v = rng.uniform(-3.0, 3.0, (20000, 2))
+    floor = rng.choice([0.0, 1e-18, 1e-15, 1e-12, 1e-9, 1e-6], len(v))
+    near = v[:, :, None] * v[:, None, :] + floor[:, None, None] * np.eye(2)
+    accepted = near[~not_covariances(near)]
+    assert len(accepted) > 1000
+    np.linalg.cholesky(accepted)  # raises LinAlgError if one has none
+    assert not not_covariances(np.array([[[0.09, 0.02], [0.02, 0.16]], [[1e-6, 0.0], [0.0, 1e6]]])).any()
 
 
 def test_yaw_confirmed_is_one_bool_per_track() -> None:

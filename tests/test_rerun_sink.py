@@ -443,3 +443,161 @@ def test_the_sites_junction_is_drawn_where_the_counts_take_it_to_be(tracks_file:
         tracks_file_to_rrd(tracks_file, out, site_origin=given, junction=junction)
         paths = {c.entity_path for c in chunk.RrdReader(out).stream()}
         assert ("/world/junction" in paths) is drawn
+
+
+def _capture_times(rrd: Path, entity: str, component: str) -> list[int]:
+    """The capture times (ns) at which `entity` got `component` (a column name prefix, e.g. "Clear:")."""
+    import pyarrow as pa
+
+    chunk = pytest.importorskip("rerun.chunk")
+    times = []
+    for c in chunk.RrdReader(rrd).stream():
+        rb = c.to_record_batch()
+        if c.entity_path == entity and "capture" in rb.schema.names and any(
+                name.startswith(component) for name in rb.schema.names):
+            times += rb.column("capture").cast(pa.int64()).to_pylist()
+    return sorted(times)
+
+
+def test_the_basemap_is_drawn_where_calibration_pick_georeferences_its_pixels(tmp_path: Path) -> None:
+    """Four corners that are not a parallelogram (as the State/Ellsworth orthophoto's): a pixel's lat/lon as
+    calibration.pick reads it off the orthophoto (bilinear between the corners; the landmarks, so the tracks, are
+    placed so) is where the Rerun mesh draws that pixel, to within a centimetre; the image's outer corners are at
+    texture coordinates 0 and 1."""
+    import cv2
+
+    from calibration.pick import Ortho
+    from services.rerun_sink.sink import basemap_mesh
+
+    origin = GeoFrame(42.2294, -83.739, 265.0)
+    site = np.array([[-100.0, 80.0], [120.0, 84.0], [-96.0, -60.0], [116.0, -70.0]])  # tl, tr, bl, br: 8 x 14 m skew
+    ll = origin.to_geodetic(site)[:, :2]
+    folder = tmp_path / "basemap"
+    folder.mkdir()
+    (folder / "ortho.json").write_text(json.dumps({k: ll[i].tolist() for i, k in enumerate(("tl", "tr", "bl", "br"))}))
+    w, h = 50, 40
+    cv2.imwrite(str(folder / "ortho.png"), np.zeros((h, w, 3), np.uint8))
+    mesh = basemap_mesh(Basemap.from_world_file(folder, origin))
+    pos = np.array(mesh.vertex_positions.as_arrow_array().to_pylist())[:, :2]
+    uv = np.array(mesh.vertex_texcoords.as_arrow_array().to_pylist())
+    tri = np.array(mesh.triangle_indices.as_arrow_array().to_pylist())
+
+    def drawn_at(px: np.ndarray) -> np.ndarray:
+        """Where the mesh draws image pixel px (x, y; centre of the top-left pixel (0, 0)): the texture is mapped
+        linearly within each triangle."""
+        q = (px + 0.5) / [w, h]
+        a, b, c = uv[tri[:, 0]], uv[tri[:, 1]], uv[tri[:, 2]]
+        lam = np.linalg.solve(np.stack([b - a, c - a], axis=2), (q - a)[:, :, None])[:, :, 0]  # (T, 2): b's, c's
+        inside = np.flatnonzero((lam >= -1e-9).all(axis=1) & (lam.sum(axis=1) <= 1 + 1e-9))[0]
+        pa, pb, pc = pos[tri[inside]]
+        return pa + lam[inside, 0] * (pb - pa) + lam[inside, 1] * (pc - pa)
+
+    ortho = Ortho.load(folder)
+    inner = [[(w - 1) / 2, (h - 1) / 2], [10.0, 30.0], [37.3, 8.6], [0.0, 0.0]]
+    for pixels in (inner, [[-0.5, -0.5], [w - 0.5, h - 0.5]]):  # the image's middle, then its outer corners
+        expected = origin.to_enu(*ortho.to_latlon(np.array(pixels)).T)[:, :2]
+        drawn = np.array([drawn_at(p) for p in np.array(pixels)])
+        assert np.abs(drawn - expected).max() < 0.01
+    corner = [int(np.argmin(np.linalg.norm(pos - p, axis=1))) for p in site]
+    assert uv[corner].tolist() == [[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]]
+
+
+def test_a_new_tracker_on_a_clock_stepped_back_clears_the_old_one_after_its_last_drawing(tmp_path: Path) -> None:
+    """fuse_track restarted when the cameras' clock stepped back: the new tracker's times are earlier than the old
+    one's. The old tracker's Clear goes 1 ns after its last drawing (at the new tracker's time it would sit before
+    them, and its last vehicles would stay drawn), and the new tracker's drawings at their own times."""
+    rec = rr.RecordingStream("roadside_test")
+    rec.save(tmp_path / "stepped.rrd")
+    sink = TrackSink(rec, "s1")
+    for k in range(10):
+        sink.log_tracks(_message(k, tracker="ft0"))
+    for k in range(20):
+        sink.log_tracks(_message(k, tracker="ft1"))
+    rec.flush()
+    rec.disconnect()
+    out = tmp_path / "stepped.rrd"
+    assert _capture_times(out, "/world/tracks/ft0", "Clear:") == [T0_NS + 9 * DT_NS + 1]
+    assert _capture_times(out, "/world/tracks/ft1/positions", "Points3D:") == [T0_NS + k * DT_NS for k in range(20)]
+
+
+def test_a_basemap_world_files_origin_does_not_replace_the_sites(tmp_path: Path) -> None:
+    """The tracks' frame decides: with the site's origin passed, a world file's own origin within half a metre of it
+    is ignored, one further off is an error naming both; without the site's it places the map."""
+    import cv2
+
+    origin = GeoFrame(42.2294, -83.739, 265.0)
+    site = np.array([[-100.0, 80.0], [120.0, 82.0], [-98.0, -60.0], [121.0, -61.0]])  # tl, tr, bl, br
+    ll = origin.to_geodetic(site)[:, :2]
+    cv2.imwrite(str(tmp_path / "ortho.jpg"), np.zeros((30, 40, 3), np.uint8))
+    spec = {k: ll[i].tolist() for i, k in enumerate(("tl", "tr", "bl", "br"))}
+    world = tmp_path / "ortho.json"
+    for where, fails in (((0.3, 0.0), False), ((3.0, 3.0), True), ((0.0, 100.0), True)):
+        own = origin.to_geodetic(np.array([[*where, 0.0]]))[0]
+        world.write_text(json.dumps({**spec, "origin": {"lat_deg": own[0], "lon_deg": own[1], "alt_m": 0.0}}))
+        if fails:
+            with pytest.raises(ValueError, match=rf"origin \(lat {own[0]}, lon {own[1]}\) is .* m from the site origin "
+                                                 rf"\(lat {origin.lat0_deg}, lon {origin.lon0_deg}\)"):
+                Basemap.from_world_file(world, origin)
+        else:
+            bm = Basemap.from_world_file(world, origin)
+            assert bm.corners_m == pytest.approx(site[[0, 1, 3, 2]], abs=0.01)
+        alone = Basemap.from_world_file(world)  # no site origin: the file's places the map, in its own frame
+        assert alone.corners_m == pytest.approx(site[[0, 1, 3, 2]] - where, abs=0.05)
+    top_left = {"image": "ortho.jpg", "top_left": ll[0].tolist(), "bottom_right": ll[3].tolist()}
+    world.write_text(json.dumps({**top_left, "origin": {"lat_deg": own[0], "lon_deg": own[1]}}))
+    with pytest.raises(ValueError, match="m from the site origin"):
+        Basemap.from_world_file(world, origin)
+
+
+def test_speeds_keep_flowing_after_a_tracker_restarts_with_the_clock_stepped_back(tmp_path: Path) -> None:
+    """Speeds are sent every speed_flush_s of capture time, also once a new tracker's capture time is earlier than
+    the last flush (fuse_track restarted on a clock step back), so they are not held until the track ends."""
+    rec = rr.RecordingStream("roadside_test")
+    rec.save(tmp_path / "speeds.rrd")
+    sink = TrackSink(rec, "s1", speed_flush_s=1.0)
+    for k in range(20):  # 2 s
+        sink.log_tracks(_message(k, tracker="ft0"))
+    for k in range(30):  # 3 s, from the same start
+        sink.log_tracks(_message(k, tracker="ft1"))
+        assert len(sink._tracks[("ft1", 3)].speed_t_ns) <= 11  # at most 1 s of speeds waits
+    rec.flush()
+    rec.disconnect()
+
+
+def test_a_message_the_sink_refuses_logs_nothing_and_live_still_sends_the_layout(tmp_path: Path, monkeypatch) -> None:
+    """A message whose position covariance has no Cholesky factor (its uncertainty ellipse cannot be drawn) is
+    refused before anything of it is logged or held; live() sends the layout even when its first message is refused."""
+    import dataclasses
+
+    from services.rerun_sink import sink as sink_module
+
+    out = tmp_path / "refused.rrd"
+    rec = rr.RecordingStream("roadside_test")
+    rec.save(out)
+    sink = TrackSink(rec, "s1", trail_min_step_m=0.0)
+    sink.log_tracks(_message(0))
+    good = parse_tracks_message(_message(1))
+    singular = ((0.01, 0.21), (0.21, 4.41))  # rank 1; a TracksMessage made by hand is not validated again
+    bad = dataclasses.replace(good, rows=(dataclasses.replace(good.rows[0], xy_cov=singular), *good.rows[1:]))
+    with pytest.raises(ValueError, match="positive definite"):
+        sink.log_tracks(bad)
+    assert sink.messages == 1 and len(sink.trail_of("ft0", 3)) == 1
+    sink.log_tracks(_message(2))
+    rec.flush()
+    rec.disconnect()
+    for entity in ("trails", "positions", "footprints"):
+        assert _capture_times(out, f"/world/tracks/ft0/{entity}", "LineStrips3D:" if entity != "positions"
+                              else "Points3D:") == [T0_NS, T0_NS + 2 * DT_NS]
+
+    def refuse(*args, **kwargs):
+        raise np.linalg.LinAlgError("Matrix is not positive definite")
+
+    chunk = pytest.importorskip("rerun.chunk")
+    monkeypatch.setattr(sink_module, "ellipses_xy", refuse)
+    rec = rr.RecordingStream("roadside_test")
+    rec.save(tmp_path / "live.rrd")
+    summary = live(iter([_message(0)]), rec)
+    rec.flush()
+    rec.disconnect()
+    assert (summary["messages"], summary["bad_lines"]) == (0, 1)
+    assert chunk.RrdReader(tmp_path / "live.rrd").blueprints()

@@ -17,11 +17,15 @@ from one of:
       bottom_right: {lat: 42.2797, lon: -83.7396}
       # ... or its extent in site metres (row 0 = north edge):
       # extent_m: [x_min, x_max, y_min, y_max]
-      origin: {lat_deg: 42.2806, lon_deg: -83.7408, alt_m: 0.0}   # optional; else the `origin` argument
+      origin: {lat_deg: 42.2806, lon_deg: -83.7408, alt_m: 0.0}   # optional: used when no `origin` is passed
 
   or the four outer corners `{"tl": [lat, lon], "tr": ..., "bl": ..., "br": ...}` (as the State/Ellsworth
   orthophoto's `roundabout.json`), the image then being the PNG/JPG of the same name beside the file
   unless `image` names it. `path` may also be a folder holding exactly one such JSON file.
+
+  The site frame is the tracks': the `origin` argument (the site's, `--site`) places lat/lon corners, and the
+  file's own `origin` only when none is passed. One that is more than `ORIGIN_TOLERANCE_M` from the passed
+  origin is a ValueError naming both (with it the map would sit that far off under the tracks).
 
 The image is kept as uint8, (H, W) or (H, W, 3) RGB, reduced to at most `max_side_px` pixels on its
 long side (a GPU texture limit, and it keeps the .rrd small).
@@ -40,6 +44,7 @@ from shared.geo import GeoFrame
 MAX_SIDE_PX = 4096
 CORNER_KEYS = ("tl", "tr", "bl", "br")
 FAR_FROM_SITE_M = 10_000.0  # a map with a corner further than this from the site's origin is another place's
+ORIGIN_TOLERANCE_M = 0.5  # a world file's origin this far (horizontally) from the site's contradicts it
 
 
 @dataclass(frozen=True)
@@ -139,7 +144,7 @@ class Basemap:
             image = load_image(image_path)
         if corners4:
             if "origin" in spec:
-                origin = _origin(spec["origin"], path)
+                origin = _site_origin(origin, _origin(spec["origin"], path), path)
             if not isinstance(origin, GeoFrame):
                 raise ValueError(f"basemap world file {path} gives lat/lon corners but no site origin")
             ll = np.array([_latlon(spec[k], k) for k in ("tl", "tr", "br", "bl")])
@@ -152,7 +157,7 @@ class Basemap:
         if "top_left" not in spec or "bottom_right" not in spec:
             raise ValueError(f"basemap world file {path} needs either 'extent_m' or 'top_left' and 'bottom_right'")
         if "origin" in spec:
-            origin = _origin(spec["origin"], path)
+            origin = _site_origin(origin, _origin(spec["origin"], path), path)
         if origin is None:
             raise ValueError(
                 f"basemap world file {path} gives lat/lon corners but no site origin "
@@ -178,6 +183,23 @@ def _upright(corners: np.ndarray, path: Path) -> None:
     if not (tl[1] > bl[1] and tr[1] > br[1] and tr[0] > tl[0] and br[0] > bl[0]) or area > -1.0:
         raise ValueError(f"basemap world file {path}: the corners tl, tr, br, bl are not those of an image with its "
                          "top to the north and its left to the west (swapped or mirrored corners?)")
+
+
+def _site_origin(site: GeoFrame | None, own: GeoFrame, path: Path) -> GeoFrame:
+    """The origin that places a world file's lat/lon corners: the site's (`site`, the tracks' frame) when given,
+    else the file's own; ValueError naming both when they are more than `ORIGIN_TOLERANCE_M` apart."""
+    if site is None:
+        return own
+    if not isinstance(site, GeoFrame):
+        raise ValueError(f"the site origin must be a GeoFrame, got {site!r}")
+    apart = float(np.hypot(*site.to_enu(np.array([own.lat0_deg]), np.array([own.lon0_deg]), site.alt0_m)[0, :2]))
+    if apart > ORIGIN_TOLERANCE_M:
+        raise ValueError(
+            f"basemap world file {path}: its origin (lat {own.lat0_deg}, lon {own.lon0_deg}) is {apart:.1f} m from "
+            f"the site origin (lat {site.lat0_deg}, lon {site.lon0_deg}), the tracks' frame: remove the file's "
+            "origin or make it the site's"
+        )
+    return site
 
 
 def _origin(value: object, path: Path) -> GeoFrame:

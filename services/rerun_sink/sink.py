@@ -5,7 +5,7 @@ View layout (the blueprint `TrackSink.blueprint()` builds):
 - **site view**, a 3D view of entity `world`, looked at from straight above (north up, east right). The
   3D view is used so that coordinates stay the site ENU frame as they are (x east, y north, z up, metres;
   hovering shows true site metres). A 2D view would need y flipped, because Rerun's 2D views have y down.
-  The basemap is a textured quad at z = 0, and tracks are drawn a little above it. Each tracker's
+  The basemap is a textured sheet at z = 0, and tracks are drawn a little above it. Each tracker's
   tracks are batched in one entity per kind (one log call per message, not per track):
     - `world/basemap`                     Mesh3D, the orthophoto / rendered map (static)
     - `world/tracks/<tracker>/trails`     LineStrips3D, one strip per track: its last positions (bounded)
@@ -211,6 +211,7 @@ class TrackSink:
         self._drew: set[str] = set()  # the optional layers (entity paths) the last message of their tracker drew
         self._tracker: str | None = None  # the tracker of the last message: another one ends it
         self._last_t_ns = 0  # the last message's capture time: the same tracker far back ends it too (a replay)
+        self._tracker_end_ns = 0  # the latest capture time the current tracker drew at: its Clear goes just after
         self._last_speed_flush_ns: int | None = None
         self._cameras: set[str] = set()
         self._span = _Span()
@@ -239,11 +240,29 @@ class TrackSink:
         width = np.array([r.width for r in msg.rows], np.float64)
         labels = [f"{r.id} {r.type}" for r in msg.rows]
         colors = np.zeros((n, 3), np.uint8)
-        rec.set_time(TIMELINE, timestamp=np.datetime64(msg.t_ns, "ns"))
+        # What can still fail is computed before anything is logged or the sink's state changes, so a message
+        # refused here leaves no trace: the footprints, the uncertainty ellipses and the heading fans.
+        strips, owner = footprint_strips(x, y, yaw, length, width,
+                                         np.array([r.yaw_confirmed is not False for r in msg.rows], bool))
+        sure = [i for i, r in enumerate(msg.rows) if r.xy_cov is not None]
+        cov = np.array([msg.rows[i].xy_cov for i in sure], np.float64).reshape(-1, 2, 2)
+        try:
+            ring = ellipses_xy(x[sure], y[sure], cov)
+        except np.linalg.LinAlgError as e:  # not_covariances lets none through; a TracksMessage built by hand might
+            raise ValueError(f"an xy_cov is not a positive definite covariance ({e})") from None
+        known = [i for i, r in enumerate(msg.rows) if r.yaw_std is not None]
+        fans, fan_owner = heading_fans(
+            x[known], y[known], yaw[known], length[known] / 2 + HEADING_REACH_M,
+            np.array([msg.rows[i].yaw_std for i in known], np.float64),
+            np.array([msg.rows[i].yaw_confirmed is False for i in known], bool))
         replayed = msg.tracker == self._tracker and msg.t_ns < self._last_t_ns - REPLAYED_NS
-        if self._tracker is not None and (self._tracker != msg.tracker or replayed):
-            self._end_tracker(self._tracker)  # its trails are not joined to the new ones
+        if msg.tracker != self._tracker or replayed:
+            if self._tracker is not None:
+                self._end_tracker(self._tracker)  # its trails are not joined to the new ones
+            self._tracker_end_ns = msg.t_ns
         self._tracker, self._last_t_ns = msg.tracker, msg.t_ns
+        self._tracker_end_ns = max(self._tracker_end_ns, msg.t_ns)
+        rec.set_time(TIMELINE, timestamp=np.datetime64(msg.t_ns, "ns"))
         trails = []
         for i, row in enumerate(msg.rows):
             state = self._track_state(msg.tracker, row, labels[i], msg.t_ns)
@@ -252,8 +271,6 @@ class TrackSink:
             if row.vx is not None:
                 state.speed_t_ns.append(msg.t_ns)
                 state.speed_mps.append(math.hypot(row.vx, row.vy))
-        strips, owner = footprint_strips(x, y, yaw, length, width,
-                                         np.array([r.yaw_confirmed is not False for r in msg.rows], bool))
         rec.log(
             f"{base}/trails",
             rr.LineStrips3D(trails, colors=colors, labels=labels, show_labels=False, radii=rr.Radius.ui_points(1.5)),
@@ -272,20 +289,12 @@ class TrackSink:
                 radii=rr.Radius.ui_points(2.0),
             ),
         )
-        sure = [i for i, r in enumerate(msg.rows) if r.xy_cov is not None]
         if self._draws(f"{base}/uncertainty", sure):
-            cov = np.array([msg.rows[i].xy_cov for i in sure], np.float64).reshape(-1, 2, 2)
-            ring = ellipses_xy(x[sure], y[sure], cov)
             rec.log(f"{base}/uncertainty", rr.LineStrips3D(
                 [_at_z(r, Z_FOOTPRINT_M) for r in ring], colors=colors[sure], labels=[labels[i] for i in sure],
                 show_labels=False, radii=rr.Radius.ui_points(1.0)))
-        known = [i for i, r in enumerate(msg.rows) if r.yaw_std is not None]
         if self._draws(f"{base}/heading", known):
-            fans, owner = heading_fans(
-                x[known], y[known], yaw[known], length[known] / 2 + HEADING_REACH_M,
-                np.array([msg.rows[i].yaw_std for i in known], np.float64),
-                np.array([msg.rows[i].yaw_confirmed is False for i in known], bool))
-            whose = np.array(known, np.int64)[owner]
+            whose = np.array(known, np.int64)[fan_owner]
             rec.log(f"{base}/heading", rr.LineStrips3D(
                 [_at_z(f, Z_FOOTPRINT_M) for f in fans], colors=colors[whose], labels=[labels[i] for i in whose],
                 show_labels=False, radii=rr.Radius.ui_points(1.0)))
@@ -337,9 +346,15 @@ class TrackSink:
 
     def _end_tracker(self, tracker: str) -> None:
         """A tracker that gave way to another (fuse_track restarted, or its capture time went back): its drawings
-        cleared from now on (they stay in the recording before), its speeds sent and its tracks forgotten."""
+        cleared from 1 ns after the latest capture time it drew at (they stay in the recording before), its speeds
+        sent and its tracks forgotten. The Clear is not put at the new message's time: when the clock stepped back
+        (fuse_track starts a new tracker then), that time is before the old tracker's last drawings, which would
+        then stay on screen for ever after. The speeds' flush timer starts again with the next message, whose
+        capture time may be earlier than the last flush."""
         base = f"{WORLD}/tracks/{_path_part(tracker)}"
+        self.rec.set_time(TIMELINE, timestamp=np.datetime64(self._tracker_end_ns + 1, "ns"))
         self.rec.log(base, rr.Clear(recursive=True))
+        self._last_speed_flush_ns = None
         self._drew = {p for p in self._drew if not p.startswith(base + "/")}
         for key, state in list(self._tracks.items()):
             if key[0] == tracker:
@@ -479,18 +494,33 @@ def junction_strips(junction: Junction, origin: GeoFrame, points: int = 72) -> t
     return strips, labels
 
 
-def basemap_mesh(basemap: Basemap) -> rr.Mesh3D:
-    """The basemap as a textured quad at z = 0 (site frame), its corners at `basemap.corners_m`."""
+def basemap_mesh(basemap: Basemap, cells: int = 32) -> rr.Mesh3D:
+    """The basemap as a textured sheet at z = 0 (site frame), its outer corners at `basemap.corners_m`.
+
+    The image is placed as calibration/pick.py georeferences an orthophoto (which is how its landmarks, so the
+    cameras' calibration and the tracks, were placed): bilinearly between its four outer corners, the image's outer
+    edges at texture coordinates 0 and 1 (the corners are the outer corners of the corner pixels, pixel (i, j)'s
+    centre at ((i + 0.5) / W, (j + 0.5) / H)). Four corners need not be a parallelogram, and a mesh is mapped
+    linearly within each triangle, so the quad is cut into a grid of `cells` x `cells` cells, each vertex placed by
+    the bilinear blend: what is left is the blend's curvature within one cell (millimetres for a real orthophoto)."""
     img = basemap.image
     if img.ndim == 2:
         img = np.repeat(img[:, :, None], 3, axis=2)
-    h, w = img.shape[:2]
-    u0, v0 = 0.5 / w, 0.5 / h  # half a pixel in, so opposite edges do not bleed into the border
+    n = int(cells)
+    if n < 1:
+        raise ValueError(f"cells must be >= 1, got {cells}")
+    s = np.linspace(0.0, 1.0, n + 1)
+    u, v = np.meshgrid(s, s)  # (n + 1, n + 1): u across the image (columns), v down it (rows); row 0 the top
+    u, v = u.reshape(-1, 1), v.reshape(-1, 1)
+    tl, tr, br, bl = basemap.corners_m
+    xy = (1 - u) * (1 - v) * tl + u * (1 - v) * tr + (1 - u) * v * bl + u * v * br
+    k = np.arange(n * (n + 1)).reshape(n, n + 1)[:, :n].reshape(-1)  # each cell's top-left vertex
+    a, b, c, d = k, k + 1, k + n + 2, k + n + 1  # the cell's TL, TR, BR, BL
     return rr.Mesh3D(
-        vertex_positions=_at_z(basemap.corners_m, 0.0),
-        vertex_normals=[[0.0, 0.0, 1.0]] * 4,
-        vertex_texcoords=[[u0, v0], [1 - u0, v0], [1 - u0, 1 - v0], [u0, 1 - v0]],  # TL, TR, BR, BL; v down
-        triangle_indices=[[0, 2, 1], [0, 3, 2]],
+        vertex_positions=_at_z(xy, 0.0),
+        vertex_normals=np.tile([0.0, 0.0, 1.0], (len(xy), 1)),
+        vertex_texcoords=np.column_stack([u, v]),  # v down
+        triangle_indices=np.concatenate([np.stack([a, c, b], axis=1), np.stack([a, d, c], axis=1)]),
         albedo_texture=img,
     )
 
@@ -612,7 +642,8 @@ def live(
     """Log Tracks messages as they come: `messages` yields Tracks-like dicts (a tracks-file line, parsed)
     or `shared.messages.Tracks`, e.g. from the caller's Zenoh subscriber; `recording` is the caller's
     stream (connected to a viewer, or saving). The site is the first valid message's. Bad messages are
-    skipped and counted; the layout is sent once, after the first valid message. Returns the summary of
+    skipped and counted; the layout is sent once, right after the first message that parses has been logged or
+    refused (so it frames that message's tracks when there is no basemap). Returns the summary of
     `tracks_file_to_rrd` (line numbers are message numbers) when `messages` ends."""
     origin = _as_origin(site_origin)
     bm = _as_basemap(basemap, origin)
@@ -625,8 +656,10 @@ def live(
             if sink is None:
                 sink = TrackSink(recording, msg.site, origin, bm, max_trail_points=max_trail_points,
                                  junction=junction)
-                sink.log_tracks(msg)
-                recording.send_blueprint(sink.blueprint())
+                try:
+                    sink.log_tracks(msg)
+                finally:  # also when the sink refuses the message: the sink exists, this branch is not taken again
+                    recording.send_blueprint(sink.blueprint())
             else:
                 sink.log_tracks(msg)
         except ValueError as e:
