@@ -15,9 +15,12 @@
 - Where the AP goes, at the detect service's default score threshold (`BREAKDOWN_SCORE`):
   `false_alarms`, the detections that count and match nothing, split into `box` (on a vehicle to detect
   that nothing matched: found, but its 2D box misses IoU 0.5), `duplicate` (on a vehicle already matched)
-  and `background`; `recall_by_size`, per size band of the vehicles to detect (the square root of the 2D
-  box's area, original pixels), the share matched at IoU 0.5 (`matched`) and the share with a detection
-  whose bottom centre is within a third of that size (`found`, whatever its box).
+  and `background` (on none); `recall_by_size`, per size band of the vehicles to detect (the square root of the
+  2D box's area, original pixels), the share matched at IoU 0.5 (`matched`) and the share with a detection
+  whose bottom centre is within a third of that size (`found`, whatever its box). A detection is "on" a vehicle
+  by that same test alone (bottom centre within a third of the vehicle's size, at least 2 px), never by how
+  its box overlaps the vehicle's: a box that overlaps the next car in a row does not find that car. So a
+  vehicle matched by a detection whose bottom centre lies farther off is matched but not found.
 - Near the camera, on the ground, as fusion uses a camera (each keeps the objects of its own region, around its
   pole): the vehicles to detect within `near_m` (default 25 m) of the camera's ground point, and the detections
   scoring at least `near_score` (default `BREAKDOWN_SCORE`) whose bottom centre lifts to within it. A detection
@@ -147,13 +150,14 @@ def size_of_boxes(box: np.ndarray) -> np.ndarray:
 def breakdown_frame(det: Detections, box: np.ndarray, bottom_uv: np.ndarray, weight: np.ndarray,
                     gt_of: np.ndarray, counts: np.ndarray) -> tuple[dict[str, int], np.ndarray, np.ndarray]:
     """At `BREAKDOWN_SCORE`: the frame's false alarms by kind ({"box", "duplicate", "background"}) and,
-    per label, whether it is matched and whether a detection lies on it (see the module docstring)."""
+    per label, whether it is matched and whether a detection lies on it (its bottom centre within a third of the
+    label's size, at least 2 px, whatever its box; see the module docstring)."""
     keep = det.score >= BREAKDOWN_SCORE
     size = np.maximum(size_of_boxes(box), 1.0)
     near = np.zeros((len(det), len(box)), bool)
     if len(det) and len(box):
         dist = np.linalg.norm(det.uv[:, None, :] - bottom_uv[None, :, :], axis=2)
-        near = (dist <= np.maximum(NEAR_FRACTION * size, 2.0)[None]) | (box_iou(det.box, box) >= 0.1)
+        near = dist <= np.maximum(NEAR_FRACTION * size, 2.0)[None]
     matched_any = np.zeros(len(box), bool)
     matched_any[gt_of[(gt_of >= 0) & keep]] = True
     alarms = {"box": 0, "duplicate": 0, "background": 0}

@@ -17,13 +17,19 @@ A vehicle is a GT object at t when all hold:
    intervals of t in which the vehicle's bottom centre is `in_image` and `visible_fraction` >=
    `min_visible_fraction`;
 2. its ground-truth position at t is defined (see above);
-3. that position lies in the evaluation area: within the evaluation radius of at least one chosen camera's
-   ground position (recording.json `pose.position_m`, x and y). The evaluation radius of a camera is its ROI
-   radius (the paper's: 25 m around a fisheye camera, `roi_radius_fisheye_m`; "< 200 m within its field of
-   view" for a long-range pinhole/thermal camera, `roi_radius_pinhole_m`, the field of view being enforced by 1),
-   or `eval_radius_m` when that is set and larger (then trajectory errors are split into in-ROI and out-ROI).
-Parked vehicles are GT objects like the others when they are seen. For one camera's own tracks the chosen
-cameras are that camera alone: its GT objects are the vehicles *it* sees in *its* area.
+3. that position lies in the evaluation area: for at least one chosen camera, within that camera's evaluation
+   radius of its ground position (recording.json `pose.position_m`, x and y) and in that same camera's field of
+   view. The evaluation radius of a camera is its ROI radius (the paper's: 25 m around a fisheye camera,
+   `roi_radius_fisheye_m`; "< 200 m within its field of view" for a long-range pinhole/thermal camera,
+   `roi_radius_pinhole_m`), or `eval_radius_m` when that is set and larger (then trajectory errors are split into
+   in-ROI and out-ROI). A fisheye camera's field of view holds its whole disc; a pinhole or thermal camera's is
+   its image: the camera has the vehicle's bottom centre `in_image` in a frame within +-`visibility_window_frames`
+   frame intervals of t, however little of the vehicle shows (how much shows is condition 1, which another chosen
+   camera may meet). A vehicle behind a pinhole camera, or beside its image, is in no area of that camera.
+The ROI of a vehicle is decided the same way with the ROI radius (`GroundTruth.objects_in_roi`). Parked vehicles
+are GT objects like the others when they are seen. For one camera's own tracks the chosen cameras are that camera
+alone: its GT objects are the vehicles *it* sees in *its* area (or, with `seen_by`, that any of those cameras sees:
+a pinhole or thermal camera alone is still charged only for the vehicles in its own image).
 """
 
 from __future__ import annotations
@@ -149,6 +155,14 @@ class _CameraFrames:
     in_image: list[np.ndarray]  # per frame: bool per listed vehicle
     visible_fraction: list[np.ndarray]  # per frame: float per listed vehicle
     _seen_cache: dict[float, list[frozenset]] = field(default_factory=dict)
+    _view_cache: list[frozenset] | None = None
+
+    def in_view(self) -> list[frozenset]:
+        """Per frame, the ids of the vehicles whose bottom centre is in this camera's image, however hidden."""
+        if self._view_cache is None:
+            self._view_cache = [frozenset(v for v, ok in zip(ids, inim, strict=True) if ok)
+                                for ids, inim in zip(self.ids, self.in_image, strict=True)]
+        return self._view_cache
 
     def seen(self, min_visible_fraction: float) -> list[frozenset]:
         """Per frame, the ids of the vehicles this camera sees (bottom centre in image, visible enough)."""
@@ -259,11 +273,13 @@ class GroundTruth:
         return np.any(d <= rad[None, :], axis=1)
 
     def in_roi(self, xy: np.ndarray, cameras: Sequence[str], config: TrackingEvalConfig) -> np.ndarray:
-        """(N,) bool: ground points within the ROI of at least one of the cameras."""
+        """(N,) bool: ground points (a track's positions) within the ROI radius of at least one of the cameras, the
+        whole disc (a point has no `in_image`; a vehicle's ROI: `objects_in_roi`)."""
         return self._within(xy, cameras, lambda c: self.roi_radius_m(c, config))
 
     def in_area(self, xy: np.ndarray, cameras: Sequence[str], config: TrackingEvalConfig) -> np.ndarray:
-        """(N,) bool: ground points within the evaluation area of at least one of the cameras."""
+        """(N,) bool: ground points (a track's positions) within the evaluation radius of at least one of the
+        cameras, the whole disc (a vehicle's area: `objects_in_area`)."""
         return self._within(xy, cameras, lambda c: self.area_radius_m(c, config))
 
     def positions_at(self, t_ns: int, config: TrackingEvalConfig) -> dict[Any, np.ndarray]:
@@ -279,30 +295,65 @@ class GroundTruth:
                 out[vid] = p
         return out
 
+    def _in_frames(self, t_ns: int, camera: str, config: TrackingEvalConfig,
+                   per_frame: list[frozenset]) -> set:
+        w = round(config.visibility_window_frames * self.frame_interval_ns)
+        cf = self.cameras[camera]
+        lo = int(np.searchsorted(cf.t_ns, t_ns - w, side="left"))
+        hi = int(np.searchsorted(cf.t_ns, t_ns + w, side="right"))
+        return set().union(*per_frame[lo:hi])
+
     def seen_by(self, t_ns: int, cameras: Sequence[str], config: TrackingEvalConfig) -> set:
         """Ids of the vehicles that a camera sees in a frame within +- the visibility window of t_ns."""
-        w = round(config.visibility_window_frames * self.frame_interval_ns)
         out: set = set()
         for c in cameras:
-            cf = self.cameras[c]
-            lo = int(np.searchsorted(cf.t_ns, t_ns - w, side="left"))
-            hi = int(np.searchsorted(cf.t_ns, t_ns + w, side="right"))
-            seen = cf.seen(config.min_visible_fraction)
-            for k in range(lo, hi):
-                out |= seen[k]
+            out |= self._in_frames(t_ns, c, config, self.cameras[c].seen(config.min_visible_fraction))
         return out
+
+    def in_view(self, t_ns: int, camera: str, config: TrackingEvalConfig) -> set | None:
+        """Ids of the vehicles in the camera's field of view at t_ns (see the module docstring): those whose bottom
+        centre is in its image in a frame within +- the visibility window; None for a fisheye camera, whose field of
+        view holds its whole disc."""
+        if self.cameras[camera].kind == "fisheye":
+            return None
+        return self._in_frames(t_ns, camera, config, self.cameras[camera].in_view())
+
+    def _objects_within(self, t_ns: int, positions: Mapping[Any, np.ndarray], cameras: Sequence[str],
+                        config: TrackingEvalConfig, radius) -> np.ndarray:
+        ids = list(positions)
+        xy = np.array([np.asarray(positions[v], float)[:2] for v in ids]).reshape(-1, 2)
+        out = np.zeros(len(ids), bool)
+        for c in cameras:
+            near = self._within(xy, [c], radius)
+            view = self.in_view(t_ns, c, config) if near.any() else None
+            if view is not None:
+                near &= np.array([v in view for v in ids], bool)
+            out |= near
+        return out
+
+    def objects_in_area(self, t_ns: int, positions: Mapping[Any, np.ndarray], cameras: Sequence[str],
+                        config: TrackingEvalConfig) -> np.ndarray:
+        """(N,) bool per vehicle of `positions` (id -> its position at t_ns): within the evaluation area of a camera
+        of `cameras` whose field of view holds it (condition 3 of the module docstring)."""
+        return self._objects_within(t_ns, positions, cameras, config, lambda c: self.area_radius_m(c, config))
+
+    def objects_in_roi(self, t_ns: int, positions: Mapping[Any, np.ndarray], cameras: Sequence[str],
+                       config: TrackingEvalConfig) -> np.ndarray:
+        """(N,) bool per vehicle of `positions` (id -> its position at t_ns): within the ROI of a camera of
+        `cameras` whose field of view holds it (as `objects_in_area`, with the ROI radius)."""
+        return self._objects_within(t_ns, positions, cameras, config, lambda c: self.roi_radius_m(c, config))
 
     def gt_objects(self, t_ns: int, cameras: Sequence[str], config: TrackingEvalConfig,
                    positions: Mapping[Any, np.ndarray] | None = None,
                    seen_by: Sequence[str] | None = None) -> dict[Any, np.ndarray]:
-        """The GT objects at t_ns (see the module docstring) -> their bottom centres (3,): in the area of `cameras`,
-        seen by one of them (or of `seen_by`: a camera tracked alone is charged for every vehicle of its area that
-        any camera sees, as the fused tracks are)."""
+        """The GT objects at t_ns (see the module docstring) -> their bottom centres (3,): in the area of one of
+        `cameras` and in that camera's field of view, seen by one of `cameras` (or of `seen_by`: a camera tracked
+        alone is charged for every vehicle of its area that any camera sees, as the fused tracks are)."""
         pos = self.positions_at(t_ns, config) if positions is None else positions
         ids = [v for v in self.seen_by(t_ns, seen_by or cameras, config) if v in pos]
         if not ids:
             return {}
-        inside = self.in_area(np.array([pos[v][:2] for v in ids]), cameras, config)
+        inside = self.objects_in_area(t_ns, {v: pos[v] for v in ids}, cameras, config)
         return {v: pos[v] for v, ok in zip(ids, inside, strict=True) if ok}
 
 

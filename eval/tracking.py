@@ -5,7 +5,8 @@ Ground truth and GT objects: eval/ground_truth.py (`GroundTruth`, `TrackingEvalC
 Tracks that are not scored (`ignore_unscored_tracks`, default on): a track position with no GT object within
 the match gate is neither a match nor a false positive when it lies outside the evaluation area, or when it is
 within the gate of a ground-truth vehicle that is not a GT object at t (mostly hidden, seen by no chosen camera,
-outside the area): a tracker is not penalised for following a vehicle the evaluation does not ask for.
+outside the area, or out of the field of view of the pinhole camera whose area it is in): a tracker is not
+penalised for following a vehicle the evaluation does not ask for.
 
 Matching and metrics
 --------------------
@@ -19,13 +20,16 @@ percentile of the spacing of its lines, at least a frame interval) becomes an em
 missed: a silent (or dead, or restarting) tracker misses every GT object then, and an empty tracks file scores
 MOTA 0 rather than nothing.
 
-`traj_err_in_roi_m` is the paper's trajectory error: for each tracked position scored inside the ROI (within the
-ROI radius of a chosen camera), the distance to the ground-truth trajectory (the polyline of its samples within
-+-`traj_window_s` of the tick; the projection distance, so a time lag along the path is not counted) of the vehicle
-it is matched to, or, for a position matched to none (a duplicate, a track drifted more than the match gate off,
-a false track), of the nearest vehicle's; averaged over all of them (since 2026-11-29 late; before, over the
-matched positions alone: `traj_err_in_roi_matched_m`, which leaves out the worst). `traj_err_out_roi_m`: matched
-positions outside the ROI.
+`traj_err_in_roi_m` is the paper's trajectory error: for each tracked position scored inside the ROI, the distance
+to the ground-truth trajectory (the polyline of its samples within +-`traj_window_s` of the tick; the projection
+distance, so a time lag along the path is not counted) of the vehicle it is matched to, or, for a position matched
+to none (a duplicate, a track drifted more than the match gate off, a false track), of the nearest vehicle's;
+averaged over all of them (since 2026-11-29 late; before, over the matched positions alone:
+`traj_err_in_roi_matched_m`, which leaves out the worst). A matched position is in the ROI when its vehicle is
+(`GroundTruth.objects_in_roi`: the test that made the vehicle a GT object, with the ROI radius), wherever the track
+puts it, so a track pushed outward across the ROI's edge is scored like one pushed inward; a position matched to
+none is in the ROI when it lies within the ROI radius of a chosen camera. `traj_err_out_roi_m`: matched positions
+whose vehicle is outside the ROI (in the evaluation area: only with a larger `eval_radius_m`).
 `pos_err_m` is the time-synchronised distance (track position vs GT at the same `t_ns`) of all matches.
 `yaw_err_in_roi_deg` (mean; `_median_deg`, `_n`) is the tracked heading's error for the same positions, where the
 tracks carry a `yaw` (rad, ENU, counter-clockwise from east): the full-circle angle to the vehicle's true heading
@@ -464,9 +468,11 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
     - CLEAR MOT / ID (py-motmetrics): `mota`, `idf1`, `id_switches`, `precision`, `recall`, `num_frames` (ticks
       evaluated), `num_objects` (GT object instances), `num_matches`, `num_misses`, `num_false_positives`,
       `mostly_tracked`, `mostly_lost`, `fragmentations`;
-    - trajectory error (m): `traj_err_in_roi_m`, `traj_err_in_roi_std_m`, `traj_err_in_roi_n` (matched positions
-      in the ROI), `traj_err_out_roi_m`, `traj_err_out_roi_std_m`, `traj_err_out_roi_n` (the rest: only with a
-      larger `eval_radius_m`); `pos_err_m`, `pos_err_std_m` (time-synchronised distance of all matches);
+    - trajectory error (m): `traj_err_in_roi_m`, `traj_err_in_roi_std_m`, `traj_err_in_roi_n` (the positions in
+      the ROI, matched ones by their vehicle's position, and unmatched ones; `traj_err_in_roi_matched_*` the
+      matched ones alone), `traj_err_out_roi_m`, `traj_err_out_roi_std_m`, `traj_err_out_roi_n` (the matched
+      positions whose vehicle is outside the ROI: only with a larger `eval_radius_m`); `pos_err_m`,
+      `pos_err_std_m` (time-synchronised distance of all matches);
     - counts: `tracks` (scored (tracker, id) identities), `tracks_total` (all identities in the evaluated lines),
       `trackers`, `gt_vehicles` (distinct GT objects), `lines`, `lines_outside_recording`, `silent_ticks_filled`,
       `ignored_track_positions`;
@@ -523,7 +529,8 @@ def evaluate_tracks(recording: Recording | GroundTruth | str | Path, tracks_rows
             continue
         vids = list(fm.matched)
         t_xy = np.array([fm.track_xy[fm.matched[v]] for v in vids])
-        in_roi = gt.in_roi(t_xy, cams, cfg)
+        # in the ROI by the vehicle's position, as it was chosen a GT object, not by the track's
+        in_roi = gt.objects_in_roi(fm.t_ns, {v: fm.gt_xy[v] for v in vids}, cams, cfg)
         for v, xy, roi in zip(vids, t_xy, in_roi, strict=True):
             d = gt.trajectories[v].distance_to_path(xy, fm.t_ns, window, gap)
             (err_in if roi else err_out).append(d)
@@ -593,8 +600,9 @@ def evaluate_many(recording: Recording | GroundTruth | str | Path, sources: Mapp
 
     The cameras of a source: `source_cameras[name]` if given, else [name] when `name` is a camera of the
     recording (one camera's tracks are scored in its own area on every vehicle there that any camera sees, as the
-    fused tracks are; until 2026-11-29 on the vehicles it saw itself, which left it the vehicles it misses), else
-    `cameras` (all by default). Returns {"sources": {name: evaluate_tracks result},
+    fused tracks are, a pinhole or thermal camera's on those in its image alone; until 2026-11-29 on the vehicles it
+    saw itself, which left it the vehicles it misses), else `cameras` (all by default).
+    Returns {"sources": {name: evaluate_tracks result},
     "traj_err_best_single_camera_m": the lowest `traj_err_in_roi_m` among the single-camera sources (NaN if none),
     "best_single_camera": its name (None),
     "mota_best_single_camera" / "idf1_best_single_camera": the highest among the single-camera sources}."""

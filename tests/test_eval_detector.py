@@ -149,6 +149,27 @@ def test_false_alarm_breakdown_by_kind():
     assert list(found[:2]) == [True, True]
 
 
+def test_a_box_overlapping_the_next_car_does_not_find_it():
+    """Two cars side by side in a parking row, the detector finds A alone: its box overlaps B's (IoU 0.14) but its
+    bottom centre is 45 px from B's, beyond a third of B's size (14 px). B is not found, and a second detection
+    whose box overlaps both (A's IoU 0.64, B's 0.15) but whose bottom centre is on neither is a background alarm,
+    not a box alarm on B."""
+    box = np.array([[100, 100, 160, 130], [145, 100, 205, 130]], float)  # A, B
+    bottom = np.array([[130, 130], [175, 130]], float)
+    weight = np.ones(2)
+    det = _dets([[100, 100, 160, 130], [95, 95, 165, 135]], [0.9, 0.8], uv=[[130, 130], [130, 112]])
+    assert box_iou(det.box, box)[0, 1] > 0.1 and box_iou(det.box, box)[1, 1] > 0.1
+    gt_of, counts = match_frame(det, box, weight)
+    alarms, matched, found = breakdown_frame(det, box, bottom, weight, gt_of, counts)
+    assert list(matched) == [True, False]
+    assert list(found) == [True, False]
+    assert alarms == {"box": 0, "duplicate": 0, "background": 1}
+    # the same detection with its bottom centre on B's (whatever its box) finds B: a box alarm
+    det = _dets([[100, 100, 160, 130], [95, 95, 165, 135]], [0.9, 0.8], uv=[[130, 130], [180, 128]])
+    alarms, matched, found = breakdown_frame(det, box, bottom, weight, *match_frame(det, box, weight))
+    assert list(found) == [True, True] and alarms == {"box": 1, "duplicate": 0, "background": 0}
+
+
 def test_onnx_detector_rejects_missing_and_corrupt_models(tmp_path):
     with pytest.raises(ValueError, match="not found"):
         OnnxDetector(tmp_path / "none.onnx")

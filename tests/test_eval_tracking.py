@@ -329,6 +329,19 @@ def test_out_of_roi_part_of_a_larger_evaluation_area(gt):
     assert r["traj_err_out_roi_m"] == pytest.approx(0.5, abs=2e-3)
 
 
+def test_a_matched_track_is_in_the_roi_where_its_vehicle_is(gt):
+    """Parked vehicle 5 lies 15.6 m from camera A, inside a 16 m ROI: its track 1 m off radially, outward (across the
+    ROI's edge) or inward, is scored in the ROI either way, as its vehicle was chosen."""
+    cfg = TrackingEvalConfig(roi_radius_m=16.0)
+    away = (pos(5, 0.0) - np.array(CAMS["A"][0][:2])) / np.linalg.norm(pos(5, 0.0) - np.array(CAMS["A"][0][:2]))
+    perfect = evaluate_tracks(gt, make_rows(), config=cfg)
+    for sign in (1.0, -1.0):
+        r = evaluate_tracks(gt, make_rows(offset=lambda v, k, sign=sign: sign * away if v == 5 else 0.0), config=cfg)
+        assert r["mota"] == 1.0 and r["num_matches"] == perfect["num_matches"]
+        assert r["traj_err_out_roi_n"] == 0 and r["traj_err_in_roi_matched_n"] == r["num_matches"]
+        assert r["traj_err_in_roi_matched_m"] == pytest.approx(N_FRAMES / r["num_matches"], abs=2e-3)
+
+
 def test_id_switch_is_counted(gt):
     r = evaluate_tracks(gt, make_rows(ids=lambda v, k: 100 + v if (v == 1 and k >= 20) else 10 + v))
     assert r["id_switches"] == 1
@@ -477,6 +490,59 @@ def test_evaluate_many_fused_against_single_cameras(gt):
     assert fused["traj_err_in_roi_m"] < out["traj_err_best_single_camera_m"]
     with pytest.raises(ValueError, match="unknown camera"):
         evaluate_many(gt, {"x": []}, cameras=["Z"])
+
+
+def _write_fisheye_and_pinhole_recording(out: Path) -> Path:
+    """Fisheye F at the origin (its 25 m ROI) and pinhole T 100 m east looking east (200 m ROI; its image holds
+    x > 100). Vehicle 1 ahead of T; 2 behind T, 60 m from F, seen by F alone; 3 in F's disc; 4 in T's image but
+    hidden from it (visible fraction 0.1), seen by F. Each camera lists every vehicle (`in_image` as it sees it)."""
+    (out / "gt").mkdir(parents=True)
+    where = {1: (110.0, 0.0), 2: (60.0, 3.0), 3: (10.0, 2.0), 4: (120.0, -3.0)}
+    cameras = []
+    for name, kind, x in (("F", "fisheye", 0.0), ("T", "pinhole", 100.0)):
+        cameras.append({"name": name, "kind": kind, "modality": "visible", "width": 1280, "height": 960,
+                        "pose": {"position_m": [x, 0.0, 10.0], "r_cam_from_world": np.eye(3).tolist()},
+                        "frames": N_FRAMES, "frame_dir": f"frames/{name}", "gt": f"gt/{name}.jsonl",
+                        "landmarks": f"landmarks/{name}.json"})
+        lines = []
+        for k in range(N_FRAMES):
+            t = T0 + k * 100_000_000
+            vehicles = [{"id": vid, "type": "car", "lwh": [4.5, 1.8, 1.5], "yaw": 0.0, "speed": 1.0,
+                         "xyz": [xy[0] + 0.1 * k, xy[1], 0.0], "in_image": name == "F" or xy[0] > 100.0,
+                         "visible_fraction": 0.1 if (name, vid) == ("T", 4) else 1.0, "parked": False}
+                        for vid, xy in where.items()]
+            lines.append(json.dumps({"t_ns": t, "file": f"frames/{name}/{t}.jpg", "vehicles": vehicles}))
+        (out / "gt" / f"{name}.jsonl").write_text("\n".join(lines) + "\n")
+    meta = {"format": "roadside-recording", "version": 1,
+            "site": {"name": "test", "origin": {"lat_deg": 42.0, "lon_deg": -83.0, "alt_m": 0.0}},
+            "hz": HZ, "seconds": N_FRAMES / HZ, "t0_ns": T0, "cameras": cameras}
+    (out / "recording.json").write_text(json.dumps(meta))
+    return out
+
+
+def test_a_pinhole_cameras_area_is_in_its_own_image(tmp_path):
+    """A vehicle is in a pinhole camera's 200 m area only where that camera has it in its image: vehicle 2, behind
+    T and seen by F beyond F's 25 m, is in nobody's area, for the fused tracks or for T tracked alone; vehicle 4, in
+    T's image but hidden from it, is T's when another camera sees it (as a fisheye's hidden vehicles are)."""
+    gt = GroundTruth(_write_fisheye_and_pinhole_recording(tmp_path / "clip"))
+    cfg = TrackingEvalConfig()
+    t = T0 + 10 * 100_000_000
+    assert set(gt.gt_objects(t, ["F", "T"], cfg)) == {1, 3, 4}
+    assert set(gt.gt_objects(t, ["T"], cfg, seen_by=["F", "T"])) == {1, 4}
+    assert set(gt.gt_objects(t, ["T"], cfg)) == {1}  # 4: T alone does not see it
+    assert set(gt.gt_objects(t, ["F"], cfg, seen_by=["F", "T"])) == {3}
+
+    def rows(vehicles) -> list[dict]:
+        return [{"t_ns": T0 + k * 100_000_000, "tracker": "t1",
+                 "tracks": [{"id": 10 + v, "x": xy[0] + 0.1 * k, "y": xy[1]} for v, xy in vehicles.items()]}
+                for k in range(N_FRAMES)]
+
+    where = {1: (110.0, 0.0), 3: (10.0, 2.0), 4: (120.0, -3.0)}  # every vehicle some camera's area holds
+    out = evaluate_many(gt, {"fused": rows(where), "T": rows({1: where[1], 4: where[4]}), "F": rows({3: where[3]})})
+    for name, n in (("fused", 3), ("T", 2), ("F", 1)):
+        r = out["sources"][name]
+        assert r["mota"] == 1.0 and r["recall"] == 1.0 and r["gt_vehicles"] == n, name
+    assert out["mota_best_single_camera"] == 1.0
 
 
 def _line(t_s: float, tracks: list[tuple[int, float, float]], tracker: str = "t1") -> dict:
