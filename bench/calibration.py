@@ -5,7 +5,11 @@ landmarks (pixel noise 2 px, map noise 0.15 m, 1 in 20 a gross mistake) with the
 
 The ROI is the paper's: ground within 25 m of the camera, for every camera kind. Errors are also
 given per range band (25-50, 50-100, 100-200 m), where a pixel of a forward-looking camera spans
-metres and the ground's departure from any plane dominates. The same run adds the real pinhole
+metres and the ground's departure from any plane dominates. An error is averaged only where the masks are valid,
+and the masks end at the calibrated area (`calibration.masks.calibrated_area`, set by the farthest landmarks), so
+each mean comes with its coverage: the share of the camera's ground pixels in the ROI, beyond it and in each band
+that the masks cover (`in_roi_coverage`, `out_roi_coverage`, `band_*_coverage`; per camera kind in the
+aggregates, e.g. `fisheye_out_roi_coverage`). The same run adds the real pinhole
 data of `../shared/data` when present (`bench.calibration_real`), and times a 100-point lookup.
 
 The same landmarks once more, each site's cameras calibrated together (`calibration.site_ground`: one
@@ -62,17 +66,9 @@ def score_calibration(cam, site, cal, lm, records: list[dict], stride: int, t_fi
     masks = build_masks(cal, lm.digest(), calibrated_area(cal, lm.to_local(site.geo)))
     t_masks = time.perf_counter() - t0
     truth, valid = ground_lookup(cam, site.ground)
-    truth, valid = truth[::stride, ::stride], valid[::stride, ::stride]
-    got = masks.xy[::stride, ::stride].astype(np.float64)
-    ok = valid & masks.valid[::stride, ::stride]
-    dist = np.linalg.norm(truth[..., :2] - cam.pose.position_m[:2], axis=-1)
-    roi = dist < ROI_M
-    err = np.linalg.norm(got - truth[..., :2], axis=-1)
+    errors = mask_errors(truth[::stride, ::stride], valid[::stride, ::stride], masks.xy[::stride, ::stride],
+                         masks.valid[::stride, ::stride], cam.pose.position_m)
     gross = [r["id"] for r in records[:n] if r["gross"]]
-    bands = {}
-    for lo, hi in BANDS_M:
-        m = ok & (dist >= lo) & (dist < hi)
-        bands[f"band_{lo:.0f}_{hi:.0f}_mean_m"] = float(np.mean(err[m])) if m.sum() >= 50 else None
     rng = np.random.default_rng(0)
     pts = rng.uniform([0, 0], [cam.width - 1, cam.height - 1], (100, 2))
     masks.lookup(pts)
@@ -83,19 +79,70 @@ def score_calibration(cam, site, cal, lm, records: list[dict], stride: int, t_fi
         times.append(time.perf_counter() - t0)
     t_lookup = float(np.median(times))
     return {
-        "camera": cam.name, "n": n, "kind": cam.kind, "modality": cam.modality,
-        "in_roi_mean_m": float(np.mean(err[ok & roi])) if (ok & roi).any() else None,
-        "out_roi_mean_m": float(np.mean(err[ok & ~roi])) if (ok & ~roi).any() else None,
-        **bands,
-        "in_roi_coverage": float((ok & roi).sum() / max((valid & roi).sum(), 1)),
+        "camera": cam.name, "n": n, "kind": cam.kind, "modality": cam.modality, **errors,
         "gross_in_input": gross, "rejected": [i for i, _ in cal.rejected],
         "segments": len(cal.planes), "fit_s": t_fit, "masks_s": t_masks, "lookup_100_ms": 1e3 * t_lookup,
     }
 
 
+def mask_errors(truth: np.ndarray, valid: np.ndarray, got: np.ndarray, got_valid: np.ndarray,
+                position_m: np.ndarray) -> dict:
+    """Mean distance (m) between the masks' ground points `got` and the exact ones `truth` (both (H, W, >= 2), site
+    metres), in the ROI, beyond it and per band, over the pixels where both are valid; and the coverage of each: the
+    share of the pixels with ground (`valid`) that the masks cover (`got_valid`). No out-of-ROI ground: coverage None.
+    A band's mean needs 50 pixels."""
+    ok = valid & got_valid
+    dist = np.linalg.norm(truth[..., :2] - np.asarray(position_m)[:2], axis=-1)
+    roi = dist < ROI_M
+    err = np.linalg.norm(got[..., :2].astype(np.float64) - truth[..., :2], axis=-1)
+    out = {"in_roi_mean_m": float(np.mean(err[ok & roi])) if (ok & roi).any() else None,
+           "out_roi_mean_m": float(np.mean(err[ok & ~roi])) if (ok & ~roi).any() else None}
+    for lo, hi in BANDS_M:
+        m = ok & (dist >= lo) & (dist < hi)
+        out[f"band_{lo:.0f}_{hi:.0f}_mean_m"] = float(np.mean(err[m])) if m.sum() >= 50 else None
+    out["in_roi_coverage"] = float((ok & roi).sum() / max((valid & roi).sum(), 1))
+    out["out_roi_coverage"] = _share(ok & ~roi, valid & ~roi)
+    for lo, hi in BANDS_M:
+        band = (dist >= lo) & (dist < hi)
+        out[f"band_{lo:.0f}_{hi:.0f}_coverage"] = _share(ok & band, valid & band)
+    return out
+
+
+def _share(part: np.ndarray, whole: np.ndarray) -> float | None:
+    n = int(whole.sum())
+    return float(part.sum() / n) if n else None
+
+
 def _mean(rows: list[dict], key: str) -> float | None:
     vals = [r[key] for r in rows if r[key] is not None]
     return round(float(np.mean(vals)), 4) if vals else None
+
+
+def group_means(rows: list[dict], site_rows: list[dict]) -> dict:
+    """Per camera kind (fisheye, thermal, pinhole), the means over its rows with 10-20 landmarks (and `_at5`:
+    5) of the rows' errors and coverages, and of the site-ground rows' (`_site_ground`)."""
+    out: dict = {}
+    groups = {"fisheye": lambda r: r["kind"] == "fisheye", "thermal": lambda r: r["modality"] == "thermal",
+              "pinhole": lambda r: r["kind"] == "pinhole" and r["modality"] == "visible"}
+    for name, pick in groups.items():
+        for label, ns in (("", (10, 20)), ("_at5", (5,))):
+            sel = [r for r in rows if pick(r) and r["n"] in ns]
+            out[f"{name}_in_roi_mean_m{label}"] = _mean(sel, "in_roi_mean_m")
+            out[f"{name}_out_roi_mean_m{label}"] = _mean(sel, "out_roi_mean_m")
+            for lo, hi in BANDS_M:
+                out[f"{name}_band_{lo:.0f}_{hi:.0f}_mean_m{label}"] = _mean(sel, f"band_{lo:.0f}_{hi:.0f}_mean_m")
+            # the share of the ground beyond the ROI (and in each band) that those means are taken over
+            out[f"{name}_out_roi_coverage{label}"] = _mean(sel, "out_roi_coverage")
+            for lo, hi in BANDS_M:
+                out[f"{name}_band_{lo:.0f}_{hi:.0f}_coverage{label}"] = _mean(sel, f"band_{lo:.0f}_{hi:.0f}_coverage")
+    # pinhole and thermal cameras on the site's shared ground surface (fisheye cameras keep their own planes)
+    for name, pick in (("thermal", groups["thermal"]), ("pinhole", groups["pinhole"])):
+        for label, ns in (("", (10, 20)), ("_at5", (5,))):
+            sel = [r for r in site_rows if pick(r) and r["n"] in ns]
+            out[f"{name}_in_roi_mean_m_site_ground{label}"] = _mean(sel, "in_roi_mean_m")
+            out[f"{name}_out_roi_mean_m_site_ground{label}"] = _mean(sel, "out_roi_mean_m")
+            out[f"{name}_out_roi_coverage_site_ground{label}"] = _mean(sel, "out_roi_coverage")
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -136,21 +183,7 @@ def main(argv: list[str] | None = None) -> int:
                     row = score_calibration(cam, site, cals[cam.name], lms[cam.name], recs, args.stride, t_fit)
                     site_rows.append({"site": site_name, **row})
     out: dict = {"benchmark": "calibration", "stride_px": args.stride, "seed": args.seed, "exact": args.exact}
-    groups = {"fisheye": lambda r: r["kind"] == "fisheye", "thermal": lambda r: r["modality"] == "thermal",
-              "pinhole": lambda r: r["kind"] == "pinhole" and r["modality"] == "visible"}
-    for name, pick in groups.items():
-        for label, ns in (("", (10, 20)), ("_at5", (5,))):
-            sel = [r for r in rows if pick(r) and r["n"] in ns]
-            out[f"{name}_in_roi_mean_m{label}"] = _mean(sel, "in_roi_mean_m")
-            out[f"{name}_out_roi_mean_m{label}"] = _mean(sel, "out_roi_mean_m")
-            for lo, hi in BANDS_M:
-                out[f"{name}_band_{lo:.0f}_{hi:.0f}_mean_m{label}"] = _mean(sel, f"band_{lo:.0f}_{hi:.0f}_mean_m")
-    # pinhole and thermal cameras on the site's shared ground surface (fisheye cameras keep their own planes)
-    for name, pick in (("thermal", groups["thermal"]), ("pinhole", groups["pinhole"])):
-        for label, ns in (("", (10, 20)), ("_at5", (5,))):
-            sel = [r for r in site_rows if pick(r) and r["n"] in ns]
-            out[f"{name}_in_roi_mean_m_site_ground{label}"] = _mean(sel, "in_roi_mean_m")
-            out[f"{name}_out_roi_mean_m_site_ground{label}"] = _mean(sel, "out_roi_mean_m")
+    out.update(group_means(rows, site_rows))
     # gross mistakes in the input (10-20 landmarks): how many were rejected, and good landmarks rejected
     sel = [r for r in rows if r["n"] >= 10]
     gross = sum(len(r["gross_in_input"]) for r in sel)

@@ -4,10 +4,19 @@ CPU with a fixed thread count and, where the CUDA or TensorRT providers exist, f
 against `workers` single-threaded inferences side by side (how the detect service runs on a CPU).
 The load average is recorded: on a shared machine the CPU numbers are upper bounds.
 Without --model an untrained default model (or --stride variant) is exported and timed, labelled
-untrained-for-timing-only. Prints one JSON document.
+untrained-for-timing-only. Prints one JSON document; every timing in it names its input shape (`input`).
+
+The target (`target`: 25 ms median on the CPU, fp32) is the project issue's, per 512x512 frame: the default
+input (`target.applies_to` is null when another input was timed). The detect service feeds the network something
+else: a whole frame shrunk so that its longer side is the model's `input_long_side`, padded to 32 pixels
+(`shared.inference.OnnxDetector.input_shape`): 480x640 for a 1280x960 camera and a 640 px model. `deployed` times
+that input too (one inference at a time on the CPU, fp32, `threads` threads; its MACs) for a frame of `--frame`
+(default 1280x960, the simulated cameras). A camera with a `detect_area_px` runs a crop of it instead (576x480 for
+the simulated fisheye cameras: time it with --size/--height).
 
     python -m bench.detector [--model detector.onnx] [--model-fp16 detector_fp16.onnx] [--size 512]
                              [--height H] [--threads 2] [--workers 2] [--runs 50] [--warmup 10] [--stride 4]
+                             [--frame 1280x960]
 
 --height makes the input S wide and H high (a fisheye frame at full resolution: --size 1280 --height 960).
 """
@@ -35,6 +44,9 @@ from training.export import INPUT_NAME, export_onnx
 from training.model import Detector, DetectorConfig, count_macs
 
 GPU_PROVIDERS = ("TensorrtExecutionProvider", "CUDAExecutionProvider")
+TARGET_MS = 25.0  # the issue's target: median ms per 512x512 frame on the CPU, fp32
+TARGET_HW = (512, 512)
+DEFAULT_FRAME_WH = (1280, 960)  # the simulated cameras' full resolution (4:3)
 
 
 @dataclass(frozen=True)
@@ -50,6 +62,7 @@ class BenchSettings:
     stride: int = 4
     height_px: int | None = None  # None: square (size_px)
     workers: int = 2
+    frame_wh: tuple[int, int] = DEFAULT_FRAME_WH  # the camera frame whose deployed network input is timed too
 
     @property
     def hw(self) -> tuple[int, int]:
@@ -66,6 +79,8 @@ class BenchSettings:
                 raise ValueError(f"{name} (--{name}) must be >= 1, got {getattr(self, name)}")
         if self.warmup < 0:
             raise ValueError(f"warmup (--warmup) must be >= 0, got {self.warmup}")
+        if len(self.frame_wh) != 2 or min(self.frame_wh) < 1:
+            raise ValueError(f"frame_wh (--frame) must be a width and a height >= 1, got {self.frame_wh}")
         if self.model_fp16 is not None and self.model is None:
             raise ValueError("model_fp16 (--model-fp16) goes with model (--model): without a model an untrained one "
                              "is exported and timed with its own fp16 copy")
@@ -127,13 +142,26 @@ def run(settings: BenchSettings, workdir: Path) -> dict:
     config = DetectorConfig(**json.loads(meta[CONFIG_KEY]))
     out["config"] = asdict(config)
     out["macs"] = count_macs(Detector(config), h, w)
+    # the target is per 512x512 frame: it applies to cpu_fp32 only when that is the input timed
+    out["target"] = {"cpu_fp32_median_ms": TARGET_MS, "input": [1, 1, *TARGET_HW],
+                     "applies_to": "cpu_fp32" if (h, w) == TARGET_HW else None}
     image = np.random.default_rng(0).random((1, 1, h, w), dtype=np.float32)
-    out["cpu_fp32"] = {"threads": settings.threads, **time_session(session, image, settings.runs, settings.warmup)}
+    out["cpu_fp32"] = {"input": out["input"], "threads": settings.threads,
+                       **time_session(session, image, settings.runs, settings.warmup)}
     one = 1000.0 / out["cpu_fp32"]["mean_ms"]
     side = side_by_side_fps(fp32, image, settings.workers, settings.runs, settings.warmup)
-    out["cpu_fp32_throughput"] = {f"one_at_a_time_{settings.threads}_threads_fps": round(one, 1),
+    out["cpu_fp32_throughput"] = {"input": out["input"], f"one_at_a_time_{settings.threads}_threads_fps": round(one, 1),
                                   f"{settings.workers}_workers_1_thread_fps": round(side, 1),
                                   "ratio": round(side / one, 3)}
+    long_side, dh, dw = deployed_input(fp32, settings.frame_wh)
+    out["deployed"] = {"frame": [settings.frame_wh[1], settings.frame_wh[0]], "input_long_side": long_side,
+                       "input": [1, 1, dh, dw], "macs": count_macs(Detector(config), dh, dw)}
+    if (dh, dw) == (h, w):  # already timed above
+        out["deployed"]["cpu_fp32"] = out["cpu_fp32"]
+    else:
+        deployed = np.random.default_rng(0).random((1, 1, dh, dw), dtype=np.float32)
+        out["deployed"]["cpu_fp32"] = {"input": [1, 1, dh, dw], "threads": settings.threads,
+                                       **time_session(session, deployed, settings.runs, settings.warmup)}
     gpu_providers = [p for p in GPU_PROVIDERS if p in ort.get_available_providers()]
     if gpu_providers:
         out["gpu"] = gpu_name()
@@ -141,8 +169,19 @@ def run(settings: BenchSettings, workdir: Path) -> dict:
         name = provider.removesuffix("ExecutionProvider").lower()
         for precision, path in (("fp16", fp16), ("fp32", fp32)):
             if path is not None:
-                out[f"{name}_{precision}"] = time_gpu(path, provider, image, settings.runs, settings.warmup)
+                out[f"{name}_{precision}"] = {"input": out["input"],
+                                              **time_gpu(path, provider, image, settings.runs, settings.warmup)}
     return out
+
+
+def deployed_input(path: Path, frame_wh: tuple[int, int]) -> tuple[int, int, int]:
+    """(the model's input_long_side, height, width of the network input) that the detect service gives the model at
+    `path` for a whole camera frame of `frame_wh` (width, height) pixels (`OnnxDetector.input_shape`)."""
+    from shared.inference import OnnxDetector
+
+    detector = OnnxDetector(path, providers=["CPUExecutionProvider"], threads=1)
+    _, h, w = detector.input_shape(frame_wh[1], frame_wh[0])
+    return detector.long_side, h, w
 
 
 def time_gpu(path: Path, provider: str, image: np.ndarray, runs: int, warmup: int) -> dict:
@@ -187,8 +226,23 @@ def _parse(argv: list[str] | None = None) -> BenchSettings:
     p.add_argument("--runs", type=int, default=50)
     p.add_argument("--warmup", type=int, default=10)
     p.add_argument("--stride", type=int, default=4, help="output stride of the untrained model")
+    p.add_argument("--frame", type=_frame, default=DEFAULT_FRAME_WH, metavar="WxH",
+                   help="camera frame whose deployed network input (the model's input_long_side) is timed too "
+                        "(default 1280x960)")
     a = p.parse_args(argv)
-    return BenchSettings(a.model, a.model_fp16, a.size, a.threads, a.runs, a.warmup, a.stride, a.height, a.workers)
+    return BenchSettings(a.model, a.model_fp16, a.size, a.threads, a.runs, a.warmup, a.stride, a.height, a.workers,
+                         a.frame)
+
+
+def _frame(text: str) -> tuple[int, int]:
+    """`WxH` -> (W, H), both whole numbers >= 1."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 1280x960, got {text!r}") from None
+    if min(w, h) < 1:
+        raise argparse.ArgumentTypeError(f"width and height must be >= 1, got {text!r}")
+    return w, h
 
 
 if __name__ == "__main__":

@@ -6,7 +6,10 @@ seconds reads each service process's resident memory (psutil; a restarted servic
 and the services' Status reports on the bus (shared/status.py: messages in and out, bad input). After `--minutes`
 it stops the pipeline with SIGTERM and prints one JSON document: per service the memory at the end of the warm-up,
 at the end and at most, its growth in MB per hour after the warm-up (least-squares slope), CPU seconds, restarts,
-counts and bad input; the tracks messages per second over the run and the frames ingest published.
+counts and bad input; the tracks messages per second and the frames ingest published. The rate is the Tracks
+messages counted between the first and the last sample whose fuse_track report counted any, over the time between
+those two samples (`tracks_rate_window_s`): the start-up before the first tick and the shutdown after the last sample
+are left out (`minutes` is the whole run's, with both).
 
     python -m bench.soak --site out/demo/site --source out/demo/recording [--minutes 30] [--pace 1]
                          [--sample-s 30] [--warmup-s 120] [--out out/soak] [--set SECTION.FIELD=VALUE ...]
@@ -25,6 +28,7 @@ import subprocess
 import sys
 import time
 from collections import Counter
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -90,6 +94,22 @@ def summarize(samples: list[dict], warmup_s: float) -> dict:
             "bad": sum(last.get("bad", {}).values()) if last else None,
         }
     return out
+
+
+def tracks_rate(samples: list[dict]) -> tuple[float | None, float | None]:
+    """(Tracks messages per second, seconds) between the first and the last sample whose fuse_track report counted
+    any (`tracks_out` > 0); (None, None) with fewer than two such samples or none apart in time. A count that falls
+    from one such sample to the next is a restarted fuse_track counting from its restart."""
+    counted = []
+    for s in samples:
+        report = s.get("status", {}).get("fuse_track") or {}
+        if n := _counts_by_name(report.get("counts") or {}).get("tracks_out", 0):
+            counted.append((s["t_s"], n))
+    if len(counted) < 2 or not counted[-1][0] > counted[0][0]:
+        return None, None
+    published = sum(n - prev if n >= prev else n for (_, prev), (_, n) in pairwise(counted))
+    window = counted[-1][0] - counted[0][0]
+    return published / window, window
 
 
 def _counts_by_name(counts: dict[str, int]) -> dict[str, int]:
@@ -161,11 +181,13 @@ def run(site: Path, source: str, minutes: float, pace: str, sample_s: float, war
     elapsed = time.monotonic() - t0
     services = summarize(samples, warmup_s)
     tracks_out = (services["fuse_track"]["counts"] or {}).get("tracks_out", 0)
+    rate, window = tracks_rate(samples)
     return {
         "bench": "soak", "site": str(site), "source": source, "pace": pace, "minutes": round(elapsed / 60, 2),
         "sample_s": sample_s, "warmup_s": warmup_s, "samples": len(samples), "launcher_exit_code": exit_code,
         "frames_published": (services["ingest"]["counts"] or {}).get("frames_out", 0),
-        "tracks_messages": tracks_out, "tracks_per_s": round(tracks_out / elapsed, 2) if elapsed else None,
+        "tracks_messages": tracks_out, "tracks_per_s": None if rate is None else round(rate, 2),
+        "tracks_rate_window_s": None if window is None else round(window, 1),
         "services": services,
         "series_rss_mb": {svc: [[s["t_s"], round(sum(s["rss_mb"][svc].values()), 1)] for s in samples]
                           for svc in SERVICES},
