@@ -5,7 +5,8 @@
    would enter them) and write a site folder (site.yaml + lookup masks).
 3. Time the detector alone on the recording's frames (the same decoded images the pipeline feeds it), and
    with each frame's JPEG decoded as ingest decodes it (one process doing the pipeline's work without the bus),
-   before the pipeline runs and again after it (the throughput ratio is against both passes pooled).
+   before the pipeline runs and again after it (the throughput ratio is against both passes pooled). It is loaded
+   as the detect service loads it (`services.detect.load_detector`: the same model and execution providers).
 4. `roadside up`: the four services as OS processes on Zenoh peer-to-peer loopback, playing the
    recording as fast as the pipeline takes it; a collector on the bus keeps every Objects and Tracks
    message (for latency and the single-camera comparison); fuse_track writes `tracks.jsonl`.
@@ -16,7 +17,9 @@
 
 from __future__ import annotations
 
+import ast
 import json
+import re
 import threading
 import time
 from dataclasses import dataclass
@@ -30,7 +33,7 @@ from shared.geo import GeoFrame
 from shared.jsonio import dumps
 from shared.keys import all_cameras_key, tracks_key
 from shared.messages import Objects, Tracks
-from shared.settings import BusSettings, DetectSettings
+from shared.settings import BusSettings, Settings
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_MODEL = REPO / "models" / "detector_fp32.onnx"
@@ -155,26 +158,29 @@ def model_long_side(model: str | Path) -> int:
 
 
 class DetectorAlone:
-    """The detector by itself on the pipeline's input (JPEG decoded as ingest does, grey), run as the detect
-    service runs it (`detect.workers` inferences at once, `detect.threads` threads each, on each camera's
-    `detect_area_px`): frames/s and ms per frame, without and with each frame's JPEG decode.
+    """The detector by itself on the pipeline's input (JPEG decoded as ingest does, grey), loaded as the detect
+    service loads it (`services.detect.load_detector` with the site's settings: the same model file and execution
+    providers, threads, spinning, mirror and threshold) and run as it runs it (`detect.workers` inferences at once,
+    `detect.threads` threads each, on each camera's `detect_area_px`): frames/s and ms per frame, without and with
+    each frame's JPEG decode. The providers its session runs on are kept (`providers`).
 
     This shared machine's speed drifts by a quarter within minutes, so one pass of a few seconds before the
     pipeline is a poor baseline for a ratio: `run_demo` times a pass before the pipeline and one after it and
     pools them (`pooled`), and the summary keeps both passes."""
 
-    def __init__(self, cfg: DemoConfig, rec_dir: Path, detect: DetectSettings,
-                 area: dict[str, tuple[int, int, int, int] | None]) -> None:
+    def __init__(self, cfg: DemoConfig, rec_dir: Path, settings: Settings) -> None:
         import cv2
 
+        from services.detect.__main__ import load_detector
         from services.ingest.__main__ import REDUCED, decode_scale_for
-        from shared.inference import OnnxDetector
         from sim.recording import Recording
 
         rec = Recording(rec_dir)
-        self.detect = detect
-        self.det = OnnxDetector(cfg.model, providers=["CPUExecutionProvider"], threads=detect.threads,
-                                spin=detect.spin, mirror=detect.mirror, votes=detect.votes)
+        self.detect = settings.detect
+        # the service's own loader: on a GPU machine the pipeline's detect runs on CUDA or TensorRT, and a baseline
+        # pinned to the CPU would make the throughput ratio a GPU's frames/s over a CPU's
+        self.det = load_detector(settings)
+        area = {c.name: c.detect_area_px for c in settings.cameras}
         cams = {c: rec.cameras[c] for c in rec.camera_names}
         frames = [(p, decode_scale_for(cams[c].width, cams[c].height, self.det.long_side), area[c])
                   for c in rec.camera_names for _, p in rec.frames(c)]
@@ -204,7 +210,8 @@ class DetectorAlone:
         `with_decode_times`) for pooling."""
         from concurrent.futures import ThreadPoolExecutor
 
-        out = {"frames": len(self.images), "workers": self.detect.workers, "threads": self.detect.threads}
+        out = {"frames": len(self.images), "workers": self.detect.workers, "threads": self.detect.threads,
+               "providers": self.det.providers}
         with ThreadPoolExecutor(self.detect.workers) as pool:
             for key, fn, items in (("", self._timed, self.images), ("with_decode_", self._decoded_and_timed,
                                                                     self.files)):
@@ -220,7 +227,7 @@ def pooled(passes: list[dict]) -> dict:
     pass), the median and 99th percentile of their times and the CPU time per frame (the process's, inference
     threads included); each pass's own frames/s under `passes`."""
     out = {"frames": sum(p["frames"] for p in passes), "workers": passes[0]["workers"],
-           "threads": passes[0]["threads"]}
+           "threads": passes[0]["threads"], "providers": passes[0].get("providers")}
     for key in ("", "with_decode_"):
         times = [t for p in passes for t in p[f"{key}times"]]
         out |= {f"{key}fps": len(times) / sum(p[f"{key}wall_s"] for p in passes),
@@ -285,26 +292,42 @@ class Collector:
         self.session.close()
 
 
-HOPS = ("ingest_to_detect_in", "detect_in_to_detect", "detect_to_localize", "localize_to_fuse_track",
-        "tick_wait", "tick_closed_to_published")
+HOPS = ("ingest_to_detect_in", "detect_in_to_detect_start", "detect_start_to_detect_done", "detect_done_to_detect",
+        "detect_to_localize", "localize_to_fuse_track", "tick_wait", "tick_closed_to_published")
+
+
+def optional_stamp(msg, stage: str) -> int | None:
+    """The time `stage` stamped a message (ns), None if it did not (a stamp an older service did not take)."""
+    try:
+        return msg.stamp(stage)
+    except KeyError:
+        return None
 
 
 def latency(objects: list[Objects], tracks: list[Tracks]) -> dict:
-    """Per frame: end to end = tracks published - frame published by ingest; detector = its own time;
-    tick wait = time the frame's objects waited at fuse_track for the other cameras of its tick;
-    overhead = end to end - detector (the issue's definition: everything but the inference, the tick wait
-    included); `overhead_without_tick_wait` = end to end - detector - tick wait (transport, serialisation,
-    decoding, lookup, fusion and tracking: what the microservice split costs beside the fusion's wait for the
-    cameras of a tick, which one process fusing unsynchronised cameras would wait as well).
+    """Per frame: end to end = tracks published - frame published by ingest; detector = the inference proper, ONNX
+    Runtime's `session.run` (`infer_ms`); detect step = the whole detect step (`detect_start` -> `detect_done`: the
+    frame's decode, crop, resize, inference, decoding of the maps and calibrations); tick wait = time the frame's
+    objects waited at fuse_track for the other cameras of its tick; overhead = end to end - detector (the issue's
+    definition: everything but the inference, the detector's pre- and post-processing and the tick wait included);
+    `overhead_without_tick_wait` = end to end - detector - tick wait (transport, serialisation, decoding, lookup,
+    fusion and tracking: what the microservice split costs beside the fusion's wait for the cameras of a tick, which
+    one process fusing unsynchronised cameras would wait as well).
 
-    `hops` splits end to end by the stamps: ingest -> detect_in (transport of the frame and its wait in
-    detect's latest-only ring while the detector works on another camera's frame), detect_in -> detect (JPEG
-    or raw decode, resize, inference, decode), detect -> localize (transport and lift), localize -> fuse_track
-    arrival (transport), arrival -> tick closed (tick wait), tick closed -> tracks published (fusion,
-    tracking, encoding). `overhead_without_queue` leaves out the tick wait and the ring wait: the split's own
-    cost when the detector has a core to itself."""
+    `hops` splits end to end by the stamps: ingest -> detect_in (serialisation, transport and wake-up: the frame
+    taken off the bus by detect's main loop), detect_in -> detect_start (the frame's wait in detect's latest-only
+    ring for a free worker), detect_start -> detect_done (the whole detect step), detect_done -> detect (the wait for
+    an older frame of its camera to be published first, and the message built), detect -> localize (transport and
+    lift), localize -> fuse_track arrival (transport), arrival -> tick closed (tick wait), tick closed -> tracks
+    published (fusion, tracking and the Tracks message built; its encoding and put come after the stamp).
+    `overhead_without_queue` leaves out the tick wait and the wait in detect's ring: the split's own cost when the
+    detector keeps up with the frames.
+
+    Objects of an older detect (no `detect_start` or `detect_done` stamp, an `infer_ms` that was the whole detect
+    step): their `infer_ms` stands for both the detector and the detect step, and they are left out of the hops
+    those stamps bound and of `overhead_without_queue` (their wait in the ring was not stamped)."""
     by_frame = {(o.camera, o.seq, o.t_capture_ns): o for o in objects}
-    e2e, det, wait, over, over_nw, over_nq = [], [], [], [], [], []
+    e2e, det, step, wait, over, over_nw, over_nq = [], [], [], [], [], [], []
     hops: dict[str, list[float]] = {k: [] for k in HOPS}
     for tr in tracks:
         t_pub = tr.stamp("fuse_track")
@@ -313,29 +336,58 @@ def latency(objects: list[Objects], tracks: list[Tracks]) -> dict:
             o = by_frame.get((cam, seq, t_cap))
             if o is None:
                 continue
-            t_in, t_det, t_loc = o.stamp("detect_in"), o.stamp("detect"), o.stamp("localize")
-            e = (t_pub - o.stamp("ingest")) / 1e6
+            t_ing, t_in, t_det, t_loc = (o.stamp(s) for s in ("ingest", "detect_in", "detect", "localize"))
+            t_start, t_done = optional_stamp(o, "detect_start"), optional_stamp(o, "detect_done")
+            e = (t_pub - t_ing) / 1e6
             w = max(0.0, (t_closed - t_arrive) / 1e6)
-            ring = (t_in - o.stamp("ingest")) / 1e6
             e2e.append(e)
             det.append(o.infer_ms)
+            step.append((t_done - t_start) / 1e6 if t_start is not None and t_done is not None else o.infer_ms)
             wait.append(w)
             over.append(e - o.infer_ms)
             over_nw.append(e - o.infer_ms - w)
-            over_nq.append(e - o.infer_ms - w - ring)
-            for name, dt in zip(HOPS, (ring, (t_det - t_in) / 1e6, (t_loc - t_det) / 1e6, (t_arrive - t_loc) / 1e6,
-                                       w, (t_pub - t_closed) / 1e6), strict=True):
-                hops[name].append(dt)
+            if t_start is not None:
+                over_nq.append(e - o.infer_ms - w - (t_start - t_in) / 1e6)
+            points = (t_ing, t_in, t_start, t_done, t_det, t_loc, t_arrive, t_closed, t_pub)
+            for name, a, b in zip(HOPS, points[:-1], points[1:], strict=True):
+                if name == "tick_wait":
+                    hops[name].append(w)
+                elif a is not None and b is not None:
+                    hops[name].append((b - a) / 1e6)
 
     def pct(x, q):
         return round(float(np.percentile(x, q)), 2) if x else None
 
     return {"frames": len(e2e), "end_to_end_p50": pct(e2e, 50), "end_to_end_p99": pct(e2e, 99),
-            "detector_p50": pct(det, 50), "tick_wait_p50": pct(wait, 50), "tick_wait_p99": pct(wait, 99),
+            "detector_p50": pct(det, 50), "detect_step_p50": pct(step, 50),
+            "tick_wait_p50": pct(wait, 50), "tick_wait_p99": pct(wait, 99),
             "overhead_p50": pct(over, 50), "overhead_p99": pct(over, 99),
             "overhead_without_tick_wait_p50": pct(over_nw, 50), "overhead_without_tick_wait_p99": pct(over_nw, 99),
             "overhead_without_queue_p50": pct(over_nq, 50), "overhead_without_queue_p99": pct(over_nq, 99),
             "hops_p50": {k: pct(v, 50) for k, v in hops.items()}, "hops_p99": {k: pct(v, 99) for k, v in hops.items()}}
+
+
+# detect's start-up line (services/detect: "model <path> on [<providers>], <n> workers x <n> threads")
+DETECT_STARTED = re.compile(r"\bmodel \S.* on (\[[^\]\n]*\]), \d+ workers x \d+ threads")
+
+
+def logged_providers(log: Path, start: int = 0) -> list[str] | None:
+    """The execution providers the detect service says its session runs on: the last start-up line in its log
+    written after byte `start` (this run's); None where there is none."""
+    try:
+        with open(log, "rb") as f:
+            f.seek(start)
+            text = f.read().decode(errors="replace")
+    except OSError:
+        return None
+    for found in reversed(DETECT_STARTED.findall(text)):
+        try:
+            providers = ast.literal_eval(found)
+        except (ValueError, SyntaxError):
+            continue
+        if isinstance(providers, list) and all(isinstance(p, str) for p in providers):
+            return providers
+    return None
 
 
 def objects_rows(objects: list[Objects]) -> list[dict]:
@@ -384,6 +436,28 @@ def track_single_camera(objects: list[Objects], camera: str, tracker_config, geo
     return rows
 
 
+def throughput(pipeline_fps: float, alone: dict, pace: str, pipeline_providers: list[str] | None) -> dict:
+    """The summary's throughput part: the detector alone (`pooled`), the execution providers each side ran on, the
+    playback pace and the pipeline's frames/s against the detector alone's."""
+    return {
+        "detector_alone": alone,
+        # the execution providers the pipeline's detect service ran on (its log's start-up line; None where it is not
+        # found) and those of the detector alone, loaded the same way: a ratio of two different providers is no ratio
+        "providers": {"pipeline_detect": pipeline_providers, "detector_alone": alone.get("providers")},
+        # the playback pace: the throughput figures below measure the pipeline's capacity only at "max" (ingest
+        # publishes a frame as soon as detect takes it); at "1" or "N" ingest publishes at the cameras' rate (N
+        # times it), which caps pipeline_fps and the ratios whatever the pipeline could do
+        "pace": pace,
+        "pipeline_fps": round(pipeline_fps, 2),
+        # pipeline frames/s over the detector alone's (the same run, both passes pooled): the pipeline's capacity
+        # against the detector's at pace "max" only (see `pace`)
+        "throughput_ratio": round(pipeline_fps / alone["fps"], 3),
+        # against one process that decodes each JPEG and runs the detector on it: what the split into services
+        # costs, the decoding every design needs left out (the ratio above charges the pipeline for it)
+        "throughput_ratio_vs_decode_and_detect": round(pipeline_fps / alone["with_decode_fps"], 3),
+    }
+
+
 def run_demo(cfg: DemoConfig, log=print) -> dict:
     from eval.movements import evaluate_movements
     from eval.tracking import GroundTruth, TrackingEvalConfig, evaluate_many, evaluate_tracks
@@ -399,11 +473,13 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
     settings = load_settings(site_path)
     cams = [c.name for c in settings.cameras]
     log("timing the detector alone (before the pipeline; again after it)")
-    timer = DetectorAlone(cfg, rec_dir, settings.detect, {c.name: c.detect_area_px for c in settings.cameras})
+    timer = DetectorAlone(cfg, rec_dir, settings)
     passes = [timer.run()]
     tracks_path = settings.path(settings.fuse_track.record)
     tracks_path.unlink(missing_ok=True)
     launcher = Launcher(UpConfig(site=site_path, log_dir=cfg.out / "logs", restart=False))
+    detect_log = cfg.out / "logs" / "detect.log"  # appended to: this run's lines are those after its present size
+    detect_log_start = detect_log.stat().st_size if detect_log.is_file() else 0
     cpu_at_start: dict[str, float] = {}  # each service's CPU seconds when the first objects arrive: start-up left out
     collector = Collector(settings.site, cfg.port_base, on_first_objects=lambda: cpu_at_start.update(launcher.cpu_s))
     collector.start()
@@ -491,12 +567,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
         "single_camera": {c: {**{k: scores["sources"][c][k] for k in ("mota", "idf1", "traj_err_in_roi_m")},
                               "fused_traj_err_in_roi_m": fused_in[c]} for c in cams},
         "latency_ms": lat,
-        "detector_alone": alone,
-        "pipeline_fps": round(pipeline_fps, 2),
-        "throughput_ratio": round(pipeline_fps / alone["fps"], 3),
-        # against one process that decodes each JPEG and runs the detector on it: what the split into services
-        # costs, the decoding every design needs left out (the ratio above charges the pipeline for it)
-        "throughput_ratio_vs_decode_and_detect": round(pipeline_fps / alone["with_decode_fps"], 3),
+        **throughput(pipeline_fps, alone, cfg.pace, logged_providers(detect_log, detect_log_start)),
         # the same comparison in CPU time, which drifts less with the machine's load than frames/s: the detector's
         # CPU per frame alone (JPEG decode included) over the four services' together; on a CPU-bound machine the
         # frames/s ratio tends to it
@@ -517,6 +588,8 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
 
 def summary_table(s: dict) -> str:
     lat, mv = s["latency_ms"], s["movements"]
+    pace, providers = s.get("pace", "?"), s.get("providers", {})  # an older summary has neither
+    capped = "" if pace in ("max", "?") else ": capped by the cameras' frame rate, not the pipeline's capacity"
     rows = [
         ("MOTA / IDF1 / id switches", f"{s['mota']:.3f} / {s['idf1']:.3f} / {s['id_switches']}"),
         ("trajectory error in ROI (fused)", f"{s['traj_err_in_roi_m']:.3f} m"),
@@ -548,18 +621,21 @@ def summary_table(s: dict) -> str:
         ("region crossings kept", f"{s['handoff_crossing_kept_fraction']:.3f} of {s['handoff_crossings']} "
                                   f"(within {s['handoff_radius_m']:g} m of a camera)"),
         ("end to end p50 / p99", f"{lat['end_to_end_p50']} / {lat['end_to_end_p99']} ms"),
-        ("detector p50", f"{lat['detector_p50']} ms"),
-        ("overhead (end to end - detector) p50 / p99", f"{lat['overhead_p50']} / {lat['overhead_p99']} ms"),
+        ("detector p50 (session.run) / detect step p50", f"{lat['detector_p50']} / {lat.get('detect_step_p50')} ms"),
+        ("overhead (end to end - inference) p50 / p99", f"{lat['overhead_p50']} / {lat['overhead_p99']} ms"),
         ("  without the tick wait", f"{lat['overhead_without_tick_wait_p50']} / "
                                     f"{lat['overhead_without_tick_wait_p99']} ms"),
         ("  and without the ring wait", f"{lat['overhead_without_queue_p50']} / "
                                         f"{lat['overhead_without_queue_p99']} ms"),
         ("tick wait p50 / p99", f"{lat['tick_wait_p50']} / {lat['tick_wait_p99']} ms"),
-        ("throughput vs detector alone", f"{s['throughput_ratio']:.3f} ({s['pipeline_fps']:.1f} frames/s)"),
+        ("throughput vs detector alone", f"{s['throughput_ratio']:.3f} ({s['pipeline_fps']:.1f} frames/s at pace "
+                                         f"{pace}{capped})"),
         ("  detector alone before / after", " / ".join(f"{p['fps']:.1f}" for p in s["detector_alone"]["passes"])
          + " frames/s"),
         ("  vs JPEG decode + detector", f"{s['throughput_ratio_vs_decode_and_detect']:.3f} (in CPU time: "
                                          f"{s['cpu_ratio_vs_decode_and_detect']:.3f})"),
+        ("execution providers: pipeline / alone", " / ".join(", ".join(providers.get(k) or ["?"])
+                                                              for k in ("pipeline_detect", "detector_alone"))),
         ("peak memory (MB)", ", ".join(f"{k} {v:.0f}" for k, v in s["peak_rss_mb"].items())),
         ("CPU per frame (ms)", ", ".join(f"{k} {v:.1f}" for k, v in s.get("cpu_ms_per_frame", {}).items())),
     ]

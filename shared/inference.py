@@ -11,6 +11,7 @@ slower on CPU execution providers).
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -216,13 +217,23 @@ class OnnxDetector:
         camera's full-resolution pixels: look only at that rectangle (a fisheye's image circle: the black sides
         beside it are not computed) and its surroundings (`area_crop`), at the scale of the whole image, so the
         vehicles keep the size the model learnt."""
+        return self.detect_timed(grey, source_scale, area_px)[0]
+
+    def detect_timed(self, grey: np.ndarray, source_scale: float = 1.0,
+                     area_px: tuple[int, int, int, int] | None = None) -> tuple[Detections, float]:
+        """`detect`'s Detections and the time (ms) ONNX Runtime's `session.run` took for them: the inference proper,
+        without the crop, the resize to the network's input, the decoding of its maps or the calibrations. A frame
+        runs the network once (`mirror` runs the image and its mirror as one batch of two: both are in that time).
+        Timed with the calling thread's own clock readings, nothing stored on the detector, so the detect service's
+        worker threads may call it on one shared detector at once."""
         if area_px is None:
-            det = self._detect(grey, source_scale, None)
+            det, run_ms = self._detect_timed(grey, source_scale, None)
         else:
             x0, y0, x1, y1 = self.area_crop(grey.shape, source_scale, area_px)
             scale = self.scale_for(*grey.shape, source_scale)
-            det = self._detect(grey[y0:y1, x0:x1], source_scale, scale).scaled(1.0, 1.0, x0, y0)
-        return self.calibrate(det, grey.shape[1], grey.shape[0])
+            det, run_ms = self._detect_timed(grey[y0:y1, x0:x1], source_scale, scale)
+            det = det.scaled(1.0, 1.0, x0, y0)
+        return self.calibrate(det, grey.shape[1], grey.shape[0]), run_ms
 
     def calibrate(self, det: Detections, width: int, height: int) -> Detections:
         """Decoded detections of a width x height image with the model's box and size calibrations applied (the box
@@ -252,17 +263,24 @@ class OnnxDetector:
         return area_box(wider, shape, source_scale, PAD_MULTIPLE / scale)
 
     def _detect(self, grey: np.ndarray, source_scale: float, scale: float | None) -> Detections:
+        return self._detect_timed(grey, source_scale, scale)[0]
+
+    def _detect_timed(self, grey: np.ndarray, source_scale: float,
+                      scale: float | None) -> tuple[Detections, float]:
+        """`_detect`'s Detections and the ms its `session.run` took (a local timer: nothing shared is written)."""
         x, scale = self.preprocess(grey, source_scale, scale)
+        batch = np.concatenate([x, x[..., ::-1]]) if self.mirror else x  # mirror: the image and its mirror at once
+        t0 = time.perf_counter()
+        outs = self.session.run(None, {self.input_name: batch})
+        run_ms = (time.perf_counter() - t0) * 1e3
         if self.mirror:
-            outs = self.session.run(None, {self.input_name: np.concatenate([x, x[..., ::-1]])})
             maps = mirror_average(dict(zip(self.output_names, outs, strict=True)))
         else:
-            outs = self.session.run(None, {self.input_name: x})
             maps = {name: o[0] for name, o in zip(self.output_names, outs, strict=True)}
         if not self.votes:
             maps.pop("vote", None)
         det = decode(**maps, stride=self.stride, score_thr=self.score_thr, top_k=self.top_k)
-        return network_to_image(det, grey.shape, scale)
+        return network_to_image(det, grey.shape, scale), run_ms
 
 
 def network_to_image(det: Detections, shape: tuple[int, int], scale: float) -> Detections:

@@ -1,30 +1,56 @@
-"""The demo's latency split: end to end, detector, tick wait, overhead and each hop, from the messages' stamps."""
+"""The demo's latency split: end to end, detector, tick wait, overhead and each hop, from the messages' stamps; the
+detector alone loaded as the detect service loads it; the throughput part of the summary."""
 
 from __future__ import annotations
 
+import warnings
+from types import SimpleNamespace
+
+import numpy as np
 import pytest
+import yaml
 from test_contract import T0, make_objects, make_tracks
 
-from roadside.demo import HOPS, latency, pooled
+from roadside.demo import HOPS, latency, logged_providers, pooled, throughput
+from shared.settings import load_settings
 
 MS = 1_000_000
 
 
 def test_hops_add_up_to_end_to_end_and_overhead_leaves_out_detector_wait_and_ring():
-    # ingest at +0, detect pulls it at +10 ms, publishes at +45 (inference 30 ms), localize at +47,
-    # fuse_track gets it at +48, closes the tick at +60 and publishes at +62
-    obj = make_objects(stamps=[("ingest", T0), ("detect_in", T0 + 10 * MS), ("detect", T0 + 45 * MS),
-                               ("localize", T0 + 47 * MS)], infer_ms=30.0, seq=7, camera="NE")
+    # ingest at +0, detect takes it off the bus at +4 ms (transport), out of its ring for a free worker at +10 (a
+    # wait of 6 ms), the worker done at +43 (the detect step: 33 ms, of which session.run 30 ms), published at +45,
+    # localize at +47, fuse_track gets it at +48, closes the tick at +60 and publishes at +62
+    obj = make_objects(stamps=[("ingest", T0), ("detect_in", T0 + 4 * MS), ("detect_start", T0 + 10 * MS),
+                               ("detect_done", T0 + 43 * MS), ("detect", T0 + 45 * MS), ("localize", T0 + 47 * MS)],
+                       infer_ms=30.0, seq=7, camera="NE")
     tr = make_tracks(stamps=[("tick_closed", T0 + 60 * MS), ("fuse_track", T0 + 62 * MS)],
                      frames=[("NE", 7, T0, T0 + 48 * MS), ("SW", 1, T0, T0 + 50 * MS)])  # SW: no objects seen
     r = latency([obj], [tr])
     assert r["frames"] == 1
     assert r["end_to_end_p50"] == 62.0 and r["detector_p50"] == 30.0 and r["tick_wait_p50"] == 12.0
+    assert r["detect_step_p50"] == 33.0  # the whole detect step, its pre- and post-processing with the inference
     assert r["overhead_p50"] == 32.0  # 62 - 30: everything but the inference
-    assert r["overhead_without_tick_wait_p50"] == 20.0  # 62 - 30 - 12: ring 10, decode 5, localize 2, hop 1, track 2
-    assert r["overhead_without_queue_p50"] == 10.0
-    assert r["hops_p50"] == dict(zip(HOPS, (10.0, 35.0, 2.0, 1.0, 12.0, 2.0), strict=True))
+    # 62 - 30 - 12: transport 4, ring 6, pre- and post-processing 3, in order 2, localize 2, hop 1, track 2
+    assert r["overhead_without_tick_wait_p50"] == 20.0
+    assert r["overhead_without_queue_p50"] == 14.0  # the wait in the ring (6 ms) left out, not the transport (4 ms)
+    assert r["hops_p50"] == dict(zip(HOPS, (4.0, 6.0, 33.0, 2.0, 2.0, 1.0, 12.0, 2.0), strict=True))
     assert sum(r["hops_p50"].values()) == pytest.approx(r["end_to_end_p50"])
+
+
+def test_objects_of_an_older_detect_without_its_start_and_done_stamps_are_handled():
+    """A recording of before `detect_start` and `detect_done`: its infer_ms (the whole detect step then) stands for
+    the detector and the step; its wait in the ring is unknown, not taken to be the transport to detect."""
+    obj = make_objects(stamps=[("ingest", T0), ("detect_in", T0 + 4 * MS), ("detect", T0 + 45 * MS),
+                               ("localize", T0 + 47 * MS)], infer_ms=30.0, seq=7, camera="NE")
+    tr = make_tracks(stamps=[("tick_closed", T0 + 60 * MS), ("fuse_track", T0 + 62 * MS)],
+                     frames=[("NE", 7, T0, T0 + 48 * MS)])
+    r = latency([obj], [tr])
+    assert r["frames"] == 1 and r["end_to_end_p50"] == 62.0
+    assert r["detector_p50"] == 30.0 and r["detect_step_p50"] == 30.0
+    assert r["overhead_p50"] == 32.0 and r["overhead_without_tick_wait_p50"] == 20.0
+    assert r["overhead_without_queue_p50"] is None
+    assert r["hops_p50"] == dict(zip(HOPS, (4.0, None, None, None, 2.0, 1.0, 12.0, 2.0), strict=True))
 
 
 def test_no_matching_frames_gives_none():
@@ -45,6 +71,83 @@ def test_detector_alone_passes_pool_as_one_long_pass():
     assert p["ms_p50"] == pytest.approx(32.5) and p["with_decode_ms_p50"] == pytest.approx(60.0)
     assert p["cpu_ms_per_frame"] == pytest.approx(70.0) and p["with_decode_cpu_ms_per_frame"] == pytest.approx(100.0)
     assert p["passes"] == [{"fps": 20.0, "with_decode_fps": 10.0}, {"fps": 40.0, "with_decode_fps": 20.0}]
+
+
+def test_the_summary_records_the_pace_and_the_providers_and_keeps_the_ratio():
+    """At pace 1 ingest publishes at the cameras' rate: the ratio is what it is, and the summary says at which pace."""
+    alone = {"fps": 68.5, "with_decode_fps": 63.0, "providers": ["CPUExecutionProvider"]}
+    out = throughput(40.0, alone, "1", ["CPUExecutionProvider"])
+    assert out["pace"] == "1" and out["pipeline_fps"] == 40.0
+    assert out["throughput_ratio"] == round(40.0 / 68.5, 3)
+    assert out["throughput_ratio_vs_decode_and_detect"] == round(40.0 / 63.0, 3)
+    assert out["providers"] == {"pipeline_detect": ["CPUExecutionProvider"], "detector_alone": ["CPUExecutionProvider"]}
+    assert out["detector_alone"] is alone
+    assert throughput(40.0, alone, "max", None)["pace"] == "max"
+
+
+def test_the_pipeline_providers_are_read_from_this_runs_start_up_line_of_detect(tmp_path):
+    log = tmp_path / "detect.log"
+    log.write_text("2026-11-29 14:28:05,010 detect INFO model /m/detector_fp32.onnx on ['CPUExecutionProvider'], "
+                   "2 workers x 1 threads\n")
+    start = log.stat().st_size  # an older run's line before it
+    assert logged_providers(log, start) is None
+    with open(log, "a") as f:
+        f.write("2026-12-01 10:00:00,000 detect INFO model /m/a b.onnx on ['CUDAExecutionProvider', "
+                "'CPUExecutionProvider'], 2 workers x 1 threads\n2026-12-01 10:00:01,000 detect INFO other\n")
+    assert logged_providers(log, start) == ["CUDAExecutionProvider", "CPUExecutionProvider"]
+    assert logged_providers(log) == ["CUDAExecutionProvider", "CPUExecutionProvider"]  # the last one
+    assert logged_providers(tmp_path / "none.log") is None
+
+
+def test_the_detector_alone_is_loaded_as_the_detect_service_loads_it(tmp_path, monkeypatch):
+    """Where ONNX Runtime has CUDA the detect service asks for it (TensorRT -> CUDA -> CPU): the detector alone asked
+    for the CPU alone, so on a GPU machine the throughput ratio divided a GPU's frames/s by a CPU's. Both are asked
+    for the same providers now, and the providers each session runs on are recorded."""
+    import cv2
+    import onnxruntime as ort
+
+    import services.detect.__main__ as detect
+    import shared.inference
+    import sim.recording
+    from roadside.demo import DEFAULT_MODEL, DemoConfig, DetectorAlone
+
+    model = DEFAULT_MODEL
+    available = ort.get_available_providers
+    monkeypatch.setattr(ort, "get_available_providers",
+                        lambda: ["CUDAExecutionProvider", *(p for p in available() if p != "CUDAExecutionProvider")])
+    asked = []
+
+    class Recorded(shared.inference.OnnxDetector):
+        def __init__(self, path, providers=None, **kw) -> None:
+            asked.append(providers)
+            super().__init__(path, providers=providers, **kw)
+
+    monkeypatch.setattr(shared.inference, "OnnxDetector", Recorded)
+    monkeypatch.setattr(detect, "OnnxDetector", Recorded)
+    image = tmp_path / "frame.jpg"
+    cv2.imwrite(str(image), np.full((96, 128), 90, np.uint8))
+
+    class Recording:  # a one-camera recording of two frames
+        def __init__(self, path) -> None:
+            self.cameras = {"NE": SimpleNamespace(width=128, height=96)}
+            self.camera_names = ["NE"]
+
+        def frames(self, camera: str) -> list:
+            return [(0, image), (1, image)]
+
+    monkeypatch.setattr(sim.recording, "Recording", Recording)
+    site = {"site": "t", "cameras": [{"name": "NE", "kind": "fisheye", "width": 128, "height": 96}],
+            "detect": {"model": str(model), "model_gpu": None, "threads": 1}}  # as the demo's site: no providers
+    (tmp_path / "site.yaml").write_text(yaml.safe_dump(site))
+    settings = load_settings(tmp_path / "site.yaml")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # ONNX Runtime's own: CUDA is not in this build
+        timer = DetectorAlone(DemoConfig(out=tmp_path, model=model, baseline_frames=2), tmp_path, settings)
+        service = detect.load_detector(settings)
+    assert asked == [["CUDAExecutionProvider", "CPUExecutionProvider"]] * 2  # the baseline's, then the service's
+    one = timer.run()
+    assert one["providers"] == timer.det.providers == service.providers
+    assert pooled([one, timer.run()])["providers"] == service.providers
 
 
 def test_summary_table_renders_a_summary():
@@ -81,3 +184,11 @@ def test_summary_table_renders_a_summary():
     assert "0.930 (1 sigma: 0.450; median half-axis 1.23 m); velocity 0.921" in table
     assert "0.951 (1 sigma: 0.680; median sigma 8.0 deg)" in table
     assert "0.58 / 0.96 m; 0.50 / 0.58 m (95 % ellipse holds 0.903 / 0.891)" in table
+    assert "0.800 (60.0 frames/s at pace ?)" in table  # a summary of before the pace was recorded
+    s |= {"pace": "1", "providers": {"pipeline_detect": ["CUDAExecutionProvider", "CPUExecutionProvider"],
+                                     "detector_alone": ["CUDAExecutionProvider", "CPUExecutionProvider"]}}
+    s["latency_ms"] = {**lat, "detect_step_p50": 2.0}
+    table = summary_table(s)
+    assert "0.800 (60.0 frames/s at pace 1: capped by the cameras' frame rate, not the pipeline's capacity)" in table
+    assert "CUDAExecutionProvider, CPUExecutionProvider / CUDAExecutionProvider, CPUExecutionProvider" in table
+    assert "1.0 / 2.0 ms" in table

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import queue
 import threading
+import time
 import warnings
 from collections import Counter
 from pathlib import Path
@@ -266,3 +267,110 @@ def test_a_frame_older_than_one_already_detected_is_still_detected(tmp_path, mon
     bus.run(settings, script)
     assert [m.seq for m in bus.published] == [3, 2]
     assert bus.counts["frames_skipped"] == 0 and bus.bad.total == 0
+
+
+# --- what detect stamps and times ---------------------------------------------------------------------------------
+
+
+class SlowRuns:
+    """A detector's ONNX Runtime session whose runs take longer: a frame of an odd grey level by `slow_s`, of an
+    even one by `fast_s` (the input is the whole frame, unscaled: its level is the input's). Each run's own time is
+    kept by level (`run_ms`); `started` is set when a slow run has begun."""
+
+    def __init__(self, session, slow_s: float, fast_s: float) -> None:
+        self.session, self.slow_s, self.fast_s = session, slow_s, fast_s
+        self.run_ms: dict[int, float] = {}
+        self.started = threading.Event()
+
+    def run(self, names, feeds):
+        t0 = time.perf_counter()
+        level = round(float(next(iter(feeds.values())).mean()) * 255)
+        if level % 2:
+            self.started.set()
+        out = self.session.run(names, feeds)
+        time.sleep(self.slow_s if level % 2 else self.fast_s)
+        self.run_ms[level] = (time.perf_counter() - t0) * 1e3
+        return out
+
+    def __getattr__(self, name: str):
+        return getattr(self.session, name)
+
+
+def slow_detector(monkeypatch, slow_s: float, fast_s: float, preprocess_s: float = 0.0) -> SlowRuns:
+    """detect's detector made slower: its session's runs (`SlowRuns`) and its pre-processing by `preprocess_s`."""
+    runs: list[SlowRuns] = []
+
+    def load_detector(settings):
+        d = OnnxDetector(FP32, providers=["CPUExecutionProvider"], threads=1, score_thr=0.3)
+        d.session = SlowRuns(d.session, slow_s, fast_s)
+        runs.append(d.session)
+        preprocess = d.preprocess
+
+        def slow_preprocess(*args, **kw):
+            time.sleep(preprocess_s)
+            return preprocess(*args, **kw)
+
+        d.preprocess = slow_preprocess
+        return d
+
+    monkeypatch.setattr(detect, "load_detector", load_detector)
+    return runs
+
+
+def send_level(bus: FakeBus, seq: int, level: int) -> None:
+    bus.frames.put(Frame(site="t", camera="NE", seq=seq, t_capture_ns=T0 + seq * 100_000_000, camera_kind="fisheye",
+                         encoding="gray8", width=W, height=H, data=np.full((H, W), level, np.uint8).tobytes()))
+    if bus.wake is not None:
+        bus.wake.set()
+
+
+def test_infer_ms_is_each_frames_own_session_run_and_the_stamps_carry_the_whole_step(tmp_path, monkeypatch):
+    """infer_ms is the inference proper (session.run), not the crop, resize and decoding around it (which the demo's
+    overhead must count); the two workers share one detector, and each frame gets its own run's time all the same.
+    The whole detect step is detect_done - detect_start."""
+    settings = site_settings(tmp_path, workers=2, ring=8)
+    runs = slow_detector(monkeypatch, slow_s=0.3, fast_s=0.02, preprocess_s=0.1)
+    bus = FakeBus(monkeypatch)
+    levels = {seq: 40 + seq for seq in range(1, 7)}  # odd seq: odd level, a slow run; even seq: a fast one
+
+    def script(done) -> None:
+        assert wait_until(lambda: done() or bus.wake is not None, WAIT_S)
+        for seq, level in levels.items():
+            send_level(bus, seq, level)
+        assert wait_until(lambda: done() or len(bus.published) == len(levels), WAIT_S)
+
+    bus.run(settings, script)
+    assert sorted(m.seq for m in bus.published) == sorted(levels) and bus.bad.total == 0
+    (session,) = runs
+    for m in bus.published:
+        own = session.run_ms[levels[m.seq]]
+        # its own run (inside the detector's timer), never the other worker's, nor the 100 ms of pre-processing
+        assert own - 0.01 <= m.infer_ms < own + 50, (m.seq, m.infer_ms, own)
+        assert (m.infer_ms >= 300) == (m.seq % 2 == 1), (m.seq, m.infer_ms)
+        assert [s for s, _ in m.stamps] == ["detect_in", "detect_start", "detect_done", "detect"]
+        t = dict(m.stamps)
+        assert t["detect_in"] <= t["detect_start"] <= t["detect_done"] <= t["detect"]
+        assert (t["detect_done"] - t["detect_start"]) / 1e6 >= m.infer_ms + 100  # the step: pre-processing too
+
+
+def test_a_frame_that_comes_while_the_worker_is_busy_waits_in_the_ring_between_detect_in_and_detect_start(
+        tmp_path, monkeypatch):
+    """detect_in is when the frame comes off the bus, detect_start when a worker is free for it: the demo's wait in
+    detect's ring is the time between (before, it had only detect_in and took the transport to it for that wait)."""
+    settings = site_settings(tmp_path, workers=1)
+    runs = slow_detector(monkeypatch, slow_s=0.4, fast_s=0.0)
+    bus = FakeBus(monkeypatch)
+
+    def script(done) -> None:
+        assert wait_until(lambda: done() or bus.wake is not None, WAIT_S)
+        send_level(bus, 1, 41)  # slow
+        assert wait_until(lambda: done() or (runs and runs[0].started.is_set()), WAIT_S)
+        send_level(bus, 2, 42)  # while the one worker is on frame 1
+        assert wait_until(lambda: done() or len(bus.published) == 2, WAIT_S)
+
+    bus.run(settings, script)
+    first, second = sorted(bus.published, key=lambda m: m.seq)
+    wait_ms = [(m.stamp("detect_start") - m.stamp("detect_in")) / 1e6 for m in (first, second)]
+    assert wait_ms[0] < 100, wait_ms  # a free worker: taken at once
+    assert wait_ms[1] >= 200, wait_ms  # most of frame 1's 400 ms run left when it came
+    assert second.stamp("detect_start") >= first.stamp("detect_done")

@@ -249,11 +249,11 @@ def test_chain_plays_two_frames_through_all_four_services(site, site_name, small
     assert sum(len(d) for d in dets) > 0, "the detector found nothing below its threshold"
     for d in dets:
         assert (d.camera, d.width, d.height) == (CAMERA, 1280, 960)
-        assert stages(d) == ["ingest", "detect_in", "detect"]
+        assert stages(d) == ["ingest", "detect_in", "detect_start", "detect_done", "detect"]
     objs = sorted(peer.got["objects"], key=lambda m: m.seq)
     assert [o.t_capture_ns for o in objs] == frame_times
     for o in objs:
-        assert stages(o) == ["ingest", "detect_in", "detect", "localize"]
+        assert stages(o) == ["ingest", "detect_in", "detect_start", "detect_done", "detect", "localize"]
         t = [t for _, t in o.stamps]
         assert t == sorted(t), o.stamps
     assert peer.got["tracks"]

@@ -19,6 +19,14 @@ A frame decoded smaller than the model's input needs (`Frame.scale`: ingest's `d
 model's `input_long_side`) is enlarged back to the scale the model was trained at, with one warning per camera.
 A camera's `detect_area_px` (its fisheye image circle) limits the inference to that rectangle, at the whole
 image's scale.
+
+Each Detections carries four stamps of detect's (wall clock): `detect_in` when the main loop takes the frame off the
+bus, `detect_start` when it takes the frame out of its ring for a free worker (the time between is the frame's wait
+in the ring), `detect_done` when the worker has its detections (the whole detect step: the frame's decode, the crop
+and resize, the inference, the decoding of the maps and the calibrations) and `detect` when the message is built (after
+any wait for an older frame of its camera). `infer_ms` is the inference proper, ONNX Runtime's `session.run` alone
+(`OnnxDetector.detect_timed`). Detections of an older detect have `detect_in` and `detect` alone, and an `infer_ms`
+that was the whole detect step.
 """
 
 from __future__ import annotations
@@ -117,14 +125,20 @@ def load_detector(settings: Settings) -> OnnxDetector:
     return detector
 
 
-def detections_message(frame: Frame, det, infer_ms: float, t_in_ns: int) -> Detections:
+def detections_message(frame: Frame, det, infer_ms: float, t_in_ns: int, t_start_ns: int | None = None,
+                       t_done_ns: int | None = None) -> Detections:
+    """The Detections of a frame: `infer_ms` the inference proper (`session.run`), `t_in_ns` when the frame came
+    off the bus, `t_start_ns` when it left the ring for a worker, `t_done_ns` when the worker had its detections
+    (each stamped where given; the `detect` stamp is now)."""
     inv = 1.0 / frame.scale
     # pixel centres: original q + 0.5 = (p + 0.5) / scale
     d = det.scaled(inv, inv, 0.5 * inv - 0.5, 0.5 * inv - 0.5) if frame.scale != 1.0 else det
     f4 = np.float32
     return Detections(
         site=frame.site, camera=frame.camera, seq=frame.seq, t_capture_ns=frame.t_capture_ns,
-        stamps=[*frame.stamps, ("detect_in", t_in_ns), ("detect", time.time_ns())],
+        stamps=[*frame.stamps, ("detect_in", t_in_ns),
+                *((name, t) for name, t in (("detect_start", t_start_ns), ("detect_done", t_done_ns)) if t is not None),
+                ("detect", time.time_ns())],
         width=round(frame.width / frame.scale), height=round(frame.height / frame.scale), infer_ms=round(infer_ms, 3),
         score=d.score.astype(f4), uv=d.uv.astype(f4), box=d.box.astype(f4), heading_uv=d.heading_uv.astype(f4),
         size_lwh=d.size_lwh.astype(f4), vtype=d.vtype.astype(np.int8))
@@ -146,10 +160,11 @@ def main(settings: Settings, stopper: Stopper) -> int:
         pubs = {c: session.declare_publisher(camera_key(settings.site, c, "detections")) for c in cams}
         tokens = declare_alive(session, settings.site, "detect", cams)  # after the subscribers: ready
         status = StatusReporter(session, settings.site, "detect", bad, settings.bus.status_period_s)
-        infer_avg = math.nan  # exponential mean of the inference time over ~10 frames
+        infer_avg = math.nan  # exponential mean of the inference time (session.run) over ~10 frames
+        step_avg = math.nan  # the same of the whole detect step (decode, crop, resize, inference, decode of the maps)
         ring_skipped = 0  # frames the channels' rings replaced by newer ones, counted so far
-        waiting: list[tuple[int, Frame]] = []
-        running: list[tuple[Future, Frame, int]] = []
+        waiting: list[tuple[int, Frame]] = []  # (when it came off the bus, the frame)
+        running: list[tuple[Future, Frame, int, int]] = []  # (inference, frame, off the bus, out of the ring)
         warned: set[str] = set()  # cameras whose frames come too small for the model
         ort_errors = runtime_errors()
         done = 0
@@ -158,9 +173,10 @@ def main(settings: Settings, stopper: Stopper) -> int:
         sizes = {c.name: (c.width, c.height) for c in settings.cameras}
 
         def infer(img: np.ndarray, scale: float, area: tuple[int, int, int, int] | None):
-            t0 = time.perf_counter()
-            det = detector.detect(img, scale, area)
-            return det, (time.perf_counter() - t0) * 1e3
+            """In a worker thread: the detections, the ms of `session.run` alone (timed in this thread: the workers
+            share one detector) and when they were done (wall clock)."""
+            det, run_ms = detector.detect_timed(img, scale, area)
+            return det, run_ms, time.time_ns()
 
         while not stopper.is_set():
             for c, r in receivers.items():
@@ -179,6 +195,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
                 ring_skipped = now_skipped
             while waiting and len(running) < workers:
                 t_in, frame = waiting.pop(0)
+                t_start = time.time_ns()  # out of the ring for a free worker: its wait ends, its detect step starts
                 try:
                     img = frame_image(frame, sizes[frame.camera])
                 except ValueError as exc:
@@ -191,14 +208,14 @@ def main(settings: Settings, stopper: Stopper) -> int:
                                 frame.width, frame.height, detector.long_side, detector.long_side)
                 future = pool.submit(infer, img, frame.scale, areas[frame.camera])
                 future.add_done_callback(lambda _: wake.set())
-                running.append((future, frame, t_in))
+                running.append((future, frame, t_in, t_start))
             for item in sorted((r for r in running if r[0].done()), key=lambda r: r[1].t_capture_ns):
                 if behind(item, running):
                     continue
                 running.remove(item)
-                future, frame, t_in = item
+                future, frame, t_in, t_start = item
                 try:
-                    det, infer_ms = future.result()
+                    det, infer_ms, t_done = future.result()
                 except ValueError as exc:  # the camera's detect area leaves nothing of a frame this size
                     bad(f"camera {frame.camera} seq {frame.seq}: {exc}", frame.camera)
                     continue
@@ -211,7 +228,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
                         f"image ({' '.join(str(exc).split())[:300]})", frame.camera)
                     continue
                 try:
-                    msg = detections_message(frame, det, infer_ms, t_in)
+                    msg = detections_message(frame, det, infer_ms, t_in, t_start, t_done)
                 except ValueError as exc:  # e.g. NaN out of the model: the frame's detections cannot be sent
                     bad(f"camera {frame.camera} seq {frame.seq}: detections refused ({exc})", frame.camera)
                     continue
@@ -219,6 +236,9 @@ def main(settings: Settings, stopper: Stopper) -> int:
                 status.count("detections_out", output=True)
                 infer_avg = infer_ms if math.isnan(infer_avg) else 0.9 * infer_avg + 0.1 * infer_ms
                 status.gauge("infer_ms_avg", infer_avg)
+                step_ms = (t_done - t_start) / 1e6
+                step_avg = step_ms if math.isnan(step_avg) else 0.9 * step_avg + 0.1 * step_ms
+                status.gauge("detect_step_ms_avg", step_avg)
                 done += 1
             if not any(r[0].done() and not behind(r, running) for r in running) and (
                     not waiting or len(running) >= workers):
@@ -233,11 +253,11 @@ def main(settings: Settings, stopper: Stopper) -> int:
     return 0
 
 
-def behind(item: tuple[Future, Frame, int], running: list[tuple[Future, Frame, int]]) -> bool:
+def behind(item: tuple[Future, Frame, int, int], running: list[tuple[Future, Frame, int, int]]) -> bool:
     """Whether an older frame of `item`'s camera is still running, in inference or done and not yet published:
     `item` is published after it. (Done or not: one that finished a moment ago is published first, being older.)"""
     frame = item[1]
-    return any(f.camera == frame.camera and f.t_capture_ns < frame.t_capture_ns for _, f, _ in running)
+    return any(r[1].camera == frame.camera and r[1].t_capture_ns < frame.t_capture_ns for r in running)
 
 
 def newest_per_camera(waiting: list[tuple[int, Frame]], ring: int) -> list[tuple[int, Frame]]:

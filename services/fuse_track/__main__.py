@@ -203,8 +203,8 @@ def main(settings: Settings, stopper: Stopper) -> int:
                         "(the lowest scores)", "tick")
                 try:
                     state = fuse_and_track(fusion, tracker, batches, tick.t_ref_ns, tick.batches.keys())
-                    msg = tracks_message(settings.site, state, tick.t_ref_ns, seq, geo,
-                                         [("tick_closed", t_closed), ("fuse_track", time.time_ns())], tick_frames(tick))
+                    msg = tracks_message(settings.site, state, tick.t_ref_ns, seq, geo, [("tick_closed", t_closed)],
+                                         tick_frames(tick))
                 except ValueError as exc:  # what validation let through and fusion, the tracker or Tracks cannot take
                     bad(f"tick at {tick.t_ref_ns} dropped: {exc}", "tick")
                     continue
@@ -212,6 +212,10 @@ def main(settings: Settings, stopper: Stopper) -> int:
                     log.exception("tick at %d: internal error", tick.t_ref_ns)
                     bad(f"tick at {tick.t_ref_ns} dropped: internal error ({type(exc).__name__}: {exc})", "tick")
                     continue
+                # the tracks-published stamp, once the message is built and validated and just before it is encoded:
+                # the encoding and the put come after it and are left out of it (a stamp the message carries cannot
+                # cover the encoding of that message)
+                msg.stamps.append(("fuse_track", time.time_ns()))
                 payload = encode(msg)
                 pub.put(payload)
                 held_latest(latest, payload)
