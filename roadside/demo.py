@@ -36,6 +36,10 @@ from shared.messages import Objects, Tracks
 from shared.settings import BusSettings, Settings
 
 REPO = Path(__file__).resolve().parent.parent
+# the simulated replica of the State/Ellsworth roundabout: same origin and the same UTC minute as the real footage,
+# so a site name of its own keeps its tracks apart from the real site's (`eval real`, `counts` refuse tracks of
+# another site than the one they are given)
+DEMO_SITE = "state_ellsworth_sim"
 DEFAULT_MODEL = REPO / "models" / "detector_fp32.onnx"
 
 
@@ -134,7 +138,7 @@ def make_site(cfg: DemoConfig, rec_dir: Path, log) -> tuple[Path, dict]:
         cameras.append({"name": name, "kind": cam.kind, "width": cam.width, "height": cam.height,
                         "masks": f"masks/{name}.npz", "detect_area_px": list(cam.image_area_px())})
     site = {
-        "site": "state_ellsworth",
+        "site": DEMO_SITE,
         "origin": origin,
         "cameras": cameras,
         "bus": {"mode": "peer", "port_base": cfg.port_base},

@@ -277,3 +277,19 @@ def test_output_read_by_a_reader_that_goes_away_ends_quietly(tmp_path):
                          shell=True, cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert run.stdout == "start,end,observed_s,from,to,turn,vehicles\n", run.stdout
     assert "error" not in run.stderr and "Broken" not in run.stderr, run.stderr
+
+
+def test_the_demos_simulated_tracks_are_not_scored_as_the_real_sites(tmp_path, capsys):
+    """The demo replays a simulated State/Ellsworth at the real footage's UTC minute: under the real site's name its
+    tracks were scored against the hand labels of real frames as if they were the real pipeline's."""
+    from roadside.demo import DEMO_SITE
+
+    tracks = tmp_path / "tracks.jsonl"
+    tracks.write_text("".join(json.dumps({"site": DEMO_SITE, "seq": k, "t_ns": 1_703_001_600_000_000_000 + k * 10**8,
+                                          "tracker": "t", "tracks": []}) + "\n" for k in range(5)))
+    site = ROOT / "deploy" / "sites" / "state_ellsworth"
+    assert DEMO_SITE != load_settings(site).site
+    for argv in (["eval", "real", "--tracks", str(tracks), "--site", str(site)],
+                 ["counts", str(tracks), "--site", str(site)]):
+        assert main(argv) == 2
+        assert f"the tracks are of site {DEMO_SITE}" in capsys.readouterr().err
