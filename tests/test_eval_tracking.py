@@ -68,6 +68,11 @@ def _write_recording(out: Path) -> Path:
                                  "parked": vid in (4, 5)})
             lines.append(json.dumps({"t_ns": t, "file": f"frames/{name}/{t}.jpg", "vehicles": vehicles}))
         (out / "gt" / f"{name}.jsonl").write_text("\n".join(lines) + "\n")
+    return _write_meta(out, cameras)
+
+
+def _write_meta(out: Path, cameras: list[dict]) -> Path:
+    """recording.json of a test recording with these cameras; the recording's folder."""
     meta = {"format": "roadside-recording", "version": 1,
             "site": {"name": "test", "origin": {"lat_deg": 42.0, "lon_deg": -83.0, "alt_m": 0.0}},
             "hz": HZ, "seconds": N_FRAMES / HZ, "t0_ns": T0, "cameras": cameras}
@@ -513,11 +518,7 @@ def _write_fisheye_and_pinhole_recording(out: Path) -> Path:
                         for vid, xy in where.items()]
             lines.append(json.dumps({"t_ns": t, "file": f"frames/{name}/{t}.jpg", "vehicles": vehicles}))
         (out / "gt" / f"{name}.jsonl").write_text("\n".join(lines) + "\n")
-    meta = {"format": "roadside-recording", "version": 1,
-            "site": {"name": "test", "origin": {"lat_deg": 42.0, "lon_deg": -83.0, "alt_m": 0.0}},
-            "hz": HZ, "seconds": N_FRAMES / HZ, "t0_ns": T0, "cameras": cameras}
-    (out / "recording.json").write_text(json.dumps(meta))
-    return out
+    return _write_meta(out, cameras)
 
 
 def test_a_pinhole_cameras_area_is_in_its_own_image(tmp_path):
