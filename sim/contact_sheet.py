@@ -31,8 +31,9 @@ def _draw(img: np.ndarray, vehicles: list[dict], scale: float) -> None:
                 1,
                 cv2.LINE_AA,
             )
-        corners = (np.array(v["corners_uv"]) * scale).round().astype(np.int32)
-        cv2.polylines(img, [corners], True, (0, 230, 255), 1, cv2.LINE_AA)
+        if v["corners_uv"] is not None and all(c is not None for c in v["corners_uv"]):  # none behind the camera
+            corners = (np.array(v["corners_uv"]) * scale).round().astype(np.int32)
+            cv2.polylines(img, [corners], True, (0, 230, 255), 1, cv2.LINE_AA)
         if v["uv"] is not None and v["in_image"]:
             u, w = (np.array(v["uv"]) * scale).round().astype(int)
             cv2.circle(img, (u, w), 2, (0, 0, 255), -1, cv2.LINE_AA)

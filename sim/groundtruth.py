@@ -8,7 +8,7 @@ from shared.cameras import Camera
 from shared.geo import GeoFrame
 from shared.ground import Terrain
 from sim.geometry import rect
-from sim.render import RenderResult
+from sim.render import RenderResult, clipped_box_image_points, image_border
 from sim.traffic import VEHICLE_TYPES, SceneState
 
 _GRID = np.array([[a, b, c] for a in np.linspace(-1, 1, 5) for b in np.linspace(-1, 1, 5) for c in (0.0, 0.5, 1.0)])
@@ -25,7 +25,10 @@ def frame_ground_truth(
 
     Units: metres and radians in the site ENU frame; pixels in the original image (see
     shared.cameras for the pixel convention); `box` = [x1, y1, x2, y2] of the projected 3D box
-    clipped to the image; `box_visible` = bounds of the pixels actually showing the vehicle.
+    clipped to the image (for a pinhole camera with part of the box behind it, the bounds of the box
+    clipped at the camera plane as far as it shows in the image); `box_visible` = bounds of the pixels
+    actually showing the vehicle; `corners_uv` = the footprint corners, null for a corner outside the
+    lens model's field of view (behind a pinhole camera, say), as `uv` is null for such a bottom centre.
     """
     n = len(scene)
     if n == 0:
@@ -45,6 +48,7 @@ def frame_ground_truth(
     ends = np.searchsorted(vals_s, np.arange(n), side="right")
     out = []
     w_max, h_max = camera.width - 1, camera.height - 1
+    border = None
     for i in range(n):
         if result.hit_px[i] == 0 and not in_img[i]:
             continue
@@ -56,14 +60,23 @@ def frame_ground_truth(
         pts = bottom[i] + local @ rot.T
         puv, pok = camera.project(pts)
         box = None
-        if pok.any():
+        if camera.kind == "pinhole" and not pok.all():
+            # Part of the box is behind the camera (or beyond the lens model's field of view): the samples in
+            # front would give only part of its image, so the box comes from its edges clipped at the camera plane.
+            if border is None:
+                border = image_border(camera)
+            half = np.array([l / 2, w / 2, h / 2])
+            p = clipped_box_image_points(camera, bottom[i] + [0.0, 0.0, h / 2], half, scene.yaw[i], *border)
+        else:
             p = puv[pok]
+        if len(p):
             x1, y1 = np.clip(p.min(0), 0, [w_max, h_max])
             x2, y2 = np.clip(p.max(0), 0, [w_max, h_max])
             if x2 > x1 and y2 > y1:
                 box = _r([x1, y1, x2, y2], 2)
         corners = np.column_stack([rect(scene.xy[i], l, w, scene.yaw[i]), np.full(4, z[i])])
-        cuv, _ = camera.project(corners)
+        cuv, cok = camera.project(corners)
+        corners_uv = [_r(c, 2) if good else None for c, good in zip(cuv, cok, strict=True)]
         box_visible = None
         if vis_px[i] > 0:
             sx, sy = xs_s[starts[i] : ends[i]], ys_s[starts[i] : ends[i]]
@@ -81,7 +94,7 @@ def frame_ground_truth(
                 "in_image": bool(in_img[i]),
                 "box": box,
                 "box_visible": box_visible,
-                "corners_uv": _r(cuv, 2),
+                "corners_uv": corners_uv,
                 "visible_px": int(vis_px[i]),
                 "visible_fraction": round(float(vis_px[i] / result.hit_px[i]), 4) if result.hit_px[i] else 0.0,
                 "parked": bool(scene.parked[i]),

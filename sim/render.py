@@ -125,6 +125,63 @@ def _box_corners(center: np.ndarray, half: np.ndarray, yaw: float) -> np.ndarray
     return center + loc @ rot.T
 
 
+# The 12 edges of a box as pairs of _box_corners indices (corners that differ in one sign).
+_BOX_EDGES = [(a, b) for a in range(8) for b in range(a + 1, 8) if (a ^ b) in (1, 2, 4)]
+NEAR_PLANE_M = 1e-3
+EDGE_STEP_M = 0.05
+
+
+def image_border(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """The pixel centres (K, 2) of the image's outermost rows and columns that have a ray, and their world
+    ray directions (K, 3)."""
+    w, h = camera.width, camera.height
+    u, v = np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64)
+    uv = np.concatenate(
+        [
+            np.column_stack([u, np.zeros(w)]),
+            np.column_stack([u, np.full(w, h - 1.0)]),
+            np.column_stack([np.zeros(h), v]),
+            np.column_stack([np.full(h, w - 1.0), v]),
+        ]
+    )
+    dirs, ok = camera.unproject(uv)
+    return uv[ok], dirs[ok]
+
+
+def clipped_box_image_points(
+    camera: Camera, center: np.ndarray, half: np.ndarray, yaw: float, border_uv: np.ndarray, border_dirs: np.ndarray
+) -> np.ndarray:
+    """Image points (K, 2), K may be 0, whose bounds are the bounds of an oriented box's image clipped to the
+    image, also when part of the box is behind the camera or outside the lens model's field of view.
+
+    The points are samples of the box's edges clipped at the camera plane (z = NEAR_PLANE_M in the camera
+    frame) that project into the image, and the border pixels (from `image_border`) whose rays hit the box.
+    Where the box's image leaves the image it crosses the border, so together they hold the bounds.
+    """
+    corners = _box_corners(center, half, yaw)
+    zc = camera.pose.to_camera(corners)[:, 2]
+    segments = []
+    for a, b in _BOX_EDGES:
+        za, zb = zc[a], zc[b]
+        if za <= NEAR_PLANE_M and zb <= NEAR_PLANE_M:
+            continue
+        pa, pb = corners[a], corners[b]
+        if za < NEAR_PLANE_M:
+            pa = pa + (pb - pa) * ((NEAR_PLANE_M - za) / (zb - za))
+        elif zb < NEAR_PLANE_M:
+            pb = pb + (pa - pb) * ((NEAR_PLANE_M - zb) / (za - zb))
+        n = int(min(512, max(8, math.ceil(float(np.linalg.norm(pb - pa)) / EDGE_STEP_M)))) + 1
+        segments.append(pa + np.linspace(0.0, 1.0, n)[:, None] * (pb - pa))
+    points = [np.zeros((0, 2))]
+    if segments:
+        uv, ok = camera.project(np.concatenate(segments))
+        points.append(uv[ok & camera.in_image(uv)])
+    if len(border_dirs):
+        t, _, _ = ray_boxes(camera.pose.position_m, border_dirs, center[None], half[None], np.array([yaw]))
+        points.append(border_uv[np.isfinite(t)])
+    return np.concatenate(points)
+
+
 class ShadowCaster:
     """Shadow rasters (SHADOW_RES_M per pixel) over the site, uint8 0..255 (255 = full shadow)."""
 
@@ -200,6 +257,7 @@ class CameraRenderer:
         ok &= camera.in_image(grid)
         self.dirs = dirs.astype(np.float32).reshape(h, w, 3)
         self.valid = ok.reshape(h, w)
+        self.border = image_border(camera) if camera.kind == "pinhole" else (np.zeros((0, 2)), np.zeros((0, 3)))
         origin = camera.pose.position_m
         terrain = world.site.ground
         pts, t_ground, hit = terrain.intersect(origin, dirs, max_range_m=world.site.extent_m * 3)
@@ -307,8 +365,9 @@ class CameraRenderer:
         img = src
         for lv in range(int(level.max()) + 1):
             scale = 2.0**lv
-            mx = ((px[..., 0] + 0.5) / scale - 0.5).astype(np.float32)
-            my = ((px[..., 1] + 0.5) / scale - 0.5).astype(np.float32)
+            # cv2.pyrDown centres coarse texel i on fine texel 2 i, so level lv holds texel x at x / 2**lv.
+            mx = (px[..., 0] / scale).astype(np.float32)
+            my = (px[..., 1] / scale).astype(np.float32)
             sampled = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
             if sampled.ndim == 2:
                 sampled = sampled[..., None]
@@ -427,12 +486,18 @@ class CameraRenderer:
         local[:, 2] = g[:, 2] * (h + 0.05)
         world = base + local @ rot.T
         uv, ok = cam.project(world)
-        if not ok.any():
-            return 0
-        if not ok.all():
-            if cam.kind == "pinhole" and (cam.pose.to_camera(world)[:, 2] <= 0.1).any():
+        if cam.kind == "pinhole" and not ok.all():
+            # Part of the box is behind the camera (or beyond the lens model's field of view), where the
+            # samples tell nothing about its image: the crop comes from the box clipped at the camera plane.
+            half = np.array([l / 2 + 0.05, w / 2 + 0.05, (h + 0.05) / 2])
+            center = np.array([base[0], base[1], base[2] + half[2]])
+            uv = clipped_box_image_points(cam, center, half, yaw, *self.border)
+            if len(uv) == 0:
                 return 0
-        uv = uv[ok]
+        else:
+            if not ok.any():
+                return 0
+            uv = uv[ok]
         pad = 3 + 0.04 * (uv.max(0) - uv.min(0))
         u0, v0 = np.floor(uv.min(0) - pad).astype(int)
         u1, v1 = np.ceil(uv.max(0) + pad).astype(int) + 1

@@ -155,6 +155,10 @@ def test_recording_ground_truth_that_is_not_finite_or_reversed_is_named(recordin
     # an ignore vehicle whose bottom centre is outside the lens model: its corners are not used, whatever they are
     labels, _, _ = recording_labels([_gt_vehicle(uv=None, in_image=False, corners_uv=[[nan, nan]] * 4)], "x")
     assert labels["weight"].tolist() == [0.0] and np.isnan(labels["heading_uv"]).all()
+    # a bus reaching from behind a pinhole camera into its image: a corner it cannot project is null, the vehicle
+    # a label with no heading (it stopped loading the whole recording)
+    labels, ids, _ = recording_labels([_gt_vehicle(corners_uv=[[110, 85], None, None, [90, 85]])], "x")
+    assert ids == [7] and np.isnan(labels["heading_uv"]).all()
     # through the recording reader: the file and line are named
     broken = tmp_path / "nan"
     shutil.copytree(recording, broken)

@@ -210,7 +210,11 @@ def recording_labels(vehicles: list[dict], where: str) -> tuple[dict[str, np.nda
             box = [x1 - 0.5, y1 - 0.5, x2 + 0.5, y2 + 0.5]  # pixel bounds -> edges
             if v["uv"] is not None:
                 uv = _numbers(v["uv"], (2,), "uv", at)
-                heading = _rect_heading(_numbers(v["corners_uv"], (4, 2), "corners_uv", at))
+                corners = v["corners_uv"]
+                if isinstance(corners, list) and any(c is None for c in corners):
+                    heading = np.full(2, np.nan)  # a corner the camera cannot project (behind a pinhole camera)
+                else:
+                    heading = _rect_heading(_numbers(corners, (4, 2), "corners_uv", at))
             else:  # the corners may be outside the lens model's valid range
                 uv = [(box[0] + box[2]) / 2, box[3]]
                 heading = np.full(2, np.nan)
