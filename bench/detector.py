@@ -9,7 +9,7 @@ untrained-for-timing-only. Prints one JSON document; every timing in it names it
 The target (`target`: 25 ms median on the CPU, fp32) is the project issue's, per 512x512 frame: the default
 input (`target.applies_to` is null when another input was timed). The detect service feeds the network something
 else: a whole frame shrunk so that its longer side is the model's `input_long_side`, padded to 32 pixels
-(`shared.inference.OnnxDetector.input_shape`): 480x640 for a 1280x960 camera and a 640 px model. `deployed` times
+(`shared.inference.OnnxDetector.input_shape`): 640x480 for a 1280x960 camera and a 640 px model. `deployed` times
 that input too (one inference at a time on the CPU, fp32, `threads` threads; its MACs) for a frame of `--frame`
 (default 1280x960, the simulated cameras). A camera with a `detect_area_px` runs a crop of it instead (576x480 for
 the simulated fisheye cameras: time it with --size/--height).

@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import zipfile
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -40,6 +41,12 @@ class LookupMasks:
     @property
     def shape(self) -> tuple[int, int]:
         return self.valid.shape
+
+    @cached_property
+    def _near_antimeridian(self) -> bool:
+        """Whether the longitudes span more than 180 deg (a site astride the antimeridian), once per masks."""
+        lon = self.lon[np.isfinite(self.lon)]
+        return bool(lon.size) and float(lon.max() - lon.min()) > 180.0
 
     @property
     def geo(self) -> GeoFrame:
@@ -75,16 +82,18 @@ class LookupMasks:
         m = len(xy) if latlon_rows is None else max(0, min(int(latlon_rows), len(xy)))
         first = tuple(c[:m] for c in cells)
         latlon = np.full_like(xy, np.nan)
-        # longitude as an offset from the top-left neighbour's, wrapped, so that pixel centres astride the
-        # antimeridian (179.99999 and -179.99999) do not average to about 0
-        v0, u0, fu, fv = first[0], first[1], first[2][:, 0], first[3][:, 0]
-        lon0 = self.lon[v0, u0]
-
-        def rel(dv: int, du: int) -> np.ndarray:
-            return (self.lon[v0 + dv, u0 + du] - lon0 + 180.0) % 360.0 - 180.0
-
-        lon = lon0 + (rel(0, 0) * (1 - fu) + rel(0, 1) * fu) * (1 - fv) + (rel(1, 0) * (1 - fu) + rel(1, 1) * fu) * fv
-        latlon[:m] = np.column_stack([bilinear(self.lat, first)[:, 0], (lon + 180.0) % 360.0 - 180.0])
+        lon = bilinear(self.lon, first)[:, 0]
+        # four pixel centres astride the antimeridian (179.99999 and -179.99999) would average to about 0: there the
+        # longitude is blended as offsets from the top-left neighbour's, wrapped
+        if self._near_antimeridian:
+            v0, u0, fu, fv = first[0], first[1], first[2][:, 0], first[3][:, 0]
+            corners = [self.lon[v0 + dv, u0 + du] for dv, du in ((0, 0), (0, 1), (1, 0), (1, 1))]
+            astride = np.flatnonzero(np.max(corners, axis=0) - np.min(corners, axis=0) > 180.0)
+            rel = [(c[astride] - corners[0][astride] + 180.0) % 360.0 - 180.0 for c in corners]
+            a, b = fu[astride], fv[astride]
+            blend = (rel[0] * (1 - a) + rel[1] * a) * (1 - b) + (rel[2] * (1 - a) + rel[3] * a) * b
+            lon[astride] = (corners[0][astride] + blend + 180.0) % 360.0 - 180.0
+        latlon[:m] = np.column_stack([bilinear(self.lat, first)[:, 0], lon])
         latlon[~ok] = np.nan
         return latlon, xy, ok
 

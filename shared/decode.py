@@ -17,6 +17,7 @@ import numpy as np
 BOX_SCALE_PX = 32.0  # the size head predicts 2D box width and height in input pixels / BOX_SCALE_PX
 HEADING_EPS = 1e-12
 PEAK_KERNEL = np.ones((3, 3), np.uint8)
+EARLIER_KERNEL = np.array([[1, 1, 1], [1, 0, 0], [0, 0, 0]], np.uint8)  # the 3x3 neighbours before a cell
 VOTE_MIN_CELLS = 1.5  # a peak whose vote points further than this (output cells) is moved to the vehicle's centre
 CONFIG_KEY = "detector_config"  # ONNX metadata written by training.export: the DetectorConfig as JSON
 
@@ -98,13 +99,10 @@ def peak_mask(heat: np.ndarray) -> np.ndarray:
     # a grey dilation is the 3x3 max pool; OpenCV's default border leaves edge cells to their inner neighbours
     # (25 times faster than numpy's sliding-window maximum: 0.1 against 2.8 ms at 160x120)
     peak = heat == cv2.dilate(heat, PEAK_KERNEL)
-    tied = np.zeros_like(peak)
-    h, w = heat.shape
-    for dv, du in ((-1, -1), (-1, 0), (-1, 1), (0, -1)):  # the neighbours before a cell
-        here = (slice(max(0, -dv), h), slice(max(0, -du), w - max(0, du)))
-        there = (slice(0, h + min(0, dv)), slice(max(0, du), w + min(0, du)))
-        tied[here] |= peak[there] & (heat[there] == heat[here])
-    return peak & ~tied
+    # the largest peak among the neighbours before each cell (none can exceed a peak's own value): equal is a tie
+    before = cv2.dilate(np.where(peak, heat, -np.inf).astype(np.float32), EARLIER_KERNEL,
+                        borderType=cv2.BORDER_CONSTANT, borderValue=-np.inf)
+    return peak & (before != heat)
 
 
 def decode(heat: np.ndarray, size: np.ndarray, heading: np.ndarray, vtype_prob: np.ndarray, offset: np.ndarray,

@@ -106,11 +106,11 @@ def test_a_rotation_that_fails_loses_no_line_and_is_tried_again_later(tmp_path, 
 
 
 
-def test_a_rotation_that_cannot_list_its_folder_is_counted_and_recording_goes_on(tmp_path, monkeypatch, caplog):
-    """An operator clears the recordings folder while fuse_track runs: the next rotation cannot list it. That is
-    counted and logged like a failed rename, not raised out of write (which would end fuse_track), and the folder is
-    made again with a new file in it (the lines since the removal went with the old one). A folder that cannot be
-    read is tried again later."""
+def test_a_recording_whose_file_or_folder_is_removed_goes_on_in_a_new_one(tmp_path, monkeypatch, caplog):
+    """An operator clears the recordings folder while fuse_track runs: the next line notices (rotating or not; before,
+    every line went into the removed file, unread and uncounted) and starts a new file in the folder made again. A
+    rotation that cannot list its folder is counted and logged like a failed rename, not raised out of write (which
+    would end fuse_track), and tried again later."""
     import shutil
 
     folder = tmp_path / "records"
@@ -119,14 +119,21 @@ def test_a_rotation_that_cannot_list_its_folder_is_counted_and_recording_goes_on
     rec = Recorder(path, rotate_bytes=3 * line, keep=2)
     rec.write(Msg(0))
     shutil.rmtree(folder)
-    for seq in range(1, 3):  # the second line reaches the rotation size
-        rec.write(Msg(seq))
-    assert rec.rotation_failed == 1 and rec.failed == 0 and "rotation failed (No such file or directory)" in caplog.text
-    assert "its folder made again, recording goes on in a new file" in caplog.text
-    for seq in range(3, 9):
+    for seq in range(1, 9):
         rec.write(Msg(seq))
     rec.close()
-    assert [seqs(p) for _, p in rec.rotated()] + [seqs(path)] == [[3, 4, 5], [6, 7, 8], []]  # rotating on as before
+    assert rec.rotation_failed == 0 and rec.failed == 0
+    assert "the file was removed; recording goes on in a new file" in caplog.text
+    assert [seqs(p) for _, p in rec.rotated()] + [seqs(path)] == [[1, 2, 3], [4, 5, 6], [7, 8]]
+    plain = tmp_path / "plain" / "tracks.jsonl"  # no rotation
+    rec = Recorder(plain)
+    rec.write(Msg(0))
+    shutil.rmtree(plain.parent)
+    rec.write(Msg(1))
+    plain.unlink()  # the file alone
+    rec.write(Msg(2))
+    rec.close()
+    assert seqs(plain) == [2] and rec.failed == 0
 
     path = tmp_path / "unreadable" / "tracks.jsonl"
     rec = Recorder(path, rotate_bytes=3 * line)

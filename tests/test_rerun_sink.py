@@ -547,6 +547,12 @@ def test_a_basemap_world_files_origin_does_not_replace_the_sites(tmp_path: Path)
     world.write_text(json.dumps({**top_left, "origin": {"lat_deg": own[0], "lon_deg": own[1]}}))
     with pytest.raises(ValueError, match="m from the site origin"):
         Basemap.from_world_file(world, origin)
+    extent = {"image": "ortho.jpg", "extent_m": [-100.0, 120.0, -60.0, 80.0]}  # site metres about its own origin
+    world.write_text(json.dumps({**extent, "origin": {"lat_deg": own[0], "lon_deg": own[1]}}))
+    with pytest.raises(ValueError, match="m from the site origin"):
+        Basemap.from_world_file(world, origin)
+    world.write_text(json.dumps(extent))
+    assert Basemap.from_world_file(world, origin).corners_m[0] == pytest.approx([-100.0, 80.0])
 
 
 def test_speeds_keep_flowing_after_a_tracker_restarts_with_the_clock_stepped_back(tmp_path: Path) -> None:

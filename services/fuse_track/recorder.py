@@ -11,8 +11,8 @@ it, numbered up from the highest number there (names sort oldest first), and a n
 the whole current Tracks message, so each file reads on its own. With `fuse_track.record_keep` only that many
 rotated files are kept: the oldest beyond it are deleted. A listing, rename or delete that fails is logged and
 counted, and recording goes on in the file it has (a failed rotation is tried again when the file has grown another
-tenth); when the folder itself has gone (an operator clearing the recordings), it is made again and a new file
-started in it.
+tenth). When the file or its folder has gone (an operator clearing the recordings; checked before each line,
+rotating or not), the folder is made again and a new file started in it.
 """
 
 from __future__ import annotations
@@ -72,6 +72,8 @@ class Recorder:
             return
         line = (json.dumps({"site": msg.site, "seq": msg.seq, "t_ns": msg.t_capture_ns, "tracker": msg.tracker,
                             "tracks": msg.rows()}) + "\n").encode()
+        if self._removed():  # its lines would go into a file no one can read
+            self._reopen("the file was removed")
         try:
             view = memoryview(line)
             while view:  # a write may take part of the line (a disk filling up), the next one then fails
@@ -134,8 +136,15 @@ class Recorder:
                     log.error("tracks recording %s: cannot delete the old %s (%s)", self.path, path.name,
                               exc.strerror or exc)
 
-    def _reopen(self) -> None:
-        """The recording's folder has gone (the file's lines since then with it): made again, a new file started."""
+    def _removed(self) -> bool:
+        """Whether the open file has been removed (no name left: an operator cleared the file or its folder)."""
+        try:
+            return os.fstat(self.file.fileno()).st_nlink == 0
+        except OSError:
+            return False
+
+    def _reopen(self, why: str = "its folder has gone") -> None:
+        """The recording's file or folder has gone (its lines with it): the folder made again, a new file started."""
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             new = self.path.open("ab", buffering=0)
@@ -146,7 +155,7 @@ class Recorder:
         self.close()
         self.file, self.size = new, new.seek(0, 2)
         self.next_rotation = self.rotate_bytes
-        log.warning("tracks recording %s: its folder made again, recording goes on in a new file", self.path)
+        log.warning("tracks recording %s: %s; recording goes on in a new file", self.path, why)
 
     def close(self) -> None:
         if self.file is not None:
