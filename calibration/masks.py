@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import zipfile
 from dataclasses import dataclass
-from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -42,11 +41,13 @@ class LookupMasks:
     def shape(self) -> tuple[int, int]:
         return self.valid.shape
 
-    @cached_property
     def _near_antimeridian(self) -> bool:
-        """Whether the longitudes span more than 180 deg (a site astride the antimeridian), once per masks."""
-        lon = self.lon[np.isfinite(self.lon)]
-        return bool(lon.size) and float(lon.max() - lon.min()) > 180.0
+        """Whether the longitudes span more than 180 deg (a site astride the antimeridian), once per `lon` array."""
+        known = self.__dict__.get("_antimeridian")
+        if known is None or known[0] is not self.lon:
+            lon = self.lon[np.isfinite(self.lon)]
+            known = self.__dict__["_antimeridian"] = (self.lon, bool(lon.size) and float(lon.max() - lon.min()) > 180)
+        return known[1]
 
     @property
     def geo(self) -> GeoFrame:
@@ -85,7 +86,7 @@ class LookupMasks:
         lon = bilinear(self.lon, first)[:, 0]
         # four pixel centres astride the antimeridian (179.99999 and -179.99999) would average to about 0: there the
         # longitude is blended as offsets from the top-left neighbour's, wrapped
-        if self._near_antimeridian:
+        if self._near_antimeridian():
             v0, u0, fu, fv = first[0], first[1], first[2][:, 0], first[3][:, 0]
             corners = [self.lon[v0 + dv, u0 + du] for dv, du in ((0, 0), (0, 1), (1, 0), (1, 1))]
             astride = np.flatnonzero(np.max(corners, axis=0) - np.min(corners, axis=0) > 180.0)

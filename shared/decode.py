@@ -94,7 +94,7 @@ class Detections:
 def peak_mask(heat: np.ndarray) -> np.ndarray:
     """(h, w) bool: cells equal to the maximum of their 3x3 neighbourhood, but for a cell next to such a cell of the
     same value before it in row-major order (a tie: an fp16 model rounds two nearly equal cells of one vehicle to
-    the same value, which gave two detections one cell apart)."""
+    the same value, which gave two detections one cell apart). A -inf cell is never a peak."""
     heat = np.ascontiguousarray(heat, np.float32)
     # a grey dilation is the 3x3 max pool; OpenCV's default border leaves edge cells to their inner neighbours
     # (25 times faster than numpy's sliding-window maximum: 0.1 against 2.8 ms at 160x120)

@@ -160,6 +160,8 @@ def clipped_box_image_points(
     """
     corners = _box_corners(center, half, yaw)
     zc = camera.pose.to_camera(corners)[:, 2]
+    if (zc <= NEAR_PLANE_M).all():  # wholly behind the camera: no ray reaches it
+        return np.zeros((0, 2))
     segments = []
     for a, b in _BOX_EDGES:
         za, zb = zc[a], zc[b]

@@ -163,3 +163,40 @@ def test_the_rotation_settings_are_checked():
     for bad in ({"record_rotate_mb": -1}, {"record_keep": -2}, {"record_rotate_mb": float("nan")}):
         with pytest.raises(ValidationError):
             FuseTrackSettings(**bad)
+
+
+def test_a_removed_recording_that_cannot_be_made_again_counts_its_lines_and_a_link_count_of_0_alone_is_not_removal(
+        tmp_path, monkeypatch, caplog):
+    """A folder that cannot be made again (a file now stands in its place): each line counted as not recorded, the
+    reason and the first loss logged, not a line each; and a file system that reports no links for a file its path
+    still names (some do) is not taken for a removal at every line."""
+    import os
+    import shutil
+
+    path = tmp_path / "records" / "tracks.jsonl"
+    rec = Recorder(path)
+    rec.write(Msg(0))
+    shutil.rmtree(path.parent)
+    path.parent.write_text("not a folder")
+    for seq in range(1, 6):
+        rec.write(Msg(seq))
+    assert rec.failed == 5 and caplog.text.count("cannot be made again") == 2  # why, and the first line lost
+    path.parent.unlink()
+    rec.write(Msg(6))  # the folder can be made again: recording goes on
+    rec.close()
+    assert seqs(path) == [6] and rec.failed == 5
+
+    caplog.clear()
+    path = tmp_path / "nfs" / "tracks.jsonl"
+    rec = Recorder(path)
+    real_fstat = os.fstat
+
+    def no_links(fd):
+        st = real_fstat(fd)
+        return os.stat_result((st.st_mode, st.st_ino, st.st_dev, 0, *tuple(st)[4:]))
+
+    monkeypatch.setattr(os, "fstat", no_links)
+    for seq in range(5):
+        rec.write(Msg(seq))
+    rec.close()
+    assert seqs(path) == [0, 1, 2, 3, 4] and "removed" not in caplog.text

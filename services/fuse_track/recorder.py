@@ -72,18 +72,15 @@ class Recorder:
             return
         line = (json.dumps({"site": msg.site, "seq": msg.seq, "t_ns": msg.t_capture_ns, "tracker": msg.tracker,
                             "tracks": msg.rows()}) + "\n").encode()
-        if self._removed():  # its lines would go into a file no one can read
-            self._reopen("the file was removed")
+        if self._removed() and not self._reopen("the file was removed"):  # its lines would go where no one reads
+            self._lost(msg.seq, "its file was removed and cannot be made again")
+            return
         try:
             view = memoryview(line)
             while view:  # a write may take part of the line (a disk filling up), the next one then fails
                 view = view[self.file.write(view):]
         except OSError as exc:
-            self.failed += 1
-            self.failing = True
-            if self.failed == 1 or self.failed % 100 == 0:  # a full disk fails every line: not a log line each
-                log.error("tracks recording %s: Tracks seq %d not recorded (%s; %d lost so far); tracking goes on",
-                          self.path, msg.seq, exc.strerror or exc, self.failed)
+            self._lost(msg.seq, exc.strerror or str(exc))
             try:
                 self.file.truncate(self.size)  # the part written, cut off: the next line starts a line
             except OSError:
@@ -96,6 +93,15 @@ class Recorder:
                         msg.seq, self.failed)
         if self.rotate_bytes and self.size >= self.next_rotation:
             self._rotate()
+
+    def _lost(self, seq: int, why: str) -> None:
+        """A Tracks message not recorded: counted, logged the first time and every 100th (a full disk fails every
+        line)."""
+        self.failed += 1
+        self.failing = True
+        if self.failed == 1 or self.failed % 100 == 0:
+            log.error("tracks recording %s: Tracks seq %d not recorded (%s; %d lost so far); tracking goes on",
+                      self.path, seq, why, self.failed)
 
     def rotated(self) -> list[tuple[int, Path]]:
         """The rotated files beside the recording with their numbers, oldest first."""
@@ -137,25 +143,34 @@ class Recorder:
                               exc.strerror or exc)
 
     def _removed(self) -> bool:
-        """Whether the open file has been removed (no name left: an operator cleared the file or its folder)."""
+        """Whether the open file has been removed (no name left: an operator cleared the file or its folder). Where a
+        file system reports no links for a file that has them, the path still naming the open file says it is not."""
         try:
-            return os.fstat(self.file.fileno()).st_nlink == 0
+            if os.fstat(self.file.fileno()).st_nlink > 0:
+                return False
+            here, there = os.fstat(self.file.fileno()), os.stat(self.path)
+        except (FileNotFoundError, NotADirectoryError):  # no such path any more
+            return True
         except OSError:
             return False
+        return (here.st_dev, here.st_ino) != (there.st_dev, there.st_ino)
 
-    def _reopen(self, why: str = "its folder has gone") -> None:
-        """The recording's file or folder has gone (its lines with it): the folder made again, a new file started."""
+    def _reopen(self, why: str = "its folder has gone") -> bool:
+        """The recording's file or folder has gone (its lines with it): the folder made again, a new file started;
+        False when that fails (tried again at the next line)."""
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             new = self.path.open("ab", buffering=0)
         except OSError as exc:
-            log.error("tracks recording %s: its folder cannot be made again (%s); tried again at the next rotation",
-                      self.path, exc.strerror or exc)
-            return
+            if not self.failing:  # once until a line is recorded again
+                log.error("tracks recording %s: %s and cannot be made again (%s); tried again at each line",
+                          self.path, why, exc.strerror or exc)
+            return False
         self.close()
         self.file, self.size = new, new.seek(0, 2)
         self.next_rotation = self.rotate_bytes
         log.warning("tracks recording %s: %s; recording goes on in a new file", self.path, why)
+        return True
 
     def close(self) -> None:
         if self.file is not None:

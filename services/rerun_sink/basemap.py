@@ -153,7 +153,7 @@ class Basemap:
             _upright(corners, path)
             return cls(_as_uint8(image, max_side_px), corners)
         if "extent_m" in spec:
-            if "origin" in spec and origin is not None:  # site metres about another origin: the map would sit off
+            if "origin" in spec:  # site metres about another origin than the site's: the map would sit off
                 _site_origin(origin, _origin(spec["origin"], path), path)
             return cls.from_array(image, spec["extent_m"], max_side_px=max_side_px)
         if "top_left" not in spec or "bottom_right" not in spec:
