@@ -119,13 +119,19 @@ def load_masks(path: str | Path, with_latlon: bool = True) -> LookupMasks:
     float64 latitude/longitude arrays on disk (two thirds of the file) and stores zero-size placeholders:
     for a reader that needs only metres and validity (localize computes lat/lon from metres)."""
     path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"lookup masks {path} is a folder, not a masks file")
     if not path.is_file():
         raise ValueError(f"lookup masks not found: {path}")
     keys = ("lat", "lon", "xy", "valid", "meta") if with_latlon else ("xy", "valid", "meta")
+    empty = path.stat().st_size == 0
+    if empty or not zipfile.is_zipfile(path):  # numpy's own errors: EOFError (empty), TypeError (a .npy array)
+        why = "an empty file" if empty else "not an .npz archive"
+        raise ValueError(f"{path}: not a lookup masks file ({why}; make one with roadside calibrate)")
     try:
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in keys}
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:  # a truncated file is not a zip
+    except (OSError, ValueError, KeyError, EOFError, TypeError, zipfile.BadZipFile) as exc:  # a member cut short
         why = "not an .npz archive" if "allow_pickle" in str(exc) else f"{type(exc).__name__}: {exc}"  # numpy's hint
         raise ValueError(f"{path}: not a lookup masks file ({why}; make one with roadside calibrate)") from None
     try:

@@ -94,18 +94,24 @@ def ports_in_use(bus: BusSettings, wait_s: float = 0.0) -> list[str]:
     """Peer mode: the services' endpoints on this machine that something already listens on ("localize
     tcp/127.0.0.1:7453"), after waiting up to `wait_s` for them to be freed (a pipeline that is stopping). A port
     in TIME_WAIT is free, as it is to Zenoh, which reuses addresses; client mode listens nowhere: []. ValueError
-    for a `bus.host` that is no address of this machine."""
+    for a `bus.host` that is no address of this machine or that cannot be resolved."""
     if bus.mode != "peer":
         return []
+    host = bus.host.removeprefix("[").removesuffix("]")  # an IPv6 address may be given in brackets
+    try:  # the address the services would listen on (an IPv6 one too); a name that does not resolve is no address
+        family, _, _, _, sockaddr = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)[0]
+    except (socket.gaierror, UnicodeError) as exc:
+        raise ValueError(f"bus.host {bus.host} cannot be resolved ({getattr(exc, 'strerror', None) or exc}): the "
+                         "services cannot listen there (127.0.0.1 for one machine)") from None
     deadline = time.monotonic() + wait_s
     while True:
         busy = []
         for service in SERVICES:
             port = bus.port_base + SERVICES.index(service)
-            with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            with socket.socket(family, socket.SOCK_STREAM) as s:
                 s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
                 try:
-                    s.bind((bus.host, port))
+                    s.bind((sockaddr[0], port, *sockaddr[2:]))
                 except OSError as exc:
                     if exc.errno == errno.EADDRNOTAVAIL:  # no restart would mend it
                         raise ValueError(f"bus.host {bus.host} is not an address of this machine: the services "

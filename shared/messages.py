@@ -68,7 +68,8 @@ Array = Annotated[np.ndarray, BeforeValidator(_as_array), PlainSerializer(lambda
 
 def check_name(kind: str, name: str) -> str:
     if not isinstance(name, str) or not NAME_RE.fullmatch(name):
-        raise ValueError(f"{kind} name must be 1-64 letters, digits, '_' or '-', got {name!r}")
+        raise ValueError(f"{kind} name must be 1-64 letters, digits, '_' or '-' (ASCII letters only: A-Z, a-z), "
+                         f"got {name!r}")
     return name
 
 

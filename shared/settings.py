@@ -16,14 +16,18 @@ Precedence, lowest first: the defaults, the site file, the environment, the comm
 
 from __future__ import annotations
 
+import ipaddress
+import json
 import os
 import re
+import types
+import typing
 from datetime import UTC
 from pathlib import Path
 from typing import Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 from pydantic_settings import BaseSettings, EnvSettingsSource, SettingsConfigDict, SettingsError
 
 from shared.keys import SERVICES
@@ -33,6 +37,9 @@ from shared.position_error import POSITION_SIGMA, check_position_sigma
 MAX_THREADS = 256  # ONNX Runtime threads per inference (DetectSettings, shared/inference.py)
 ENDPOINT_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe", "serial", "vsock")
 _HOST_PORT = re.compile(r"^(\[[0-9A-Fa-f:.]+\]|[^\s:/\[\]]+):(\d{1,5})$")
+# a host name's label: letters, digits and '-' (RFC 1123), and '_', which Docker's service names may hold
+_HOST_LABEL = re.compile(r"^[A-Za-z0-9_](?:[A-Za-z0-9_-]{0,61}[A-Za-z0-9_])?$")
+MIN_STATUS_PERIOD_S = 0.1  # a shorter bus.status_period_s busy-loops an idle service's status reports
 
 
 def check_endpoint(text: str) -> str:
@@ -49,6 +56,30 @@ def check_endpoint(text: str) -> str:
         m = _HOST_PORT.match(address)
         if not m or int(m.group(2)) > 65535:
             raise ValueError(f"not a Zenoh endpoint: {text!r} ({proto} needs HOST:PORT, the port 0-65535)")
+    return text
+
+
+def check_host(text: str) -> str:
+    """`bus.host`: an IPv4 or IPv6 address or a host name, without a port (each service's port is bus.port_base plus
+    its index); ValueError names the value and what is wrong (load_settings puts the field's name before it)."""
+    if not text.strip():
+        raise ValueError(f"{text!r} is empty: give the address the services listen on, e.g. 127.0.0.1")
+    if any(c.isspace() for c in text):
+        raise ValueError(f"{text!r} holds a space: give one address or host name, e.g. 127.0.0.1")
+    try:
+        ipaddress.ip_address(text.removeprefix("[").removesuffix("]"))
+        return text
+    except ValueError:
+        pass
+    if _HOST_PORT.match(text):
+        raise ValueError(f"{text!r} holds a port: give the address alone, e.g. 127.0.0.1 (each service's port is "
+                         "bus.port_base plus its index)")
+    labels = text.removesuffix(".").split(".")
+    if len(text) > 253 or not all(_HOST_LABEL.match(label) for label in labels):
+        raise ValueError(f"{text!r} is not an IP address or host name (letters, digits, '-' and '_' between dots, e.g. "
+                         "127.0.0.1 or cabinet.local)")
+    if labels[-1].isdigit():  # 192.168.1.300: no top-level domain is a number
+        raise ValueError(f"{text!r} is not an IP address (four numbers 0-255) or host name")
     return text
 
 
@@ -89,6 +120,18 @@ class BusSettings(Strict):
     @classmethod
     def _endpoints(cls, v: list[str]) -> list[str]:
         return [check_endpoint(e) for e in v]
+
+    @field_validator("host")
+    @classmethod
+    def _host(cls, v: str) -> str:
+        return check_host(v)
+
+    @field_validator("status_period_s")
+    @classmethod
+    def _status_period(cls, v: float) -> float:
+        if 0 < v < MIN_STATUS_PERIOD_S:
+            raise ValueError(f"must be 0 (no status reports) or at least {MIN_STATUS_PERIOD_S} s, got {v}")
+        return v
 
     @model_validator(mode="after")
     def _certificate_and_key(self) -> BusSettings:
@@ -416,13 +459,28 @@ class Settings(BaseSettings):
 
     @field_validator("cameras")
     @classmethod
-    def _cameras(cls, v: list[CameraSettings]) -> list[CameraSettings]:
+    def _cameras(cls, v: list[CameraSettings], info: ValidationInfo) -> list[CameraSettings]:
         names = [c.name for c in v]
         if not names:
             raise ValueError("at least one camera is needed")
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
             raise ValueError(f"duplicate camera names {dup}")
+        # a copied camera entry that keeps the other's masks lifts its detections with the other's lookup and puts
+        # both cameras in one place (fuse_track's nearest-camera regions): refused, naming both. A file that is not
+        # there is left to the services that read it (a missing file is their error; ingest reads none)
+        site_dir = Path(info.data.get("site_dir") or ".")
+        seen: dict[tuple[int, int], CameraSettings] = {}
+        for cam in v:
+            key = None if cam.masks is None else _file_id(site_dir / cam.masks.expanduser())
+            if key is None:
+                continue
+            if key in seen:
+                first = seen[key]
+                same = cam.masks if cam.masks == first.masks else f"({first.masks} and {cam.masks})"
+                raise ValueError(f"cameras {first.name} and {cam.name} name the same masks file {same}: each camera "
+                                 "needs its own (roadside calibrate)")
+            seen[key] = cam
         return v
 
     def path(self, p: Path | str | None) -> Path | None:
@@ -449,9 +507,9 @@ def load_settings(path: str | Path, **overrides) -> Settings:
     if not path.is_file():
         raise ValueError(f"site file not found: {path}")
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        data = yaml.load(path.read_text(), Loader=_SiteLoader) or {}  # a safe loader
     except yaml.YAMLError as exc:
-        raise ValueError(f"{path}: not valid YAML ({exc})") from None
+        raise ValueError(_yaml_error(path, exc)) from None
     except UnicodeDecodeError as exc:
         raise ValueError(f"{path}: not a text file ({exc})") from None
     if not isinstance(data, dict):
@@ -465,6 +523,9 @@ def load_settings(path: str | Path, **overrides) -> Settings:
         raise ValueError(f"{path}: the environment: {', '.join(unknown)} {'is' if len(unknown) == 1 else 'are'} no "
                          "setting (ROADSIDE_<FIELD> or ROADSIDE_<SECTION>__<FIELD>, e.g. ROADSIDE_FUSE_TRACK__RECORD; "
                          "deploy/sites/README.md)")
+    not_json = _environment_not_json()
+    if not_json:
+        raise ValueError(f"{path}: the environment: {not_json}")
     try:
         data = _deep_merge(data, EnvSettingsSource(Settings)())  # fields it does not name keep the file's values
     except SettingsError as exc:  # an environment variable that is not the JSON its field needs
@@ -486,7 +547,112 @@ def load_settings(path: str | Path, **overrides) -> Settings:
         e = exc.errors()[0]
         loc = [str(p) for p in e.get("loc", ())]
         where = f"{'.'.join(loc)}: " if loc else ""  # nothing for a rule over the whole file
-        raise ValueError(f"{path}: {where}{e.get('msg')}{_given_by(loc, overrides)}") from None
+        msg = str(e.get("msg")).removeprefix("Value error, ")  # pydantic's words for a validator's ValueError
+        raise ValueError(f"{path}: {where}{msg}{_given_by(loc, overrides)}") from None
+
+
+def _file_id(path: Path) -> tuple[int, int] | None:
+    """The device and inode of the file at `path` (the same for a link to it or another spelling of its path), or
+    None where there is none."""
+    try:
+        st = path.stat()
+    except (OSError, ValueError):
+        return None
+    return (st.st_dev, st.st_ino) if path.is_file() else None
+
+
+class DuplicateKeyError(yaml.YAMLError):
+    """A key given twice in one mapping of a site file, with the marks of both."""
+
+    def __init__(self, key, first_mark, mark) -> None:
+        super().__init__(f"{key} is given twice (first at line {first_mark.line + 1})")
+        self.key, self.first_mark, self.mark = key, first_mark, mark
+
+
+class _SiteLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing a key given twice in one mapping (PyYAML keeps the last: a section appended
+    at the end of a site file silently replaced the whole earlier one). Keys a merge (`<<: *base`) brings in may be
+    given again: that is what a merge is for."""
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            seen: dict = {}
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    first = seen.setdefault(key, key_node)
+                except TypeError:  # an unhashable key: the safe loader's own error names it
+                    continue
+                if first is not key_node:
+                    raise DuplicateKeyError(key, first.start_mark, key_node.start_mark)
+        return super().construct_mapping(node, deep=deep)
+
+
+def _yaml_error(path: Path, exc: yaml.YAMLError) -> str:
+    """One line for a site file PyYAML cannot read: the file, the line and column, the problem (PyYAML's own
+    message spans five lines and names no file)."""
+    if isinstance(exc, DuplicateKeyError):
+        return f"{path}: line {exc.mark.line + 1}: {exc}"
+    mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
+    problem = getattr(exc, "problem", None) or getattr(exc, "context", None) or str(exc).splitlines()[0]
+    context = getattr(exc, "context", None)
+    if context and problem != context and not context.startswith("while "):  # "expected a single document ..."
+        problem = f"{context}, {problem}"
+    where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+    hint = " (a tab cannot indent YAML: use spaces)" if "'\\t'" in problem else ""
+    return f"{path}: not valid YAML{where}: {problem}{hint}"
+
+
+def _environment_not_json() -> str | None:
+    """The first ROADSIDE_ variable for a list, a mapping or a section whose value is not JSON, with an example of
+    what it needs (pydantic-settings' own error names the section, not the variable, and not that it must be JSON)."""
+    for name in sorted(os.environ):
+        if not name.upper().startswith("ROADSIDE_"):
+            continue
+        value, annotation, model = os.environ[name], None, Settings
+        for part in name[len("ROADSIDE_"):].lower().split("__"):
+            field = model.model_fields.get(part) if model is not None else None
+            if field is None:  # an unknown name (unknown_environment), or one inside a list or a mapping
+                annotation = None
+                break
+            annotation = field.annotation
+            models = [t for t in (annotation, *typing.get_args(annotation))
+                      if isinstance(t, type) and issubclass(t, BaseModel)]
+            model = models[0] if models else None
+        kind = _json_kind(annotation)
+        if kind is None:
+            continue
+        try:
+            json.loads(value)
+        except ValueError:
+            if kind == "list of text":
+                example = json.dumps([v.strip() for v in value.split(",")] if value.strip() else [])
+            elif kind == "list":
+                example = "[...]"
+            else:
+                example = '{"%s": ...}' % (next(iter(model.model_fields)) if model is not None else "KEY")
+            what = "an object" if kind == "mapping" else "a list"
+            return f"{name} must be JSON ({what}), e.g. {name}='{example}'; got {value!r}"
+    return None
+
+
+def _json_kind(annotation) -> str | None:
+    """"list of text", "list" or "mapping" for a field that the environment must give as JSON, else None."""
+    if annotation is None:
+        return None
+    union = typing.get_origin(annotation) in (typing.Union, types.UnionType)
+    kinds = set()
+    for t in [a for a in typing.get_args(annotation) if a is not type(None)] if union else [annotation]:
+        origin = typing.get_origin(t) or t
+        if origin in (list, tuple, set, frozenset):
+            kinds.add("list of text" if typing.get_args(t) in ((str,), (str, ...)) else "list")
+        elif origin is dict or (isinstance(origin, type) and issubclass(origin, BaseModel)):
+            kinds.add("mapping")
+        else:
+            return None  # a plain value is one of its choices: pydantic-settings takes the text as it is
+    return kinds.pop() if len(kinds) == 1 else None
 
 
 def _deep_merge(base: dict, over: dict) -> dict:
@@ -503,7 +669,6 @@ def _deep_merge(base: dict, over: dict) -> dict:
 def unknown_environment() -> list[str]:
     """The ROADSIDE_ environment variables that name no setting (a misspelt one would be ignored: a cabinet's
     recording silently off): the part after the prefix must be a field, and after a section's `__` one of its."""
-    import typing
 
     bad = []
     for name in sorted(os.environ):

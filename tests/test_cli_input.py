@@ -6,9 +6,11 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import pytest
+import yaml
 from pydantic import ValidationError
 
 from roadside.cli import main
@@ -199,7 +201,7 @@ def test_a_bad_value_from_the_environment_or_a_flag_is_not_blamed_on_the_site_fi
         load_settings(EXAMPLE_SITE)
     monkeypatch.delenv("ROADSIDE_DETECT__SCORE_THR")
     monkeypatch.setenv("ROADSIDE_BUS", "{not json")
-    with pytest.raises(ValueError, match=r"the environment: .*\(ROADSIDE_ variables set: ROADSIDE_BUS\)"):
+    with pytest.raises(ValueError, match=r"the environment: ROADSIDE_BUS must be JSON \(an object\)"):
         load_settings(EXAMPLE_SITE)
 
 
@@ -293,3 +295,160 @@ def test_the_demos_simulated_tracks_are_not_scored_as_the_real_sites(tmp_path, c
                  ["counts", str(tracks), "--site", str(site)]):
         assert main(argv) == 2
         assert f"the tracks are of site {DEMO_SITE}" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("host", "why"), [
+    ("127.0.0.1:7447", "'127.0.0.1:7447' holds a port: give the address alone"),
+    ("cabinet:7447", "'cabinet:7447' holds a port"),
+    ("", "'' is empty"),
+    ("my host", "'my host' holds a space"),
+    ("192.168.1.300", "'192.168.1.300' is not an IP address"),
+    ("cabinet..local", "'cabinet..local' is not an IP address or host name"),
+])
+def test_a_bus_host_with_a_port_a_space_or_no_address_is_refused_naming_the_field(host, why, monkeypatch):
+    """Such a host loaded, and every service then died on Zenoh's anonymous lookup error with status 1, restarted for
+    ever by `roadside up`."""
+    monkeypatch.delenv("ROADSIDE_BUS__HOST", raising=False)
+    with pytest.raises(ValueError, match=rf"site.yaml: bus.host: {re.escape(why)}"):
+        load_settings(EXAMPLE_SITE, bus={"host": host})
+    for good in ("127.0.0.1", "0.0.0.0", "::1", "[::1]", "localhost", "cabinet.local", "roadside_detect"):
+        assert BusSettings(host=good).host == good
+
+
+def test_roadside_up_names_a_bus_host_that_cannot_be_resolved(monkeypatch):
+    """The port pre-check of `roadside up` let a name that does not resolve through: four services restarted for
+    ever on Zenoh's lookup error."""
+    import socket
+
+    from shared.bus import ports_in_use
+
+    def no_such_host(*args, **kwargs):
+        raise socket.gaierror(socket.EAI_NONAME, "Name or service not known")
+
+    monkeypatch.setattr(socket, "getaddrinfo", no_such_host)
+    with pytest.raises(ValueError, match=r"^bus.host cabinet.invalid cannot be resolved \(Name or service not known\)"):
+        ports_in_use(BusSettings(host="cabinet.invalid", port_base=17921))
+    monkeypatch.undo()
+    assert ports_in_use(BusSettings(host="::1", port_base=17921)) == []  # an IPv6 address is checked as one
+
+
+def test_a_key_given_twice_in_the_site_file_is_refused_with_both_lines(tmp_path):
+    """PyYAML keeps the last of two equal keys: a `fuse_track:` section appended at the end replaced the whole tuned
+    one silently, and a camera's second `masks:` its first."""
+    site = tmp_path / "site.yaml"
+    text = EXAMPLE_SITE.read_text()
+    first = next(i for i, line in enumerate(text.splitlines(), 1) if line.startswith("fuse_track:"))
+    site.write_text(text + "\nfuse_track:\n  record: tracks.jsonl\n")
+    last = len(text.splitlines()) + 2
+    with pytest.raises(ValueError, match=rf"site.yaml: line {last}: fuse_track is given twice \(first at line "
+                                         rf"{first}\)$"):
+        load_settings(site)
+    site.write_text("site: t\ncameras:\n  - name: A\n    kind: fisheye\n    width: 64\n    height: 48\n"
+                    "    masks: a.npz\n    masks: b.npz\n")
+    with pytest.raises(ValueError, match=r"site.yaml: line 8: masks is given twice \(first at line 7\)$"):
+        load_settings(site)
+    # a merge's keys may be given again: that is what the merge is for
+    site.write_text("site: t\nx-cam: &cam {kind: fisheye, width: 64, height: 48}\ncameras:\n"
+                    "  - {<<: *cam, name: A, width: 32}\n")
+    with pytest.raises(ValueError, match="x-cam"):  # an unknown top-level key, not a duplicate
+        load_settings(site)
+    from shared.settings import _SiteLoader
+
+    data = yaml.load(site.read_text(), Loader=_SiteLoader)
+    assert data["cameras"][0] == {"kind": "fisheye", "width": 32, "height": 48, "name": "A"}
+
+
+def test_two_cameras_with_one_masks_file_are_refused_naming_both(tmp_path):
+    """A copied camera entry that kept the other's masks: both cameras got one position and one lookup."""
+    (tmp_path / "masks").mkdir()
+    (tmp_path / "masks" / "NE.npz").write_bytes(b"")
+    (tmp_path / "masks" / "link.npz").symlink_to(tmp_path / "masks" / "NE.npz")
+    site = tmp_path / "site.yaml"
+
+    def write(*masks: str) -> None:
+        site.write_text("site: t\ncameras:\n" + "".join(
+            f"  - {{name: {n}, kind: fisheye, width: 64, height: 48, masks: {m}}}\n"
+            for n, m in zip(("NE", "NW", "SE"), masks, strict=True)))
+
+    write("masks/NE.npz", "masks/NW.npz", "masks/NE.npz")
+    with pytest.raises(ValueError, match=r"site.yaml: cameras: cameras NE and SE name the same masks file "
+                                         r"masks/NE.npz: each camera needs its own"):
+        load_settings(site)
+    write("masks/NE.npz", "masks/NW.npz", str(tmp_path / "masks" / "link.npz"))  # another name, the same file
+    with pytest.raises(ValueError, match=rf"cameras NE and SE name the same masks file \(masks/NE.npz and "
+                                         rf"{re.escape(str(tmp_path))}/masks/link.npz\)"):
+        load_settings(site)
+    write("masks/NE.npz", "masks/NW.npz", "masks/SE.npz")
+    assert [c.name for c in load_settings(site).cameras] == ["NE", "NW", "SE"]
+
+
+@pytest.mark.parametrize(("name", "value", "example"), [
+    ("ROADSIDE_BUS__CONNECT", "tcp/router:7447", """ROADSIDE_BUS__CONNECT='["tcp/router:7447"]'"""),
+    ("ROADSIDE_MOVEMENTS__LEGS", "x", "ROADSIDE_MOVEMENTS__LEGS='[...]'"),
+    ("ROADSIDE_BUS", "mode=client", """ROADSIDE_BUS='{"mode": ...}'"""),
+])
+def test_a_list_or_section_from_the_environment_that_is_not_json_names_the_variable(name, value, example,
+                                                                                     monkeypatch):
+    """The error named the section ("bus") and every ROADSIDE_ variable set, not the one at fault, nor that it must
+    be JSON."""
+    monkeypatch.setenv("ROADSIDE_BUS__MODE", "client")
+    monkeypatch.setenv(name, value)
+    kind = "an object" if name == "ROADSIDE_BUS" else "a list"
+    with pytest.raises(ValueError) as exc:
+        load_settings(EXAMPLE_SITE)
+    assert str(exc.value) == (f"{EXAMPLE_SITE}: the environment: {name} must be JSON ({kind}), e.g. {example}; got "
+                              f"{value!r}")
+    monkeypatch.setenv("ROADSIDE_BUS__CONNECT", '["tcp/router:7447"]')
+    monkeypatch.delenv("ROADSIDE_BUS", raising=False)
+    monkeypatch.delenv("ROADSIDE_MOVEMENTS__LEGS", raising=False)
+    assert load_settings(EXAMPLE_SITE).bus.connect == ["tcp/router:7447"]
+
+
+def test_a_yaml_syntax_error_is_one_line_with_the_file_line_and_column(tmp_path, capsys):
+    """PyYAML's message spans five lines and names "<unicode string>", not the file."""
+    from services.localize.__main__ import main as localize_main
+    from shared.service import run
+
+    site = tmp_path / "site.yaml"
+    site.write_text("site: x\ncameras:\n\t- {name: A, kind: pinhole, width: 10, height: 10}\n")
+    with pytest.raises(ValueError) as exc:
+        load_settings(site)
+    assert str(exc.value) == (f"{site}: not valid YAML at line 3, column 1: found character '\\t' that cannot start "
+                              "any token (a tab cannot indent YAML: use spaces)")
+    assert run("localize", localize_main, ["--site", str(site)]) == 2
+    assert capsys.readouterr().err == f"localize: error: {exc.value}\n"
+    site.write_text("site: [unclosed\n")
+    with pytest.raises(ValueError, match=r"site.yaml: not valid YAML at line 2, column 1: expected ',' or ']', but got "
+                                         r"'<stream end>'$"):
+        load_settings(site)
+
+
+def test_a_status_period_is_0_or_at_least_a_tenth_of_a_second():
+    """1e-5 s made an idle service publish status reports in a busy loop."""
+    with pytest.raises(ValueError, match=r"bus.status_period_s: must be 0 \(no status reports\) or at least 0.1 s, "
+                                         r"got 1e-05"):
+        load_settings(EXAMPLE_SITE, bus={"status_period_s": 0.00001})
+    assert load_settings(EXAMPLE_SITE, bus={"status_period_s": 0}).bus.status_period_s == 0
+    assert load_settings(EXAMPLE_SITE, bus={"status_period_s": 0.1}).bus.status_period_s == 0.1
+
+
+def test_a_refused_name_says_ascii_letters_without_pydantics_prefix(tmp_path):
+    """"Value error, " inside the line, and "letters" for a name refused for its 'ü'."""
+    site = tmp_path / "site.yaml"
+    site.write_text("site: x\ncameras:\n  - {name: Süd, kind: pinhole, width: 10, height: 10}\n")
+    with pytest.raises(ValueError) as exc:
+        load_settings(site)
+    assert str(exc.value) == (f"{site}: cameras.0.name: camera name must be 1-64 letters, digits, '_' or '-' (ASCII "
+                              "letters only: A-Z, a-z), got 'Süd'")
+
+
+def test_a_folder_given_as_the_model_is_said_to_be_a_folder(tmp_path):
+    from services.detect.__main__ import load_detector
+
+    site = tmp_path / "site.yaml"
+    (tmp_path / "det.onnx").mkdir()
+    site.write_text("site: x\ncameras:\n  - {name: NE, kind: pinhole, width: 10, height: 10}\n"
+                    "detect: {model: det.onnx, model_gpu: null, providers: [CPUExecutionProvider]}\n")
+    with pytest.raises(ValueError, match=rf"^detector model {re.escape(str(tmp_path / 'det.onnx'))} is a folder, not "
+                                         "a model file"):
+        load_detector(load_settings(site))

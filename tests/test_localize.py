@@ -253,6 +253,45 @@ def test_without_an_origin_every_camera_is_lifted_in_the_first_masks_frame_as_fu
 # --- bad input ------------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.parametrize("bad", ["empty", "npy", "folder"])
+def test_an_empty_npy_or_folder_masks_file_stops_localize_and_fuse_track_with_one_line_and_status_2(tmp_path, bad,
+                                                                                                  monkeypatch, capsys):
+    """A failed copy (0 bytes), a single .npy array or a folder as a camera's masks: numpy's EOFError or TypeError
+    went out as a traceback with status 1, which `roadside up` restarts for ever; a folder was said to be missing."""
+    from services.fuse_track.__main__ import main as fuse_track_main
+    from services.localize.__main__ import main as localize_main
+    from shared.service import run
+
+    for k in [k for k in os.environ if k.startswith("ROADSIDE_")]:
+        monkeypatch.delenv(k)
+    a = GeoFrame(42.2294, -83.739, 265.0)
+    (tmp_path / "masks").mkdir()
+    _save_masks(tmp_path / "masks" / "A.npz", a, a)
+    path = tmp_path / "masks" / "B.npz"
+    if bad == "empty":
+        path.write_bytes(b"")
+    elif bad == "npy":
+        with path.open("wb") as f:
+            np.save(f, np.zeros((48, 64), np.float32))
+    else:
+        path.mkdir()
+    (tmp_path / "site.yaml").write_text(yaml.safe_dump({"site": "s2", "bus": {"port_base": 17911}, "cameras": [
+        {"name": n, "kind": "fisheye", "width": 64, "height": 48, "masks": f"masks/{n}.npz"} for n in ("A", "B")]}))
+    why = {"empty": f"{path}: not a lookup masks file (an empty file;",
+           "npy": f"{path}: not a lookup masks file (not an .npz archive;",
+           "folder": f"lookup masks {path} is a folder, not a masks file"}[bad]
+    settings = load_settings(tmp_path / "site.yaml")
+    for load in (load_all_masks, camera_positions):
+        with pytest.raises(ValueError) as exc:
+            load(settings)
+        assert why in str(exc.value)
+    for service, service_main in (("localize", localize_main), ("fuse_track", fuse_track_main)):
+        capsys.readouterr()
+        assert run(service, service_main, ["--site", str(tmp_path / "site.yaml")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"{service}: error: ") and why in err[0], err
+
+
 def test_every_cameras_queue_is_localized_in_capture_order_across_the_cameras():
     """After a stall each camera's queue holds several frames: taken camera by camera, NE's backlog would be
     published before NW's, and fuse_track would close the ticks NW still needs."""

@@ -108,6 +108,8 @@ def load_detector(settings: Settings) -> OnnxDetector:
     path = settings.path(cfg.model_gpu) if gpu and cfg.model_gpu is not None else settings.path(cfg.model)
     if not path.is_file() and gpu:
         path = settings.path(cfg.model)
+    if path.is_dir():
+        raise ValueError(f"detector model {path} is a folder, not a model file (set detect.model in the site file)")
     if not path.is_file():
         raise ValueError(f"detector model not found: {path} (set detect.model in the site file)")
     detector = OnnxDetector(path, providers=providers, threads=cfg.threads, score_thr=cfg.score_thr, spin=cfg.spin,
@@ -118,6 +120,9 @@ def load_detector(settings: Settings) -> OnnxDetector:
         log.warning("%s: ONNX Runtime runs it on %s, not on %s: the fp32 model on the CPU instead", path.name,
                     ", ".join(detector.providers), ", ".join(p for p in providers if p != "CPUExecutionProvider"))
         path = settings.path(cfg.model)
+        if path.is_dir():
+            raise ValueError(f"detector model {path} is a folder, not a model file (set detect.model in the site "
+                             "file)")
         if not path.is_file():
             raise ValueError(f"detector model not found: {path} (set detect.model in the site file)")
         detector = OnnxDetector(path, providers=["CPUExecutionProvider"], threads=cfg.threads,

@@ -64,15 +64,22 @@ def camera_positions(settings: Settings) -> tuple[dict[str, tuple[float, float]]
     site_geo = GeoFrame.from_dict(settings.origin) if settings.origin else None
     for cam in settings.cameras:
         path = settings.path(cam.masks) if cam.masks else None
+        if path is not None and Path(path).is_dir():
+            raise ValueError(f"camera {cam.name}: lookup masks {path} is a folder, not a masks file")
         if path is None or not Path(path).is_file():
             raise ValueError(f"camera {cam.name}: lookup masks not found: {path} (fuse_track reads the camera "
                              "position from them)")
+        empty = Path(path).stat().st_size == 0
+        if empty or not zipfile.is_zipfile(path):  # an empty file, a .npy array: numpy's EOFError, TypeError
+            why = "an empty file" if empty else "not an .npz archive"
+            raise ValueError(f"{path}: not a lookup masks file ({why}; make one with roadside calibrate)")
         try:
             with np.load(path, allow_pickle=False) as z:
                 meta = json.loads(str(z["meta"]))
             masks_geo = GeoFrame.from_dict(meta["geo_origin"])
             pos = np.asarray(meta["camera"]["pose"]["position_m"], float)
-        except (OSError, ValueError, KeyError, TypeError, zipfile.BadZipFile) as exc:  # e.g. metadata without a pose
+        # e.g. metadata without a pose; EOFError: a member cut short
+        except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile) as exc:
             raise ValueError(f"{path}: not a lookup masks file ({type(exc).__name__}: {exc})") from None
         site_geo = site_geo or masks_geo
         if masks_geo != site_geo:
