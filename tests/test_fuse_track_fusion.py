@@ -417,3 +417,64 @@ def test_the_long_vehicle_rule_in_blocks_is_the_whole_matrix_rule_and_its_memory
     finally:
         tracemalloc.stop()
     assert len(kept) < n and peak < 64e6, (len(kept), peak)
+
+
+def test_fusion_without_regions_keeps_every_object():
+    """No regions (the constructor's default): every camera is one without a region, so its objects are kept, and
+    merged by the gate."""
+    objects = ObjectBatch.concat([frame("A", 0, [[0.0, 0.0]]), frame("B", 0, [[10.0, 0.0], [0.5, 0.0]])])
+    fused = Fusion().fuse(objects, 0)
+    assert len(fused) == 2 and sorted(map(tuple, fused.xy.round(6).tolist())) == [(0.25, 0.0), (10.0, 0.0)]
+    assert sorted(fused.sources_of(i) for i in range(2)) == [["A", "B"], ["B"]]
+
+
+def test_an_object_behind_the_camera_is_never_in_front():
+    """Two objects on either side of their camera's pole, 5 m east and 2 m west of it: along the east one's line the
+    west one lies 7 m nearer, but behind the camera, not between it and its camera; and the other way round."""
+    got = crowded(np.array([[5.0, 0.0], [-2.0, 0.0]]), np.zeros((2, 2)), np.zeros(2, int), (1.0, 8.0), 4.0)
+    assert got.tolist() == [False, False]
+    # one on the camera's side, 2 m from it, 3 m in front of the one 5 m east: crowded
+    got = crowded(np.array([[5.0, 0.0], [2.0, 0.5]]), np.zeros((2, 2)), np.zeros(2, int), (1.0, 8.0), 4.0)
+    assert got.tolist() == [True, False]
+
+
+def test_an_out_of_region_members_error_counts_as_its_weight_says():
+    """out_of_region_weight is the variance ratio of in- and out-of-region localization: the fused covariance takes
+    an out-of-region member's error as 1 / out_of_region_weight times its range model's, as the mean weighs it."""
+    regions = [CameraRegion("A", (-30.0, 0.0)), CameraRegion("B", (0.0, 50.0))]
+    config = FusionConfig(extend_range_m=60.0)
+    rw = config.out_of_region_weight
+    p = np.array([[0.0, 0.0]])  # in A's region, 30 m from A; B sees it from 50 m north, outside its region
+    table = np.asarray(POSITION_SIGMA)
+    info_a = position_information(p, np.array([[-30.0, 0.0]]), table)[0]
+    info_b = position_information(p, np.array([[0.0, 50.0]]), table)[0]
+    both = Fusion(regions, config).fuse(ObjectBatch.concat([frame("A", 0, p), frame("B", 0, p)]), 0)
+    assert len(both) == 1 and both.sources_of(0) == ["A", "B"]
+    np.testing.assert_allclose(both.xy_cov[0], np.linalg.inv(info_a + rw * info_b))
+    alone = Fusion(regions, config).fuse(frame("B", 0, p), 0)  # extend-only: twice its in-region covariance
+    assert alone.extend_mask().tolist() == [True]
+    np.testing.assert_allclose(alone.xy_cov[0], np.linalg.inv(rw * info_b))
+    # in its own region, its range model's alone
+    np.testing.assert_allclose(Fusion(regions, config).fuse(frame("A", 0, p), 0).xy_cov[0], np.linalg.inv(info_a))
+
+
+def test_the_nearest_views_heading_sets_the_axis_and_the_heaviest_member_which_way_it_points():
+    """A car heading east seen 10 m and 12 m from cameras A and B at 5 and -5 deg, and from 60 m by C, the member
+    heaviest in position weight (score 0.95 at 0.5 out of its region against A's 0.4 in its own): C's heading counts
+    least (its range), so the others are not aligned to its axis (at 90 deg from it they would fall on either side of
+    the flip and cancel, leaving C's heading); which way the fused heading points is still C's."""
+    regions = [CameraRegion("A", (-10.0, 0.0)), CameraRegion("B", (0.0, -12.0)), CameraRegion("C", (60.0, 0.0))]
+    p = [[0.0, 0.0]]
+
+    def fused_yaw_deg(c_deg: float) -> float:
+        objects = ObjectBatch.concat([frame("A", 0, p, yaw=math.radians(5), score=0.4),
+                                      frame("B", 0, p, yaw=math.radians(-5), score=0.9),
+                                      frame("C", 0, p, yaw=math.radians(c_deg), score=0.95)])
+        fused = Fusion(regions).fuse(objects, 0)
+        assert len(fused) == 1 and fused.camera.tolist() == ["C"]  # the camera that of the heaviest member
+        return math.degrees(fused.yaw[0])
+
+    yaw = fused_yaw_deg(90.0)  # aligned to C's axis, A's and B's headings fell either side of the flip: 95.9 deg
+    assert min(abs(yaw), 180 - abs(yaw)) < 10  # east-west (which way: a toss-up, C's heading at 94 deg from both)
+    assert abs(fused_yaw_deg(80.0)) < 10  # east, the way C's heading points
+    assert abs(abs(fused_yaw_deg(170.0)) - 180) < 10  # C sees it reversed: the fused heading points its way
