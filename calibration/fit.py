@@ -41,6 +41,14 @@ SEGMENT_HEIGHT_SIGMA_M = 1.0  # ... and rise or fall from it at the landmarks' c
 POLYGON_TOLERANCE_M = 0.1  # segment polygons are simplified to this...
 MAX_POLYGON_VERTICES = 64  # ... and may keep this many vertices
 FAR_POLYGON_M = 200.0  # a segment polygon further than this from every landmark is another site's
+# lifting pixels onto a site's ground surface (`_onto_surface`): the search along each ray steps at least this much
+# ground, looks this far (m of ground) and this many steps, refines the crossing in this many steps, and leaves a
+# point this far off the surface invalid
+SURFACE_STEP_M = 0.5
+SURFACE_MAX_RANGE_M = 2000.0
+MAX_SURFACE_STEPS = 4000
+SURFACE_REFINE_STEPS = 60
+SURFACE_TOL_M = 0.01
 
 
 @dataclass(frozen=True)
@@ -295,23 +303,80 @@ def polygon_distance(xy: np.ndarray, poly: np.ndarray) -> np.ndarray:
 
 
 def _onto_surface(ground: Any, o: np.ndarray, dirs: np.ndarray, start_plane: np.ndarray,
-                  iterations: int = 6) -> np.ndarray:
-    """(N, 2) points where rays from o along dirs meet z = ground.height(x, y): from the rays' meeting with
-    `start_plane` (a, b, c), alternately read the height there and meet the level plane at that height (a
-    fixed point that converges while the ground's slope is below the ray's depression; NaN for a ray that
-    does not descend)."""
-    a, b, c = start_plane
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (a * o[0] + b * o[1] + c - o[2]) / (dirs[:, 2] - a * dirs[:, 0] - b * dirs[:, 1])
-        t = np.where((t > 0) & (dirs[:, 2] < 0), t, np.nan)
-        for _ in range(iterations):
-            xy = o[:2] + t[:, None] * dirs[:, :2]
-            good = np.isfinite(t)
-            z = np.full(len(t), np.nan)
-            z[good] = ground.height(xy[good])
-            t = np.where(good, (z - o[2]) / dirs[:, 2], np.nan)
-            t = np.where(t > 0, t, np.nan)
-    return o[:2] + t[:, None] * dirs[:, :2]
+                  step_m: float = SURFACE_STEP_M, max_range_m: float = SURFACE_MAX_RANGE_M,
+                  tol_m: float = SURFACE_TOL_M) -> np.ndarray:
+    """(N, 2) points where rays from o along dirs FIRST meet z = ground.height(x, y); NaN where a ray does not
+    descend, meets no ground within `max_range_m` of ground distance, or its point ends more than `tol_m` off the
+    surface (the camera under the ground, a search that did not converge).
+
+    With the ground split into a plane and a relief above it that stays within [low, high] and is nowhere steeper
+    than `steep` (`ground.relief`, as `GroundSurface` gives it; a ground without one: `start_plane` and a relief
+    without bounds), the ray's height above the ground is f(t) = A + B t - relief: positive while A + B t > high,
+    not positive once A + B t <= low, so the first crossing lies between. From the near end each step goes as far
+    as f cannot reach 0 on the way (f / (steep |d_xy| - B)), and at least `step_m` of ground (a crossing and a
+    recrossing closer together than that are missed, a bump's grazed top), until f <= 0 brackets the crossing;
+    then regula falsi (Illinois) in the bracket."""
+    relief = getattr(ground, "relief", None)
+    if relief is None:
+        plane, low, high, steep = np.asarray(start_plane, float), -np.inf, np.inf, np.inf
+    else:
+        plane, low, high, steep = relief
+    a, b, c = plane
+    o = np.asarray(o, float)
+    n = len(dirs)
+    hor = np.hypot(dirs[:, 0], dirs[:, 1])
+    rise = o[2] - (a * o[0] + b * o[1] + c)  # A: the camera's height above the plane
+    climb = dirs[:, 2] - a * dirs[:, 0] - b * dirs[:, 1]  # B: the ray's climb above the plane per unit of t
+
+    def above(t: np.ndarray, rows: np.ndarray) -> np.ndarray:  # f(t) of the rays `rows`
+        return o[2] + t * dirs[rows, 2] - ground.height(o[:2] + t[:, None] * dirs[rows, :2])
+
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        falls = climb < 0
+        t_far = np.where(hor > 0, max_range_m / np.where(hor > 0, hor, 1.0), 0.0)
+        t_near = np.where(falls, np.maximum((rise - high) / -climb, 0.0), 0.0)
+        t_far = np.minimum(np.where(falls, (rise - low) / -climb, np.inf), t_far)
+        live = (dirs[:, 2] < 0) & (hor > 0) & (falls | (rise <= high)) & np.isfinite(t_near) & (t_near <= t_far)
+    t_lo, t_hi = np.full(n, np.nan), np.full(n, np.nan)  # each ray's bracket: f(t_lo) > 0 >= f(t_hi)
+    f_lo, f_hi = np.full(n, np.nan), np.full(n, np.nan)
+    rows = np.flatnonzero(live)
+    t = t_near[rows]
+    f = above(t, rows)
+    rows, t, f = rows[f > 0], t[f > 0], f[f > 0]  # f <= 0 at the near end: the camera is under the ground
+    for _ in range(MAX_SURFACE_STEPS):
+        if not len(rows):
+            break
+        gain = steep * hor[rows] - climb[rows]  # how fast f can fall per unit of t
+        with np.errstate(divide="ignore", invalid="ignore"):
+            safe = np.where(gain > 0, f / np.where(gain > 0, gain, 1.0), np.inf)
+        t_next = np.minimum(t + np.maximum(np.nan_to_num(safe, nan=0.0), step_m / hor[rows]), t_far[rows])
+        f_next = above(t_next, rows)
+        cross = f_next <= 0
+        k = rows[cross]
+        t_lo[k], t_hi[k], f_lo[k], f_hi[k] = t[cross], t_next[cross], f[cross], f_next[cross]
+        on = ~cross & (t_next < t_far[rows]) & np.isfinite(f_next)  # at the far end without a crossing: none
+        rows, t, f = rows[on], t_next[on], f_next[on]
+    best, off = t_hi.copy(), np.abs(f_hi)  # the crossing, and how far its point is off the ground (m)
+    rows = np.flatnonzero(np.isfinite(t_hi))
+    kept = np.zeros(len(rows), int)  # Illinois: +1 / -1 when the low / high end was kept last time
+    for _ in range(SURFACE_REFINE_STEPS):
+        if not len(rows):
+            break
+        lo, hi, fl, fh = t_lo[rows], t_hi[rows], f_lo[rows], f_hi[rows]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            m = hi - fh * (hi - lo) / (fh - fl)
+        m = np.where(np.isfinite(m) & (m > lo) & (m < hi), m, 0.5 * (lo + hi))
+        fm = above(m, rows)
+        up = fm > 0
+        best[rows], off[rows] = m, np.abs(fm)
+        t_lo[rows], t_hi[rows] = np.where(up, m, lo), np.where(up, hi, m)
+        f_lo[rows] = np.where(up, fm, np.where(kept == 1, 0.5 * fl, fl))
+        f_hi[rows] = np.where(up, np.where(kept == -1, 0.5 * fh, fh), fm)
+        kept = np.where(up, -1, 1)
+        done = (np.abs(fm) < 1e-5) | ((t_hi[rows] - t_lo[rows]) * hor[rows] < 1e-4)
+        rows, kept = rows[~done], kept[~done]
+    best[~(off <= tol_m)] = np.nan
+    return o[:2] + best[:, None] * dirs[:, :2]
 
 
 def _band_weights(r: np.ndarray, edges: np.ndarray, blend: float = 0.15) -> np.ndarray:

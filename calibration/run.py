@@ -124,6 +124,31 @@ def _fit_failure(cal, lm) -> str | None:
     return None
 
 
+def _site_check(main: str, geo: GeoFrame):
+    """`calibrate_site`'s check of every camera of a --shared-ground run (this one's landmarks are `main`), on its
+    own fit and after each refit on the site's surface: `_fit_failure`, and the one landmark with a typo when that
+    is why (`single_gross_mistake`, and without it the fit does not fail). A camera that fails is refused, not left
+    out: its file is a mistake to fix."""
+
+    def check(name: str, cal, lm, cfg) -> str | None:
+        failure = _fit_failure(cal, lm)
+        if failure is None:
+            return None
+        typo = single_gross_mistake(lm, cfg, geo)
+        if typo is not None and _fit_failure(calibrate(lm, cfg, geo, exclude=typo[0]), lm) is None:
+            k, off_m = typo
+            failure = (f"landmark {lm.ids[k]!r}: its map point is "
+                       + (f"{off_m:.0f} m from" if math.isfinite(off_m) else "far from")
+                       + " where the other landmarks place its pixel: a typo in its latitude or longitude? With it "
+                       "the fit fails, without it the others agree: correct it or leave it out")
+        if name == main:
+            return failure
+        return (f"{failure}. Its landmarks would bend the site's ground surface the other cameras are refitted on "
+                "and lifted onto: correct the file, or leave it out of --shared-ground")
+
+    return check
+
+
 def run_calibration(job: CalibrateJob) -> dict:
     """Fit, then write the masks, the report and the plot; every input is checked before anything is written."""
     lm, header = load_landmarks(job.landmarks)
@@ -196,7 +221,9 @@ def run_calibration(job: CalibrateJob) -> dict:
             far = median_latlon(other.latlon)
             _near_landmarks(f"--shared-ground {path} (its landmarks' median)", float(far[0]), float(far[1]), lm)
         # the site's surface replaces this camera's planes: its segment column is not used (the report says so)
-        cal = calibrate_site([(str(job.landmarks), lm.without_segments(), cfg), *others], geo)[str(job.landmarks)]
+        # every camera's fit is checked before its landmarks shape the surface, and after each refit on it
+        cal = calibrate_site([(str(job.landmarks), lm.without_segments(), cfg), *others], geo,
+                             check=_site_check(str(job.landmarks), geo))[str(job.landmarks)]
     else:
         cal = calibrate(lm, cfg, geo, polygons_xy)
     failure = _fit_failure(cal, lm)
