@@ -68,7 +68,7 @@ def _other_camera(path: Path, kind: str, circle, fov_deg: float) -> tuple:
         raise ValueError(f"{path}: image size unknown (the landmark file has no width and height)")
     cfg = CalibConfig(kind, int(header["width"]), int(header["height"]), image_circle=circle, fov_deg=fov_deg)
     validate_landmarks(lm, cfg.width, cfg.height, cfg.circle if cfg.kind == "fisheye" else None)
-    return lm.without_segments(), cfg  # the site's surface is the ground: no camera's own segments
+    return lm, cfg
 
 
 def _same_kind(path: Path, header: dict, kind: str, given_as: str) -> None:
@@ -124,14 +124,26 @@ def _fit_failure(cal, lm) -> str | None:
     return None
 
 
-def _site_check(main: str, geo: GeoFrame):
+def _site_check(main: str, geo: GeoFrame, own: dict):
     """`calibrate_site`'s check of every camera of a --shared-ground run (this one's landmarks are `main`), on its
     own fit and after each refit on the site's surface: `_fit_failure`, and the one landmark with a typo when that
     is why (`single_gross_mistake`, and without it the fit does not fail). A camera that fails is refused, not left
-    out: its file is a mistake to fix."""
+    out: its file is a mistake to fix. On its own a camera is fitted without its segments (the site's surface
+    replaces them); one that fails so is judged again as its own run judges it, with its segments (`own`: name ->
+    its landmarks as given, and the polygons of its segments), so a ramp its segments hold is no mistake; one that
+    passes so is not judged again on its refits, which start from the fit without them (as before these checks)."""
+
+    excused: set[str] = set()  # cameras whose own run passes with their segments: not judged on a fit without them
 
     def check(name: str, cal, lm, cfg) -> str | None:
+        if name in excused:
+            return None
         failure = _fit_failure(cal, lm)
+        if failure is not None and cal.ground is None and name in own:
+            full, polygons = own[name]
+            if (full.segment >= 0).any() and _fit_failure(calibrate(full, cfg, geo, polygons), full) is None:
+                excused.add(name)
+                return None
         if failure is None:
             return None
         typo = single_gross_mistake(lm, cfg, geo)
@@ -215,15 +227,18 @@ def run_calibration(job: CalibrateJob) -> dict:
             raise ValueError("--shared-ground moves pinhole and thermal cameras onto the site's ground surface; a "
                              "fisheye camera keeps its own planes (calibration/site_ground.py): calibrate it "
                              "without --shared-ground, and give its landmarks to the pinhole cameras' runs")
-        others = [(str(path), *_other_camera(path, kind, circle, job.fov_deg))
-                  for path, kind, circle in job.shared_ground]
+        given = {str(path): _other_camera(path, kind, circle, job.fov_deg) for path, kind, circle in job.shared_ground}
+        # the site's surface is the ground: no camera's own segments
+        others = [(path, other.without_segments(), other_cfg) for path, (other, other_cfg) in given.items()]
         for path, other, _ in others:  # one site: another site's file would bend its ground surface
             far = median_latlon(other.latlon)
             _near_landmarks(f"--shared-ground {path} (its landmarks' median)", float(far[0]), float(far[1]), lm)
         # the site's surface replaces this camera's planes: its segment column is not used (the report says so)
         # every camera's fit is checked before its landmarks shape the surface, and after each refit on it
         cal = calibrate_site([(str(job.landmarks), lm.without_segments(), cfg), *others], geo,
-                             check=_site_check(str(job.landmarks), geo))[str(job.landmarks)]
+                             check=_site_check(str(job.landmarks), geo, {
+                                 str(job.landmarks): (lm, polygons_xy),
+                                 **{path: (other, None) for path, (other, _) in given.items()}}))[str(job.landmarks)]
     else:
         cal = calibrate(lm, cfg, geo, polygons_xy)
     failure = _fit_failure(cal, lm)

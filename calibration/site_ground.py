@@ -112,8 +112,8 @@ class GroundSurface:
         Read off the 0.5 m grid; beyond it every bump is over 4 sigma away, so all together reach at most
         e^-8 sum |h_k|."""
         plane = np.array([self.slope[0], self.slope[1], self.offset_m])
-        if not len(self.heights):
-            return plane, 0.0, 0.0, 0.0
+        if not len(self.heights):  # the plane alone: margins still, so a ray's search starts short of its crossing
+            return plane, -1e-3, 1e-3, 1e-4
         x0, y0, cell, grid = self._grid
         xs, ys = x0 + cell * np.arange(grid.shape[1]), y0 + cell * np.arange(grid.shape[0])
         bumps = grid - (self.offset_m + self.slope[0] * xs[None, :] + self.slope[1] * ys[:, None])

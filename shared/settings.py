@@ -507,7 +507,11 @@ def load_settings(path: str | Path, **overrides) -> Settings:
     if not path.is_file():
         raise ValueError(f"site file not found: {path}")
     try:
-        data = yaml.load(path.read_text(), Loader=_SiteLoader) or {}  # a safe loader
+        text = path.read_text()
+        document = yaml.compose(text, Loader=yaml.SafeLoader)
+        if document is not None:
+            _check_keys_once(document)
+        data = yaml.safe_load(text) or {}
     except yaml.YAMLError as exc:
         raise ValueError(_yaml_error(path, exc)) from None
     except UnicodeDecodeError as exc:
@@ -569,25 +573,27 @@ class DuplicateKeyError(yaml.YAMLError):
         self.key, self.first_mark, self.mark = key, first_mark, mark
 
 
-class _SiteLoader(yaml.SafeLoader):
-    """PyYAML's safe loader, refusing a key given twice in one mapping (PyYAML keeps the last: a section appended
-    at the end of a site file silently replaced the whole earlier one). Keys a merge (`<<: *base`) brings in may be
-    given again: that is what a merge is for."""
-
-    def construct_mapping(self, node, deep=False):
-        if isinstance(node, yaml.MappingNode):
-            seen: dict = {}
-            for key_node, _ in node.value:
-                if key_node.tag == "tag:yaml.org,2002:merge":
-                    continue
-                key = self.construct_object(key_node, deep=True)
-                try:
-                    first = seen.setdefault(key, key_node)
-                except TypeError:  # an unhashable key: the safe loader's own error names it
-                    continue
+def _check_keys_once(node: yaml.Node, done: set[int] | None = None) -> None:
+    """DuplicateKeyError for a key given twice in one mapping of a composed YAML document (PyYAML keeps the last: a
+    section appended at the end of a site file silently replaced the whole earlier one). Checked on the nodes as
+    written, before PyYAML's merges rewrite them: keys a merge (`<<: *base`) brings in may be given again, at any
+    depth, as a merge is for. Keys compare by their resolved tag and text (1 and '1' are two keys)."""
+    done = set() if done is None else done
+    if id(node) in done:  # an alias: checked where its anchor stands
+        return
+    done.add(id(node))
+    if isinstance(node, yaml.MappingNode):
+        seen: dict = {}
+        for key_node, value_node in node.value:
+            if key_node.tag != "tag:yaml.org,2002:merge" and isinstance(key_node, yaml.ScalarNode):
+                first = seen.setdefault((key_node.tag, key_node.value), key_node)
                 if first is not key_node:
-                    raise DuplicateKeyError(key, first.start_mark, key_node.start_mark)
-        return super().construct_mapping(node, deep=deep)
+                    raise DuplicateKeyError(key_node.value, first.start_mark, key_node.start_mark)
+            _check_keys_once(key_node, done)
+            _check_keys_once(value_node, done)
+    elif isinstance(node, yaml.SequenceNode):
+        for item in node.value:
+            _check_keys_once(item, done)
 
 
 def _yaml_error(path: Path, exc: yaml.YAMLError) -> str:

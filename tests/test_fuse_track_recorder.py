@@ -123,7 +123,7 @@ def test_a_recording_whose_file_or_folder_is_removed_goes_on_in_a_new_one(tmp_pa
         rec.write(Msg(seq))
     rec.close()
     assert rec.rotation_failed == 0 and rec.failed == 0
-    assert "the file was removed; recording goes on in a new file" in caplog.text
+    assert "the file was removed or renamed away; recording goes on in a new file" in caplog.text
     assert [seqs(p) for _, p in rec.rotated()] + [seqs(path)] == [[1, 2, 3], [4, 5, 6], [7, 8]]
     plain = tmp_path / "plain" / "tracks.jsonl"  # no rotation
     rec = Recorder(plain)

@@ -72,7 +72,8 @@ class Recorder:
             return
         line = (json.dumps({"site": msg.site, "seq": msg.seq, "t_ns": msg.t_capture_ns, "tracker": msg.tracker,
                             "tracks": msg.rows()}) + "\n").encode()
-        if self._removed() and not self._reopen("the file was removed"):  # its lines would go where no one reads
+        # its lines would go where no one reads them
+        if self._removed() and not self._reopen("the file was removed or renamed away"):
             self._lost(msg.seq, "its file was removed and cannot be made again")
             return
         try:
