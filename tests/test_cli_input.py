@@ -411,19 +411,25 @@ def test_a_list_or_section_from_the_environment_that_is_not_json_names_the_varia
     assert load_settings(EXAMPLE_SITE).bus.connect == ["tcp/router:7447"]
 
 
+def _load_error(tmp_path: Path, text: str) -> tuple[Path, str]:
+    """A site file of `text` and the error loading it gives."""
+    site = tmp_path / "site.yaml"
+    site.write_text(text)
+    with pytest.raises(ValueError) as exc:
+        load_settings(site)
+    return site, str(exc.value)
+
+
 def test_a_yaml_syntax_error_is_one_line_with_the_file_line_and_column(tmp_path, capsys):
     """PyYAML's message spans five lines and names "<unicode string>", not the file."""
     from services.localize.__main__ import main as localize_main
     from shared.service import run
 
-    site = tmp_path / "site.yaml"
-    site.write_text("site: x\ncameras:\n\t- {name: A, kind: pinhole, width: 10, height: 10}\n")
-    with pytest.raises(ValueError) as exc:
-        load_settings(site)
-    assert str(exc.value) == (f"{site}: not valid YAML at line 3, column 1: found character '\\t' that cannot start "
-                              "any token (a tab cannot indent YAML: use spaces)")
+    site, error = _load_error(tmp_path, "site: x\ncameras:\n\t- {name: A, kind: pinhole, width: 10, height: 10}\n")
+    assert error == (f"{site}: not valid YAML at line 3, column 1: found character '\\t' that cannot start any token "
+                     "(a tab cannot indent YAML: use spaces)")
     assert run("localize", localize_main, ["--site", str(site)]) == 2
-    assert capsys.readouterr().err == f"localize: error: {exc.value}\n"
+    assert capsys.readouterr().err == f"localize: error: {error}\n"
     site.write_text("site: [unclosed\n")
     with pytest.raises(ValueError, match=r"site.yaml: not valid YAML at line 2, column 1: expected ',' or ']', but got "
                                          r"'<stream end>'$"):
@@ -441,12 +447,9 @@ def test_a_status_period_is_0_or_at_least_a_tenth_of_a_second():
 
 def test_a_refused_name_says_ascii_letters_without_pydantics_prefix(tmp_path):
     """"Value error, " inside the line, and "letters" for a name refused for its 'ü'."""
-    site = tmp_path / "site.yaml"
-    site.write_text("site: x\ncameras:\n  - {name: Süd, kind: pinhole, width: 10, height: 10}\n")
-    with pytest.raises(ValueError) as exc:
-        load_settings(site)
-    assert str(exc.value) == (f"{site}: cameras.0.name: camera name must be 1-64 letters, digits, '_' or '-' (ASCII "
-                              "letters only: A-Z, a-z), got 'Süd'")
+    site, error = _load_error(tmp_path, "site: x\ncameras:\n  - {name: Süd, kind: pinhole, width: 10, height: 10}\n")
+    assert error == (f"{site}: cameras.0.name: camera name must be 1-64 letters, digits, '_' or '-' (ASCII letters "
+                     "only: A-Z, a-z), got 'Süd'")
 
 
 def test_a_folder_given_as_the_model_is_said_to_be_a_folder(tmp_path):
