@@ -114,28 +114,53 @@ class LookupMasks:
         return path
 
 
-def load_masks(path: str | Path, with_latlon: bool = True) -> LookupMasks:
-    """Load a masks file; ValueError naming the file and what is wrong. `with_latlon=False` leaves the
-    float64 latitude/longitude arrays on disk (two thirds of the file) and stores zero-size placeholders:
-    for a reader that needs only metres and validity (localize computes lat/lon from metres)."""
-    path = Path(path)
+def _read_arrays(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """The arrays `keys` of a masks file; ValueError naming the file when it is a folder, missing, empty, not an
+    .npz archive, or lacks one of them."""
     if path.is_dir():
         raise ValueError(f"lookup masks {path} is a folder, not a masks file")
     if not path.is_file():
         raise ValueError(f"lookup masks not found: {path}")
-    keys = ("lat", "lon", "xy", "valid", "meta") if with_latlon else ("xy", "valid", "meta")
     empty = path.stat().st_size == 0
     if empty or not zipfile.is_zipfile(path):  # numpy's own errors: EOFError (empty), TypeError (a .npy array)
         why = "an empty file" if empty else "not an .npz archive"
         raise ValueError(f"{path}: not a lookup masks file ({why}; make one with roadside calibrate)")
     try:
         with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in keys}
+            return {k: z[k] for k in keys}
     except (OSError, ValueError, KeyError, EOFError, TypeError, zipfile.BadZipFile) as exc:  # a member cut short
         why = "not an .npz archive" if "allow_pickle" in str(exc) else f"{type(exc).__name__}: {exc}"  # numpy's hint
         raise ValueError(f"{path}: not a lookup masks file ({why}; make one with roadside calibrate)") from None
+
+
+def read_masks_meta(path: str | Path) -> dict:
+    """A masks file's metadata alone (the small array; fuse_track reads the camera positions from it), checked as
+    `load_masks` checks it: format, version and origin; ValueError naming the file and what is wrong."""
+    path = Path(path)
+    return _checked_meta(path, _read_arrays(path, ("meta",))["meta"])
+
+
+def load_masks(path: str | Path, with_latlon: bool = True) -> LookupMasks:
+    """Load a masks file; ValueError naming the file and what is wrong. `with_latlon=False` leaves the
+    float64 latitude/longitude arrays on disk (two thirds of the file) and stores zero-size placeholders:
+    for a reader that needs only metres and validity (localize computes lat/lon from metres)."""
+    path = Path(path)
+    keys = ("lat", "lon", "xy", "valid", "meta") if with_latlon else ("xy", "valid", "meta")
+    arrays = _read_arrays(path, keys)
+    meta = _checked_meta(path, arrays["meta"])
+    h, w = arrays["valid"].shape
+    if (with_latlon and arrays["lat"].shape != (h, w)) or arrays["xy"].shape != (h, w, 2):
+        raise ValueError(f"{path}: array shapes disagree")
+    if not with_latlon:
+        arrays["lat"] = arrays["lon"] = np.zeros((0, 0))
+    return LookupMasks(arrays["lat"], arrays["lon"], arrays["xy"], arrays["valid"].astype(bool), meta)
+
+
+def _checked_meta(path: Path, array: np.ndarray) -> dict:
+    """A masks file's metadata array as a dict; ValueError naming the file unless it is JSON of this format and
+    version with a valid origin."""
     try:
-        meta = json.loads(str(arrays["meta"]))
+        meta = json.loads(str(array))
     except json.JSONDecodeError as exc:
         raise ValueError(f"{path}: not a lookup masks file (its metadata is not JSON: {exc})") from None
     if not isinstance(meta, dict):
@@ -147,13 +172,9 @@ def load_masks(path: str | Path, with_latlon: bool = True) -> LookupMasks:
     try:  # every reader places the masks by their origin
         GeoFrame.from_dict(meta["geo_origin"])
     except (KeyError, TypeError, AttributeError, ValueError) as exc:
-        raise ValueError(f"{path}: the masks' metadata has no valid geo_origin ({type(exc).__name__}: {exc})") from None
-    h, w = arrays["valid"].shape
-    if (with_latlon and arrays["lat"].shape != (h, w)) or arrays["xy"].shape != (h, w, 2):
-        raise ValueError(f"{path}: array shapes disagree")
-    if not with_latlon:
-        arrays["lat"] = arrays["lon"] = np.zeros((0, 0))
-    return LookupMasks(arrays["lat"], arrays["lon"], arrays["xy"], arrays["valid"].astype(bool), meta)
+        raise ValueError(f"{path}: not a lookup masks file ({type(exc).__name__}: {exc}; its metadata has no valid "
+                         "geo_origin)") from None
+    return meta
 
 
 def calibrated_area(cal: Calibration, xy_landmarks: np.ndarray, margin: float = 1.25) -> dict:

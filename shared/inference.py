@@ -262,12 +262,10 @@ class OnnxDetector:
         wider = (area_px[0] - m, area_px[1] - m, area_px[2] + m, area_px[3] + m)
         return area_box(wider, shape, source_scale, PAD_MULTIPLE / scale)
 
-    def _detect(self, grey: np.ndarray, source_scale: float, scale: float | None) -> Detections:
-        return self._detect_timed(grey, source_scale, scale)[0]
-
     def _detect_timed(self, grey: np.ndarray, source_scale: float,
                       scale: float | None) -> tuple[Detections, float]:
-        """`_detect`'s Detections and the ms its `session.run` took (a local timer: nothing shared is written)."""
+        """The Detections of `grey` (a whole image or an area crop, resized by `scale`) and the ms `session.run`
+        took (a local timer: nothing shared is written)."""
         x, scale = self.preprocess(grey, source_scale, scale)
         batch = np.concatenate([x, x[..., ::-1]]) if self.mirror else x  # mirror: the image and its mirror at once
         t0 = time.perf_counter()

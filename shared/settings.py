@@ -507,11 +507,14 @@ def load_settings(path: str | Path, **overrides) -> Settings:
     if not path.is_file():
         raise ValueError(f"site file not found: {path}")
     try:
-        text = path.read_text()
-        document = yaml.compose(text, Loader=yaml.SafeLoader)
-        if document is not None:
-            _check_keys_once(document)
-        data = yaml.safe_load(text) or {}
+        loader = yaml.SafeLoader(path.read_text())
+        try:  # composed once: its keys checked as written, then built
+            document = loader.get_single_node()
+            if document is not None:
+                _check_keys_once(document)
+            data = (loader.construct_document(document) if document is not None else None) or {}
+        finally:
+            loader.dispose()
     except yaml.YAMLError as exc:
         raise ValueError(_yaml_error(path, exc)) from None
     except UnicodeDecodeError as exc:

@@ -332,7 +332,7 @@ def test_roadside_up_names_a_bus_host_that_cannot_be_resolved(monkeypatch):
         with socket.socket(socket.AF_INET6) as probe:
             probe.bind(("::1", 0))
     except OSError:
-        return
+        pytest.skip("this machine has no IPv6 loopback (the rest of the test ran)")
     assert ports_in_use(BusSettings(host="::1", port_base=17921)) == []
 
 

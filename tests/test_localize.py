@@ -475,4 +475,5 @@ def test_latitude_longitude_astride_the_antimeridian_is_not_half_the_earth_away(
     exact = geo.to_geodetic(pts)[:, :2]
     assert ok.all() and abs(latlon[0, 1]) > 179.99
     np.testing.assert_allclose(np.cos(np.radians(latlon - exact)), 1.0, atol=1e-15)
+    np.testing.assert_allclose((latlon[:, 1] - exact[:, 1] + 180.0) % 360.0 - 180.0, 0.0, atol=1e-9)  # blended
     np.testing.assert_allclose(latlon[:, 0], exact[:, 0], atol=1e-9)

@@ -130,19 +130,17 @@ def load_detector(settings: Settings) -> OnnxDetector:
     return detector
 
 
-def detections_message(frame: Frame, det, infer_ms: float, t_in_ns: int, t_start_ns: int | None = None,
-                       t_done_ns: int | None = None) -> Detections:
+def detections_message(frame: Frame, det, infer_ms: float, t_in_ns: int, t_start_ns: int, t_done_ns: int) -> Detections:
     """The Detections of a frame: `infer_ms` the inference proper (`session.run`), `t_in_ns` when the frame came
     off the bus, `t_start_ns` when it left the ring for a worker, `t_done_ns` when the worker had its detections
-    (each stamped where given; the `detect` stamp is now)."""
+    (the `detect` stamp is now)."""
     inv = 1.0 / frame.scale
     # pixel centres: original q + 0.5 = (p + 0.5) / scale
     d = det.scaled(inv, inv, 0.5 * inv - 0.5, 0.5 * inv - 0.5) if frame.scale != 1.0 else det
     f4 = np.float32
     return Detections(
         site=frame.site, camera=frame.camera, seq=frame.seq, t_capture_ns=frame.t_capture_ns,
-        stamps=[*frame.stamps, ("detect_in", t_in_ns),
-                *((name, t) for name, t in (("detect_start", t_start_ns), ("detect_done", t_done_ns)) if t is not None),
+        stamps=[*frame.stamps, ("detect_in", t_in_ns), ("detect_start", t_start_ns), ("detect_done", t_done_ns),
                 ("detect", time.time_ns())],
         width=round(frame.width / frame.scale), height=round(frame.height / frame.scale), infer_ms=round(infer_ms, 3),
         score=d.score.astype(f4), uv=d.uv.astype(f4), box=d.box.astype(f4), heading_uv=d.heading_uv.astype(f4),

@@ -14,15 +14,13 @@ by size: recorder.py). When every camera's clock steps back, the tracker starts 
 
 from __future__ import annotations
 
-import json
 import logging
 import time
-import zipfile
 from collections.abc import Iterable
-from pathlib import Path
 
 import numpy as np
 
+from calibration.masks import read_masks_meta
 from services.fuse_track.fusion import CameraRegion, Fusion, FusionConfig, ObjectBatch
 from services.fuse_track.player import current_payload, held_latest
 from services.fuse_track.recorder import Recorder
@@ -63,24 +61,19 @@ def camera_positions(settings: Settings) -> tuple[dict[str, tuple[float, float]]
     positions, geo = {}, None
     site_geo = GeoFrame.from_dict(settings.origin) if settings.origin else None
     for cam in settings.cameras:
-        path = settings.path(cam.masks) if cam.masks else None
-        if path is not None and Path(path).is_dir():
-            raise ValueError(f"camera {cam.name}: lookup masks {path} is a folder, not a masks file")
-        if path is None or not Path(path).is_file():
-            raise ValueError(f"camera {cam.name}: lookup masks not found: {path} (fuse_track reads the camera "
-                             "position from them)")
-        empty = Path(path).stat().st_size == 0
-        if empty or not zipfile.is_zipfile(path):  # an empty file, a .npy array: numpy's EOFError, TypeError
-            why = "an empty file" if empty else "not an .npz archive"
-            raise ValueError(f"{path}: not a lookup masks file ({why}; make one with roadside calibrate)")
+        if cam.masks is None:
+            raise ValueError(f"camera {cam.name}: no lookup masks (fuse_track reads the camera position from them)")
+        path = settings.path(cam.masks)
         try:
-            with np.load(path, allow_pickle=False) as z:
-                meta = json.loads(str(z["meta"]))
-            masks_geo = GeoFrame.from_dict(meta["geo_origin"])
-            pos = np.asarray(meta["camera"]["pose"]["position_m"], float)
-        # e.g. metadata without a pose; EOFError: a member cut short
-        except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile) as exc:
-            raise ValueError(f"{path}: not a lookup masks file ({type(exc).__name__}: {exc})") from None
+            meta = read_masks_meta(path)
+        except ValueError as exc:
+            raise ValueError(f"camera {cam.name}: {exc} (fuse_track reads the camera position from them)") from None
+        masks_geo = GeoFrame.from_dict(meta["geo_origin"])
+        try:
+            pos = np.asarray(meta["camera"]["pose"]["position_m"], float).reshape(-1)[:3]
+        except (KeyError, TypeError, ValueError) as exc:  # metadata without a camera pose
+            raise ValueError(f"{path}: not a lookup masks file ({type(exc).__name__}: {exc}; its metadata has no "
+                             "camera pose: build it with roadside calibrate)") from None
         site_geo = site_geo or masks_geo
         if masks_geo != site_geo:
             pos = masks_geo.reframe(pos[:2], site_geo)[0]
@@ -190,10 +183,9 @@ def main(settings: Settings, stopper: Stopper) -> int:
         log.info("tracker %s, %d cameras, tick %g ms", tracker.id, len(fusion.regions), cfg.tick_ms)
 
         last_ref: int | None = None  # the reference time of the last tick tracked
-        record_errors = 0  # OSErrors out of the recorder (recorder.py handles its own: none expected)
 
         def close(closed: list[Tick]) -> None:
-            nonlocal seq, tracker, tokens, last_ref, record_errors
+            nonlocal seq, tracker, tokens, last_ref
             for tick in closed:
                 t_closed = time.time_ns()
                 if last_ref is not None and tick.t_ref_ns < last_ref:  # the clocks stepped back (ticks.py): start again
@@ -226,14 +218,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
                 payload = encode(msg)
                 pub.put(payload)
                 held_latest(latest, payload)
-                try:
-                    recorder.write(msg)
-                except OSError as exc:  # what the recorder does not handle itself: counted, and tracking goes on
-                    recorder.failed += 1
-                    record_errors += 1  # logged the first time (with its traceback), then every 100th
-                    if record_errors == 1 or record_errors % 100 == 0:
-                        log.error("tracks recording: Tracks seq %d may not be recorded (%s; %d such errors); tracking "
-                                  "goes on", msg.seq, exc.strerror or exc, record_errors, exc_info=record_errors == 1)
+                recorder.write(msg)  # counts and logs what it cannot record itself
                 status.count("tracks_out", output=True)
                 status.gauge("tracks", len(msg))
                 status.gauge("cameras_down", len(fusion.down))  # regions handed to their neighbours (fusion.py, 5)

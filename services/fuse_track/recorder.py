@@ -123,12 +123,9 @@ class Recorder:
         except OSError as exc:
             self.rotation_failed += 1
             self.next_rotation = self.size + self.rotate_bytes // 10  # not again at every line
-            gone = not os.path.isdir(self.path.parent)
-            log.error("tracks recording %s: rotation%s failed (%s); %s", self.path,
-                      f" to {target.name}" if target is not None else "", exc.strerror or exc,
-                      "its folder has gone" if gone else "recording goes on in the same file")
-            if gone:
-                self._reopen()
+            # (a folder that has gone is made again at the next line: write's check)
+            log.error("tracks recording %s: rotation%s failed (%s); recording goes on in the same file", self.path,
+                      f" to {target.name}" if target is not None else "", exc.strerror or exc)
             return
         self.close()
         log.info("tracks recording %s: %s closed at %d bytes", self.path, target.name, self.size)
@@ -147,16 +144,17 @@ class Recorder:
         """Whether the open file has been removed (no name left: an operator cleared the file or its folder). Where a
         file system reports no links for a file that has them, the path still naming the open file says it is not."""
         try:
-            if os.fstat(self.file.fileno()).st_nlink > 0:
+            here = os.fstat(self.file.fileno())
+            if here.st_nlink > 0:
                 return False
-            here, there = os.fstat(self.file.fileno()), os.stat(self.path)
+            there = os.stat(self.path)
         except (FileNotFoundError, NotADirectoryError):  # no such path any more
             return True
         except OSError:
             return False
         return (here.st_dev, here.st_ino) != (there.st_dev, there.st_ino)
 
-    def _reopen(self, why: str = "its folder has gone") -> bool:
+    def _reopen(self, why: str) -> bool:
         """The recording's file or folder has gone (its lines with it): the folder made again, a new file started;
         False when that fails (tried again at the next line)."""
         try:
