@@ -374,7 +374,7 @@ def _onto_surface(ground: Any, o: np.ndarray, dirs: np.ndarray, start_plane: np.
         f_lo[rows] = np.where(up, fm, np.where(kept == 1, 0.5 * fl, fl))
         f_hi[rows] = np.where(up, np.where(kept == -1, 0.5 * fh, fh), fm)
         kept = np.where(up, -1, 1)
-        done = (np.abs(fm) < 1e-5) | ((t_hi[rows] - t_lo[rows]) * hor[rows] < 1e-4)
+        done = (np.abs(fm) < 1e-4) | ((t_hi[rows] - t_lo[rows]) * hor[rows] < 1e-4)  # 0.1 mm: a grid read's error
         rows, kept = rows[~done], kept[~done]
     best[~(off <= tol_m)] = np.nan
     return o[:2] + best[:, None] * dirs[:, :2]

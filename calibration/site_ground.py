@@ -66,9 +66,11 @@ class GroundSurface:
 
     def height(self, xy: np.ndarray) -> np.ndarray:
         """(N, 2) site metres -> (N,) ground height (m). Many points at once (a whole image's rays) are read off
-        a 0.5 m grid of the surface by bilinear interpolation (well under a millimetre off for bumps this wide)."""
+        a 0.5 m grid of the surface by bilinear interpolation (well under a millimetre off for bumps this wide), and
+        so is every later call, however few its points, once the grid is built (a search along rays asks for fewer
+        and fewer)."""
         xy = np.asarray(xy, float).reshape(-1, 2)
-        if len(xy) < 20000:
+        if len(xy) < 20000 and "_grid" not in self.__dict__:
             return self._exact(xy)
         x0, y0, cell, grid = self._grid
         gx, gy = (xy[:, 0] - x0) / cell, (xy[:, 1] - y0) / cell

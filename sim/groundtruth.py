@@ -8,7 +8,7 @@ from shared.cameras import Camera
 from shared.geo import GeoFrame
 from shared.ground import Terrain
 from sim.geometry import rect
-from sim.render import RenderResult, clipped_box_image_points, image_border
+from sim.render import RenderResult, clipped_box_image_points
 from sim.traffic import VEHICLE_TYPES, SceneState
 
 _GRID = np.array([[a, b, c] for a in np.linspace(-1, 1, 5) for b in np.linspace(-1, 1, 5) for c in (0.0, 0.5, 1.0)])
@@ -48,7 +48,6 @@ def frame_ground_truth(
     ends = np.searchsorted(vals_s, np.arange(n), side="right")
     out = []
     w_max, h_max = camera.width - 1, camera.height - 1
-    border = None
     for i in range(n):
         if result.hit_px[i] == 0 and not in_img[i]:
             continue
@@ -63,10 +62,8 @@ def frame_ground_truth(
         if camera.kind == "pinhole" and not pok.all():
             # Part of the box is behind the camera (or beyond the lens model's field of view): the samples in
             # front would give only part of its image, so the box comes from its edges clipped at the camera plane.
-            if border is None:
-                border = image_border(camera)
             half = np.array([l / 2, w / 2, h / 2])
-            p = clipped_box_image_points(camera, bottom[i] + [0.0, 0.0, h / 2], half, scene.yaw[i], *border)
+            p = clipped_box_image_points(camera, bottom[i] + [0.0, 0.0, h / 2], half, scene.yaw[i], *result.border)
         else:
             p = puv[pok]
         if len(p):

@@ -242,11 +242,13 @@ def _fibonacci_sphere(n: int) -> np.ndarray:
 class RenderResult:
     """image: (H, W, 3) uint8 BGR for visible cameras, (H, W) uint8 for thermal.
     ids: (H, W) int32, index into the scene's vehicles, BACKGROUND_ID or PEDESTRIAN_ID.
-    hit_px: (N,) int64 pixels each vehicle would cover with nothing in front of it."""
+    hit_px: (N,) int64 pixels each vehicle would cover with nothing in front of it.
+    border: the camera's `image_border` (pixel centres and ray directions), computed once per renderer."""
 
     image: np.ndarray
     ids: np.ndarray
     hit_px: np.ndarray
+    border: tuple[np.ndarray, np.ndarray]
 
 
 class CameraRenderer:
@@ -259,7 +261,7 @@ class CameraRenderer:
         ok &= camera.in_image(grid)
         self.dirs = dirs.astype(np.float32).reshape(h, w, 3)
         self.valid = ok.reshape(h, w)
-        self.border = image_border(camera) if camera.kind == "pinhole" else (np.zeros((0, 2)), np.zeros((0, 3)))
+        self.border = image_border(camera)
         origin = camera.pose.position_m
         terrain = world.site.ground
         pts, t_ground, hit = terrain.intersect(origin, dirs, max_range_m=world.site.extent_m * 3)
@@ -471,7 +473,7 @@ class CameraRenderer:
                 "pedestrian",
                 False,
             )
-        return RenderResult(self._sensor(img, rng), ids, hit_px)
+        return RenderResult(self._sensor(img, rng), ids, hit_px, self.border)
 
     def _draw_object(
         self, img, depth, ids, obj_id, origin, xy, gz, yaw, centres, halves, kinds, lwh, color, vtype, parked
