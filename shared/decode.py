@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -19,15 +20,42 @@ HEADING_EPS = 1e-12
 PEAK_KERNEL = np.ones((3, 3), np.uint8)
 EARLIER_KERNEL = np.array([[1, 1, 1], [1, 0, 0], [0, 0, 0]], np.uint8)  # the 3x3 neighbours before a cell
 VOTE_MIN_CELLS = 1.5  # a peak whose vote points further than this (output cells) is moved to the vehicle's centre
+PAD_MULTIPLE = 32  # a network input's sides are padded to a multiple of this (its deepest stride)
 CONFIG_KEY = "detector_config"  # ONNX metadata written by training.export: the DetectorConfig as JSON
 
 
 def model_stride(metadata: Mapping[str, str]) -> int:
     """Output stride of an exported model from its metadata (onnxruntime: session.get_modelmeta().
-    custom_metadata_map)."""
+    custom_metadata_map), read as the detect service reads it (`detector_config`)."""
     if CONFIG_KEY not in metadata:
         raise ValueError(f"model metadata has no {CONFIG_KEY!r} (not written by training.export?): {sorted(metadata)}")
-    return int(json.loads(metadata[CONFIG_KEY])["stride"])
+    return detector_config(metadata[CONFIG_KEY], "the model")["stride"]
+
+
+def detector_config(text: str, path: Path | str) -> dict:
+    """A model's `CONFIG_KEY` metadata (training.export: the DetectorConfig as JSON), the keys read here checked:
+    ValueError naming the file, at start, rather than a traceback or every frame refused later."""
+    try:
+        config = json.loads(text)
+        if not isinstance(config, dict):
+            raise ValueError(f"not a JSON object: {text[:80]!r}")
+        if "stride" not in config:
+            raise ValueError(f"no 'stride' in {sorted(config)}")
+        # the input is padded to a multiple of PAD_MULTIPLE: the output maps cover it exactly at a stride dividing it
+        _whole(config, "stride", lambda v: v >= 1 and PAD_MULTIPLE % v == 0, f">= 1 dividing {PAD_MULTIPLE}")
+        _whole(config, "input_long_side", lambda v: v >= PAD_MULTIPLE, f">= {PAD_MULTIPLE}")
+        _whole(config, "num_types", lambda v: v >= 1, ">= 1")
+    except (KeyError, TypeError, AttributeError, ValueError) as e:
+        raise ValueError(f"{path}: metadata {CONFIG_KEY}: {e}") from e
+    return config
+
+
+def _whole(config: dict, key: str, ok, what: str) -> None:
+    """ValueError unless `config[key]` (where present) is a whole number (not a bool) for which `ok` holds."""
+    if key in config:
+        v = config[key]
+        if isinstance(v, bool) or not isinstance(v, int) or not ok(v):
+            raise ValueError(f"{key} must be a whole number {what}, got {v!r}")
 
 
 def cell_centres(n: int, stride: int) -> np.ndarray:

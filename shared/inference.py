@@ -10,7 +10,6 @@ slower on CPU execution providers).
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -18,11 +17,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from shared.decode import CONFIG_KEY, Detections, decode
+from shared.decode import CONFIG_KEY, PAD_MULTIPLE, Detections, decode, detector_config
 from shared.heads_calibration import BOX_CALIBRATION_KEY, SIZE_CALIBRATION_KEY, BoxCalibration, SizeCalibration
 from shared.settings import MAX_THREADS
 
-PAD_MULTIPLE = 32
 DEFAULT_LONG_SIDE = 640  # a model's input_long_side where its metadata has none
 AREA_CONTEXT_PX = 32  # network pixels of the image kept around a camera's detect area (see `OnnxDetector.detect`)
 PREFERRED_PROVIDERS = ("TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider")
@@ -65,32 +63,6 @@ def runtime_errors() -> tuple[type[Exception], ...]:
     from onnxruntime.capi import onnxruntime_pybind11_state as state
 
     return tuple(v for v in vars(state).values() if isinstance(v, type) and issubclass(v, Exception))
-
-
-def detector_config(text: str, path: Path) -> dict:
-    """A model's `CONFIG_KEY` metadata (training.export: the DetectorConfig as JSON), the keys read here checked:
-    ValueError naming the file, at start, rather than a traceback or every frame refused later."""
-    try:
-        config = json.loads(text)
-        if not isinstance(config, dict):
-            raise ValueError(f"not a JSON object: {text[:80]!r}")
-        if "stride" not in config:
-            raise ValueError(f"no 'stride' in {sorted(config)}")
-        # the input is padded to a multiple of PAD_MULTIPLE: the output maps cover it exactly at a stride dividing it
-        _whole(config, "stride", lambda v: v >= 1 and PAD_MULTIPLE % v == 0, f">= 1 dividing {PAD_MULTIPLE}")
-        _whole(config, "input_long_side", lambda v: v >= PAD_MULTIPLE, f">= {PAD_MULTIPLE}")
-        _whole(config, "num_types", lambda v: v >= 1, ">= 1")
-    except (KeyError, TypeError, AttributeError, ValueError) as e:
-        raise ValueError(f"{path}: metadata {CONFIG_KEY}: {e}") from e
-    return config
-
-
-def _whole(config: dict, key: str, ok, what: str) -> None:
-    """ValueError unless `config[key]` (where present) is a whole number (not a bool) for which `ok` holds."""
-    if key in config:
-        v = config[key]
-        if isinstance(v, bool) or not isinstance(v, int) or not ok(v):
-            raise ValueError(f"{key} must be a whole number {what}, got {v!r}")
 
 
 def check_input(inputs: list, path: Path, batch: int) -> str:

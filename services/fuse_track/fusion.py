@@ -584,8 +584,7 @@ class Fusion:
             rank = np.empty_like(groups)
             rank[np.argsort(groups, kind="stable")] = np.arange(len(groups))
             labels = np.where(labels >= 0, rank[np.maximum(labels, 0)], -1)
-        return self._merge(objects, vel, weight, region_weight, labels, extend | objects.extend_mask(), cam_idx,
-                           source, pool)
+        return self._merge(objects, vel, weight, labels, extend | objects.extend_mask(), cam_idx, source, pool)
 
     def _group(self, objects: ObjectBatch, p_ref: np.ndarray, in_region: np.ndarray, weight: np.ndarray,
                cam_idx: np.ndarray, owners: np.ndarray, source: np.ndarray,
@@ -677,11 +676,11 @@ class Fusion:
             has = np.concatenate([has, fresh])
         return out
 
-    def _merge(self, objects: ObjectBatch, vel: np.ndarray, weight: np.ndarray, region_weight: np.ndarray,
-               labels: np.ndarray, extend: np.ndarray, cam_idx: np.ndarray, source: np.ndarray,
+    def _merge(self, objects: ObjectBatch, vel: np.ndarray, weight: np.ndarray, labels: np.ndarray,
+               extend: np.ndarray, cam_idx: np.ndarray, source: np.ndarray,
                pool: np.ndarray) -> ObjectBatch:
         """One object per group; a group is extend-only when all its members are. weight: each object's weight,
-        its score times region_weight (1 in its camera's region, out_of_region_weight outside it); cam_idx: each
+        its score times its region weight (1 in its camera's region, out_of_region_weight outside it); cam_idx: each
         object's camera as an index into the regions, -1 for a camera without one; source: the frame each object
         comes from; pool: each object's pool (a group's members share one; each pool's times count from its own
         earliest)."""
@@ -737,7 +736,7 @@ class Fusion:
             # localization (FusionConfig), so an out-of-region member's error is 1 / r_i times its range model's, as
             # the mean weighs it
             c = np.zeros((g, 2, 2))
-            np.add.at(c, lab, (w / region_weight[kept])[:, None, None] * info)
+            np.add.at(c, lab, np.maximum(objects.score[kept], 1e-6)[:, None, None] * info)  # w_i / r_i: its score
             cov = symmetric(a_inv @ c @ a_inv)
         # The heaviest member of each group gives its camera and which way its heading points (front or back); the
         # member heaviest in heading weight (w_view, below) the axis its members' headings are aligned to, reversed
