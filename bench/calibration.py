@@ -100,7 +100,7 @@ def mask_errors(truth: np.ndarray, valid: np.ndarray, got: np.ndarray, got_valid
     for lo, hi in BANDS_M:
         m = ok & (dist >= lo) & (dist < hi)
         out[f"band_{lo:.0f}_{hi:.0f}_mean_m"] = float(np.mean(err[m])) if m.sum() >= 50 else None
-    out["in_roi_coverage"] = float((ok & roi).sum() / max((valid & roi).sum(), 1))
+    out["in_roi_coverage"] = _share(ok & roi, valid & roi)
     out["out_roi_coverage"] = _share(ok & ~roi, valid & ~roi)
     for lo, hi in BANDS_M:
         band = (dist >= lo) & (dist < hi)

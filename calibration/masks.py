@@ -85,15 +85,12 @@ class LookupMasks:
         latlon = np.full_like(xy, np.nan)
         lon = bilinear(self.lon, first)[:, 0]
         # four pixel centres astride the antimeridian (179.99999 and -179.99999) would average to about 0: there the
-        # longitude is blended as offsets from the top-left neighbour's, wrapped
+        # longitude comes from the metres, as GroundLookup computes every one
         if self._near_antimeridian():
-            v0, u0, fu, fv = first[0], first[1], first[2][:, 0], first[3][:, 0]
+            v0, u0 = first[0], first[1]
             corners = [self.lon[v0 + dv, u0 + du] for dv, du in ((0, 0), (0, 1), (1, 0), (1, 1))]
-            astride = np.flatnonzero(np.max(corners, axis=0) - np.min(corners, axis=0) > 180.0)
-            rel = [(c[astride] - corners[0][astride] + 180.0) % 360.0 - 180.0 for c in corners]
-            a, b = fu[astride], fv[astride]
-            blend = (rel[0] * (1 - a) + rel[1] * a) * (1 - b) + (rel[2] * (1 - a) + rel[3] * a) * b
-            lon[astride] = (corners[0][astride] + blend + 180.0) % 360.0 - 180.0
+            astride = np.flatnonzero(np.ptp(corners, axis=0) > 180.0)
+            lon[astride] = self.geo.to_geodetic(xy[:m][astride])[:, 1]
         latlon[:m] = np.column_stack([bilinear(self.lat, first)[:, 0], lon])
         latlon[~ok] = np.nan
         return latlon, xy, ok

@@ -10,6 +10,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 import cv2
 import numpy as np
 import pytest
+from pipeline_fixtures import free_port_base
 
 from services.ingest.sources import MergedSource, SourceFrame, VideoSource
 
@@ -216,16 +217,10 @@ def _still(folder, *names, size=(48, 64)):
     return folder
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_a_live_camera_down_at_start_is_reported_and_opened_again(monkeypatch):
     """A camera not up yet when the cabinet boots is no configuration error: its failed opens are frames carrying the
     reason until it comes up; a file or a file:// URL that cannot be opened still stops ingest at start."""
-    port = _free_port()
+    port = free_port_base(span=1)
     url = f"http://127.0.0.1:{port}/stream.mjpg"
     monkeypatch.setattr(VideoSource, "RECONNECT_S", 0.05)
     source = VideoSource(url, "NE")  # nothing listens yet
