@@ -36,6 +36,7 @@ import math
 import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -108,25 +109,22 @@ def load_detector(settings: Settings) -> OnnxDetector:
     path = settings.path(cfg.model_gpu) if gpu and cfg.model_gpu is not None else settings.path(cfg.model)
     if not path.is_file() and gpu:
         path = settings.path(cfg.model)
-    if path.is_dir():
-        raise ValueError(f"detector model {path} is a folder, not a model file (set detect.model in the site file)")
-    if not path.is_file():
-        raise ValueError(f"detector model not found: {path} (set detect.model in the site file)")
-    detector = OnnxDetector(path, providers=providers, threads=cfg.threads, score_thr=cfg.score_thr, spin=cfg.spin,
+
+    def opened(path: Path, providers: list[str]) -> OnnxDetector:
+        if path.is_dir():
+            raise ValueError(f"detector model {path} is a folder, not a model file (set detect.model in the site file)")
+        if not path.is_file():
+            raise ValueError(f"detector model not found: {path} (set detect.model in the site file)")
+        return OnnxDetector(path, providers=providers, threads=cfg.threads, score_thr=cfg.score_thr, spin=cfg.spin,
                             mirror=cfg.mirror, votes=cfg.votes)
+
+    detector = opened(path, providers)
     # a GPU provider this ONNX Runtime lists can still fail to start (no GPU passed through, a driver too old): the
     # session then runs on the CPU, where the fp16 model is slower than the fp32 one (shared/inference.py)
     if path != settings.path(cfg.model) and not any(p != "CPUExecutionProvider" for p in detector.providers):
         log.warning("%s: ONNX Runtime runs it on %s, not on %s: the fp32 model on the CPU instead", path.name,
                     ", ".join(detector.providers), ", ".join(p for p in providers if p != "CPUExecutionProvider"))
-        path = settings.path(cfg.model)
-        if path.is_dir():
-            raise ValueError(f"detector model {path} is a folder, not a model file (set detect.model in the site "
-                             "file)")
-        if not path.is_file():
-            raise ValueError(f"detector model not found: {path} (set detect.model in the site file)")
-        detector = OnnxDetector(path, providers=["CPUExecutionProvider"], threads=cfg.threads,
-                                score_thr=cfg.score_thr, spin=cfg.spin, mirror=cfg.mirror, votes=cfg.votes)
+        detector = opened(settings.path(cfg.model), ["CPUExecutionProvider"])
     return detector
 
 
