@@ -124,6 +124,13 @@ def _fit_failure(cal, lm) -> str | None:
     return None
 
 
+def _typo(lm, k: int, off_m: float) -> str:
+    """What `single_gross_mistake`'s landmark k, off_m metres from where the others place its pixel, is taken for."""
+    off = f"{off_m:.0f} m from" if math.isfinite(off_m) else "far from"
+    return (f"landmark {lm.ids[k]!r}: its map point is {off}"
+            " where the other landmarks place its pixel: a typo in its latitude or longitude?")
+
+
 def _site_check(main: str, geo: GeoFrame, own: dict):
     """`calibrate_site`'s check of every camera of a --shared-ground run (this one's landmarks are `main`), on its
     own fit and after each refit on the site's surface: `_fit_failure`, and the one landmark with a typo when that
@@ -139,7 +146,7 @@ def _site_check(main: str, geo: GeoFrame, own: dict):
         if name in excused:
             return None
         failure = _fit_failure(cal, lm)
-        if failure is not None and cal.ground is None and name in own:
+        if failure is not None and cal.ground is None:
             full, polygons = own[name]
             if (full.segment >= 0).any() and _fit_failure(calibrate(full, cfg, geo, polygons), full) is None:
                 excused.add(name)
@@ -148,11 +155,8 @@ def _site_check(main: str, geo: GeoFrame, own: dict):
             return None
         typo = single_gross_mistake(lm, cfg, geo)
         if typo is not None and _fit_failure(calibrate(lm, cfg, geo, exclude=typo[0]), lm) is None:
-            k, off_m = typo
-            failure = (f"landmark {lm.ids[k]!r}: its map point is "
-                       + (f"{off_m:.0f} m from" if math.isfinite(off_m) else "far from")
-                       + " where the other landmarks place its pixel: a typo in its latitude or longitude? With it "
-                       "the fit fails, without it the others agree: correct it or leave it out")
+            failure = (f"{_typo(lm, *typo)} With it the fit fails, without it the others agree: correct it or leave "
+                       "it out")
         if name == main:
             return failure
         return (f"{failure}. Its landmarks would bend the site's ground surface the other cameras are refitted on "
@@ -248,10 +252,8 @@ def run_calibration(job: CalibrateJob) -> dict:
         typo = single_gross_mistake(lm, cfg, geo)
         if typo is None:
             raise ValueError(failure)
-        k, off_m = typo
-        culprit = (f"landmark {lm.ids[k]!r}: its map point is "
-                   + (f"{off_m:.0f} m from" if math.isfinite(off_m) else "far from")
-                   + " where the other landmarks place its pixel: a typo in its latitude or longitude?")
+        k = typo[0]
+        culprit = _typo(lm, *typo)
         if job.shared_ground:  # the site's surface is fitted to every camera's landmarks: fix the file first
             raise ValueError(f"{culprit} With it the fit fails, without it the others agree: correct it or leave it "
                              f"out")
