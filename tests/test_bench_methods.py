@@ -124,7 +124,8 @@ def test_soak_tracks_per_s_leaves_start_up_and_shutdown_out(tmp_path, monkeypatc
     assert 0.3 < doc["tracks_rate_window_s"] < 1.2
 
 
-def test_detector_bench_names_each_timings_input_and_times_the_deployed_input_too(tmp_path):
+def test_detector_bench_names_each_timings_input_and_times_the_deployed_input_too(tmp_path, monkeypatch):
+    import bench.detector
     from bench.detector import BenchSettings, _parse, deployed_input, run
     from training.export import export_onnx
     from training.model import Detector, count_macs
@@ -134,7 +135,13 @@ def test_detector_bench_names_each_timings_input_and_times_the_deployed_input_to
     # a 1280x960 camera and a model whose input_long_side is 640: the detect service feeds it 480x640
     assert deployed_input(path, (1280, 960)) == (640, 480, 640)
     assert _parse([]).frame_wh == (1280, 960) and _parse([]).hw == (512, 512)
+    # a GPU provider as on a machine that has one (its timing stubbed: this one has none), so its entry is checked
+    have = bench.detector.ort.get_available_providers()
+    monkeypatch.setattr(bench.detector.ort, "get_available_providers", lambda: [*have, "CUDAExecutionProvider"])
+    monkeypatch.setattr(bench.detector, "time_gpu", lambda *a: {"median_ms": 1.0})
+    monkeypatch.setattr(bench.detector, "gpu_name", lambda: "a GPU")
     out = run(BenchSettings(model=path, size_px=64, height_px=96, runs=1, warmup=0, frame_wh=(160, 120)), tmp_path)
+    assert "cuda_fp32" in out
     assert out["target"]["input"] == [1, 1, 512, 512] and out["target"]["applies_to"] is None  # not 512x512
     assert out["cpu_fp32"]["input"] == out["cpu_fp32_throughput"]["input"] == out["input"] == [1, 1, 96, 64]
     deployed = out["deployed"]

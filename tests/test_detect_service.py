@@ -125,11 +125,17 @@ def test_the_fp16_model_is_not_run_on_a_cpu_that_onnx_runtime_fell_back_to(tmp_p
                         lambda: ["CUDAExecutionProvider", *(p for p in available() if p != "CUDAExecutionProvider")])
     # the session as ONNX Runtime leaves it after the fallback, on this machine's build or a GPU one alike
     monkeypatch.setattr(OnnxDetector, "providers", property(lambda self: ["CPUExecutionProvider"]))
+    built = []  # each model opened and the providers it was asked to run on
+    init = OnnxDetector.__init__
+    monkeypatch.setattr(OnnxDetector, "__init__", lambda self, path, providers, **kw: (
+        built.append((Path(path), list(providers))), init(self, path, providers, **kw))[1])
     settings = site_settings(tmp_path, model_gpu=str(FP16), providers=None)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # ONNX Runtime's own: CUDA is not in this build
         d = detect.load_detector(settings)
     assert d.path == FP32 and d.providers == ["CPUExecutionProvider"]
+    assert [p for p, _ in built] == [FP16, FP32] and built[0][1][0] == "CUDAExecutionProvider"
+    assert built[1][1] == ["CPUExecutionProvider"]  # the fp32 model asked for the CPU alone
     assert "detector_fp16.onnx: ONNX Runtime runs it on CPUExecutionProvider, not on CUDAExecutionProvider" \
         in caplog.text
     # a GPU session that did start keeps the fp16 model
