@@ -545,7 +545,7 @@ def load_settings(path: str | Path, **overrides) -> Settings:
             base = data.get(key) or {}
             if not isinstance(base, dict):
                 raise ValueError(f"{path}: {key} is not a section of fields, cannot override {key}.{next(iter(value))}")
-            data[key] = {**base, **value}
+            data[key] = _deep_merge(base, value)  # as the environment is merged in
         else:
             data[key] = value
     try:
