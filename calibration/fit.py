@@ -817,9 +817,9 @@ def single_gross_mistake(lm: Landmarks, cfg: CalibConfig, geo: GeoFrame) -> tupl
         if ok[0] and np.linalg.norm(proj[0] - lm.uv[i]) <= cfg.outlier_sigma * cfg.pixel_sigma_px:
             continue  # it agrees with them too: not the mistake
         dirs, _ = cam.unproject(lm.uv[i : i + 1])
-        o = cam.pose.position_m
-        t = -o[2] / dirs[0, 2] if dirs[0, 2] < 0 else math.inf  # its pixel's ray onto the level ground (z = 0)
-        found.append((i, float(np.linalg.norm(o[:2] + t * dirs[0, :2] - xy[i])) if math.isfinite(t) else math.inf))
+        at, _ = _ray_plane(cam.pose.position_m, dirs, np.zeros(3))  # its pixel's ray onto the level ground (z = 0)
+        off = float(np.linalg.norm(at[0] - xy[i]))
+        found.append((i, off if math.isfinite(off) else math.inf))
     return found[0] if len(found) == 1 else None
 
 
