@@ -627,9 +627,7 @@ def _environment_not_json() -> str | None:
                 annotation = None
                 break
             annotation = field.annotation
-            models = [t for t in (annotation, *typing.get_args(annotation))
-                      if isinstance(t, type) and issubclass(t, BaseModel)]
-            model = models[0] if models else None
+            model = _section_model(annotation)
         kind = _json_kind(annotation)
         if kind is None:
             continue
@@ -675,6 +673,13 @@ def _deep_merge(base: dict, over: dict) -> dict:
     return out
 
 
+def _section_model(annotation) -> type[BaseModel] | None:
+    """The settings section a field's annotation holds (`BusSettings`, `MovementSettings | None`), None for a plain
+    value (unknown_environment and _environment_not_json both walk the `__` paths of ROADSIDE_ variables with it)."""
+    models = [t for t in (annotation, *typing.get_args(annotation)) if isinstance(t, type) and issubclass(t, BaseModel)]
+    return models[0] if models else None
+
+
 def unknown_environment() -> list[str]:
     """The ROADSIDE_ environment variables that name no setting (a misspelt one would be ignored: a cabinet's
     recording silently off): the part after the prefix must be a field, and after a section's `__` one of its."""
@@ -690,10 +695,10 @@ def unknown_environment() -> list[str]:
             continue
         if len(parts) > 1:
             types = (field.annotation, *typing.get_args(field.annotation))
-            models = [t for t in types if isinstance(t, type) and issubclass(t, BaseModel)]
             if any(typing.get_origin(t) is dict for t in types):
                 continue  # a mapping (origin: ROADSIDE_ORIGIN__ALT_M) takes any key
-            if not models or parts[1] not in models[0].model_fields:
+            model = _section_model(field.annotation)
+            if model is None or parts[1] not in model.model_fields:
                 bad.append(name)
     return bad
 
