@@ -366,6 +366,9 @@ def _add_up(sub) -> None:
     p.add_argument("--pace", help="1 (real time), N (N x real time) or max (as fast as the pipeline goes)")
     p.add_argument("--loop", action="store_true", help="repeat the source")
     p.add_argument("--record", type=Path, help="append tracks to this JSON-lines file")
+    p.add_argument("--record-frames", type=Path, metavar="DIR",
+                   help="also write every frame played, at full resolution, to DIR/<camera>/<capture ns>.jpg: "
+                        "a folder --source plays back (ingest.record_dir)")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
                    help="override a setting in every service (repeatable)")
     p.add_argument("--no-restart", action="store_true", help="do not restart a service that dies")
@@ -389,6 +392,8 @@ def _run_up(args) -> int:
         sets.append("ingest.loop=true")
     if args.record:
         sets.append(f"fuse_track.record={json.dumps(str(args.record.resolve()))}")
+    if args.record_frames:
+        sets.append(f"ingest.record_dir={json.dumps(str(args.record_frames.resolve()))}")
     site = site_path(args.site)
     from shared.bus import ports_in_use
     from shared.service import parse_sets

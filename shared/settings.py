@@ -87,6 +87,17 @@ class Strict(BaseModel):
     # no NaN or infinity in any number of a site file (an infinite heading step dropped every detection)
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
+    @model_validator(mode="before")
+    @classmethod
+    def _empty_path_is_none(cls, data: object) -> object:
+        """An optional path given empty (`ROADSIDE_INGEST__RECORD_DIR=` in a compose file, `--set x.y=""`) is none,
+        not the current folder (pydantic reads "" as Path("."))."""
+        if not isinstance(data, dict):
+            return data
+        empty = [name for name, field in cls.model_fields.items()
+                 if data.get(name) == "" and {Path, type(None)} <= set(typing.get_args(field.annotation))]
+        return {**data, **dict.fromkeys(empty)} if empty else data
+
 
 class BusSettings(Strict):
     mode: Literal["peer", "client"] = "peer"
@@ -226,6 +237,15 @@ class IngestSettings(Strict):
     # and reporting status, until told to stop (compose.yaml: compose restarts a service that exits, and each restart
     # would play the source's last frames again, late for fuse_track)
     at_end: Literal["exit", "idle"] = "exit"
+    # also write every frame published, at the source's full resolution and its capture time, to
+    # RECORD_DIR/<camera>/<t_capture_ns>.jpg: a folder ingest plays back (`roadside up --source RECORD_DIR`;
+    # services/ingest/recorder.py); relative to the site folder. Frames decoded from a video or stream are written as
+    # JPEGs of record_jpeg_quality; frames that would not fit in record_queue_mb (a disk slower than the cameras)
+    # are dropped and counted, and below record_min_free_mb of free space recording pauses until space is freed
+    record_dir: Path | None = None
+    record_jpeg_quality: int = Field(92, ge=1, le=100)
+    record_queue_mb: float = Field(24.0, gt=0, le=4096)  # counts towards ingest's memory
+    record_min_free_mb: float = Field(1024.0, ge=0, le=1e9)
 
     @field_validator("timezone")
     @classmethod

@@ -928,6 +928,50 @@ def test_ingest_skips_a_corrupt_jpeg_in_an_image_folder(site, site_name, small_r
     assert "done: 2 frames published, 2 bad" in ingest.log()
 
 
+def test_ingest_records_what_it_publishes_as_a_folder_it_plays_back(site, site_name, small_recording, port_base, peer,
+                                                                    launch, tmp_path):
+    """`ingest.record_dir`: each published frame is written under its capture time at full resolution (the JPEG
+    files as they are; a corrupt one is not published, so not recorded); played from that folder, ingest publishes the
+    same frames; a second recording into the same folder writes nothing over; the folder being played is refused."""
+    folder = tmp_path / "images"
+    folder.mkdir()
+    good = sorted((small_recording / "frames" / CAMERA).glob("*.jpg"))
+    for p in good:
+        shutil.copy(p, folder / p.name)
+    times = [int(p.stem) for p in good]
+    (folder / f"{(times[0] + times[1]) // 2}.jpg").write_bytes(b"\xff\xd8\xff\xe0 truncated")
+    recorded = tmp_path / "recorded"
+    peer.subscribe("frames", camera_key(site_name, CAMERA, "frame"), Frame)
+    peer.declare_tokens([alive_key(site_name, "detect", CAMERA), alive_key(site_name, "localize", CAMERA),
+                         alive_key(site_name, "fuse_track", "t0")])
+    sets = [*bus_sets(port_base), "ingest.pace=100", "ingest.encoding=jpeg"]
+    ingest = launch("ingest", site, *sets, f"ingest.source={folder}", f"ingest.record_dir={recorded}")
+    assert_clean_exit(ingest, ingest.wait(WAIT_S))
+    assert "recording every frame published to" in ingest.log()
+    assert f"2 frames written ({CAMERA} 2), 0 dropped" in ingest.log(), ingest.log()
+    files = sorted((recorded / CAMERA).iterdir())
+    assert [p.name for p in files] == [p.name for p in good]
+    assert [p.read_bytes() for p in files] == [p.read_bytes() for p in good]
+    assert peer.wait_for(lambda: len(peer.got["frames"]) >= 2, 10.0), ingest.log()
+    first = [(f.t_capture_ns, f.data) for f in peer.got["frames"]]
+
+    peer.got["frames"].clear()
+    again = launch("ingest", site, *sets, f"ingest.source={recorded}", f"ingest.record_dir={tmp_path / 'copy'}")
+    assert_clean_exit(again, again.wait(WAIT_S))
+    assert peer.wait_for(lambda: len(peer.got["frames"]) >= 2, 10.0), again.log()
+    assert [(f.t_capture_ns, f.data) for f in peer.got["frames"]] == first
+    assert [t for t, _ in first] == times
+
+    twice = launch("ingest", site, *sets, f"ingest.source={folder}", f"ingest.record_dir={recorded}")
+    assert_clean_exit(twice, twice.wait(WAIT_S))
+    assert "0 frames written (none), 0 dropped, 0 without disk space, 2 already there" in twice.log(), twice.log()
+    assert [p.read_bytes() for p in sorted((recorded / CAMERA).iterdir())] == [p.read_bytes() for p in good]
+
+    refused = launch("ingest", site, *sets, f"ingest.source={recorded}", f"ingest.record_dir={recorded}")
+    assert refused.wait(WAIT_S) == 2
+    assert re.search(r"ingest: error: ingest.record_dir .* overlap", refused.log()), refused.log()
+
+
 # --- c. a missing file stops a service at start with exit status 2 and one error line -------------------------------
 
 
@@ -1292,7 +1336,8 @@ def test_roadside_up_plays_a_source_to_the_end_and_stops_every_service(site, sma
     stopped; the tracks file is written; no service process is left behind."""
     tracks = tmp_path / "tracks.jsonl"
     cmd = [sys.executable, "-m", "roadside", "up", "--site", str(site), "--pace", "max", "--record", str(tracks),
-           "--log-dir", str(tmp_path / "logs"), "--set", f"bus.port_base={port_base}", "--set", "ingest.max_frames=2"]
+           "--record-frames", str(tmp_path / "frames"), "--log-dir", str(tmp_path / "logs"),
+           "--set", f"bus.port_base={port_base}", "--set", "ingest.max_frames=2"]
     proc = subprocess.run(cmd, env=service_env(), capture_output=True, text=True, timeout=180)
     assert proc.returncode == 0, proc.stderr[-2000:]
     for s in ("fuse_track", "localize", "detect", "ingest"):
@@ -1300,6 +1345,8 @@ def test_roadside_up_plays_a_source_to_the_end_and_stops_every_service(site, sma
     assert "ingest finished its source" in proc.stderr
     lines = [json.loads(x) for x in tracks.read_text().splitlines()]
     assert lines and all("tracks" in x for x in lines)
+    recorded = sorted(p.name for p in (tmp_path / "frames" / CAMERA).iterdir())
+    assert recorded == sorted(p.name for p in (small_recording / "frames" / CAMERA).glob("*.jpg"))[:2]
 
 
 @pytest.mark.slow

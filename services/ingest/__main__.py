@@ -21,6 +21,7 @@ import time
 import cv2
 import numpy as np
 
+from services.ingest.recorder import FrameRecorder, RecorderConfig, check_not_the_source
 from services.ingest.sources import SourceFrame, open_source
 from shared.bus import BadInput, Receiver, Stopper, declare_alive, open_session, wait_for_peers
 from shared.codec import DecodeError, decode, encode
@@ -162,14 +163,31 @@ def resume_point(session, site: str, source, loop: bool = False) -> int | None:
     return None
 
 
+def record_status(status: StatusReporter, recorder: FrameRecorder) -> None:
+    """The recording's counters in ingest's status reports (`roadside status`, `roadside metrics`)."""
+    for camera, n in recorder.written.items():
+        status.gauge(f"recorded.{camera}", n)
+    for name in ("dropped", "no_space", "duplicates"):
+        status.gauge(f"record_{name}", getattr(recorder, name))
+    status.gauge("record_errors", sum(recorder.errors.values()))
+
+
 def main(settings: Settings, stopper: Stopper) -> int:
     cfg = settings.ingest
     cams = {c.name: c for c in settings.cameras}
     def resolve(src: str | None) -> str | None:
         return src if not src or "://" in src else str(settings.path(src))
 
-    source = open_source(resolve(cfg.source) or "", list(cams), {c.name: resolve(c.source) for c in settings.cameras},
-                         cfg.fps, cfg.tzinfo(), stopper.event)
+    own_sources = {c.name: resolve(c.source) for c in settings.cameras}
+    source = open_source(resolve(cfg.source) or "", list(cams), own_sources, cfg.fps, cfg.tzinfo(), stopper.event)
+    recorder = None
+    if cfg.record_dir is not None:
+        record_dir = settings.path(cfg.record_dir)
+        for played in {resolve(cfg.source), *own_sources.values()}:
+            check_not_the_source(record_dir, played)
+        recorder = FrameRecorder(RecorderConfig(record_dir, cfg.record_jpeg_quality, cfg.record_queue_mb,
+                                                cfg.record_min_free_mb))
+        log.info("recording every frame published to %s", record_dir)
     bad = BadInput("ingest")
     session = open_session(settings, "ingest")
     try:
@@ -232,6 +250,9 @@ def main(settings: Settings, stopper: Stopper) -> int:
                 msg.stamps = [("ingest", time.time_ns())]  # when it leaves, after any wait for room
                 pubs[sf.camera].put(encode(msg))
                 status.count(f"frames_out.{sf.camera}", output=True)
+                if recorder is not None:
+                    recorder.put(sf.camera, t, jpeg=sf.jpeg, image=sf.image)
+                    record_status(status, recorder)
                 if acks is not None:
                     acks.sent(sf.camera, msg.seq)
                     status.gauge("ack_timeouts", acks.timeouts)
@@ -254,9 +275,14 @@ def main(settings: Settings, stopper: Stopper) -> int:
             log.info("the source is finished: publishing nothing more until told to stop (ingest.at_end idle)")
             while not stopper.wait(1.0):
                 pass
+        if recorder is not None:
+            recorder.close()
+            record_status(status, recorder)
         status.close()
         del tokens
     finally:
+        if recorder is not None:
+            recorder.close()  # a second close returns at once
         session.close()
     return STOPPED if stopper.is_set() else 0  # 0: the source ended (`roadside up` ends the run), else told to stop
 
