@@ -61,8 +61,11 @@ class Ortho:
         folder = Path(folder)
         if not folder.is_dir():
             raise ValueError(f"--basemap {folder}: not a folder")
-        imgs = sorted([*folder.glob("*.jpg"), *folder.glob("*.png")])
-        metas = sorted(folder.glob("*.json"))
+        def visible(pattern: str) -> list[Path]:  # not hidden files: macOS's `._<name>` beside each file copied
+            return [p for p in folder.glob(pattern) if not p.name.startswith(".")]
+
+        imgs = sorted([*visible("*.jpg"), *visible("*.png")])
+        metas = sorted(visible("*.json"))
         if len(imgs) != 1 or len(metas) != 1:
             raise ValueError(f"--basemap {folder}: need exactly one .jpg/.png and one .json, found {imgs + metas}")
         image = cv2.imread(str(imgs[0]), cv2.IMREAD_COLOR)

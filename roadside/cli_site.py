@@ -68,7 +68,7 @@ def _add_area(sub) -> None:
 
 def _run_area(args) -> int:
     from calibration.area import image_area, read_frames
-    from services.ingest.sources import IMAGE_SUFFIXES
+    from services.ingest.sources import image_files
 
     if args.every < 1:
         raise ValueError(f"--every must be >= 1, got {args.every}")
@@ -79,7 +79,7 @@ def _run_area(args) -> int:
     else:  # any images, in the order of their names
         if not args.frames.is_dir():
             raise ValueError(f"frames folder not found: {args.frames}")
-        paths = sorted(p for p in args.frames.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)[:: args.every]
+        paths = sorted(image_files(args.frames))[:: args.every]  # as ingest lists them (no `._<name>` from a Mac)
     if not paths:
         raise ValueError(f"{args.frames}: no images")
     area, (w, h), n = image_area(read_frames(paths), args.level, args.share)

@@ -4,6 +4,7 @@ pixel, vehicles drawn as dark rectangles moving over a textured road."""
 from __future__ import annotations
 
 import json
+import shutil
 from datetime import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -175,6 +176,12 @@ def test_bad_input_names_the_problem(scene, tmp_path):
         list_frames(bad)
     with pytest.raises(ValueError, match="no frames before 10:00:00"):
         list_frames(frames, until=time(10, 0, 0))
+    # footage copied from a Mac: an AppleDouble `._<name>` beside each image is not a frame (as for ingest)
+    mac = tmp_path / "mac"
+    shutil.copytree(frames, mac)
+    for p in sorted(mac.iterdir()):
+        (mac / f"._{p.name}").write_bytes(b"\x00\x05\x16\x07 resource fork")
+    assert [t for t, _ in list_frames(mac)] == [t for t, _ in list_frames(frames)]
     with pytest.raises(ValueError, match="length_m"):
         AutolabelConfig(length_m=(5.0, 2.0))
 

@@ -151,6 +151,7 @@ def test_roadside_area_prints_the_site_setting(tmp_path, capsys):
 
     for name, img in disc_frames():
         cv2.imwrite(str(tmp_path / name), img)
+        (tmp_path / f"._{name}").write_bytes(b"\x00\x05\x16\x07")  # macOS's AppleDouble file: not a frame
     assert main(["area", "--frames", str(tmp_path), "--every", "1"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["frames"] == 3 and (out["width"], out["height"]) == (320, 240)

@@ -29,7 +29,10 @@ def _basemap(tmp_path, width: int = 51, height: int = 37):
 
 
 def test_ortho_mapping_hits_the_corners_and_round_trips(tmp_path):
-    ortho = Ortho.load(_basemap(tmp_path))
+    folder = _basemap(tmp_path)
+    for name in ("ortho.png", "ortho.json"):  # copied from a Mac: AppleDouble files beside each, not the basemap's
+        (folder / f"._{name}").write_bytes(b"\x00\x05\x16\x07")
+    ortho = Ortho.load(folder)
     w, h = ortho.size
     outer = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]])
     np.testing.assert_allclose(ortho.to_latlon(outer), [CORNERS[k] for k in ("tl", "tr", "bl", "br")], atol=1e-12)

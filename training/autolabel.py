@@ -52,11 +52,10 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from calibration.masks import LookupMasks, load_masks
-from services.ingest.sources import capture_time_from_name
+from services.ingest.sources import capture_time_from_name, image_files
 from shared.raster import bilinear, bilinear_cells
 from training.track_labels import TrackTeacher, label_from_track
 
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
 COCO_PIXEL_OFFSET = 0.5  # COCO coordinate = our pixel-centre coordinate + 0.5 (as training.data)
 CAR_MAX_M = (6.5, 2.8)  # a union of two vehicle-sized parts no bigger than this is one car
 MERGE_GAP_PX = 12  # components this close may be one vehicle behind an occluder (see find_blobs)
@@ -134,9 +133,7 @@ def list_frames(folder: str | Path, until: time | None = None, tz: tzinfo = UTC)
         raise ValueError(f"frames folder not found: {folder}")
     until_ns = None if until is None else time_of_day_ns(until)
     out = []
-    for path in sorted(folder.iterdir()):
-        if path.suffix.lower() not in IMAGE_SUFFIXES:
-            continue
+    for path in sorted(image_files(folder)):  # as ingest lists them: not hidden files (macOS's `._<name>` beside each)
         t = capture_time_from_name(path.name, tz)
         if t is None:
             raise ValueError(f"{path}: no capture time in the file name (expected e.g. 2023-12-19 11-00-00-034395)")

@@ -86,7 +86,7 @@ def _read(camera: str, t_ns: int, path: Path) -> SourceFrame:
         return SourceFrame(camera, t_ns, origin=str(path), error=f"camera {camera}: cannot read {path}: {exc}")
 
 
-def _images(folder: Path) -> list[Path]:
+def image_files(folder: Path) -> list[Path]:
     """The image files of a folder, in no order: not hidden files (a name starting with "."; macOS's `._<name>`
     AppleDouble files copied beside each image), sub-folders or pipes; a dangling link is kept (reported as
     unreadable when it is read)."""
@@ -160,7 +160,7 @@ class ImageFolderSource:
             folder = Path(folder)
             if not folder.is_dir():
                 raise ValueError(f"camera {cam}: image folder not found: {folder}")
-            files = sorted(_images(folder))
+            files = sorted(image_files(folder))
             if not files:
                 raise ValueError(f"camera {cam}: no images ({', '.join(IMAGE_SUFFIXES)}) in {folder}")
             times = [capture_time_from_name(p.name, tz) for p in files]
@@ -328,7 +328,7 @@ def open_source(source: str, cameras: list[str], camera_sources: dict[str, str |
 
     # one camera's images, beside other sub-folders (a thumbnails folder): the folder itself, unless a sub-folder is
     # the camera's (a parent of camera folders holding a stray map or preview image at its top)
-    if not subdirs or (len(cameras) == 1 and _images(path) and not matching(cameras[0])):
+    if not subdirs or (len(cameras) == 1 and image_files(path) and not matching(cameras[0])):
         if len(cameras) != 1:
             raise ValueError(f"{path} holds images of one camera; the site has {len(cameras)} cameras")
         return ImageFolderSource({cameras[0]: path}, fps, tz)
