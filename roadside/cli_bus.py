@@ -1,5 +1,5 @@
-"""`roadside tracks | status | health | metrics`: what a running pipeline says on the bus (a vehicle's, an operator's
-view)."""
+"""`roadside tracks | status | health | metrics | play | check`: what a running pipeline says on the bus (a vehicle's,
+an operator's view), a recording played as one, and a site checked before its pipeline starts."""
 
 from __future__ import annotations
 
@@ -29,8 +29,9 @@ def add_bus_jobs(sub) -> dict:
     _add_health(sub)
     _add_metrics(sub)
     _add_play(sub)
+    _add_check(sub)
     return {"tracks": _run_tracks, "status": _run_status, "health": _run_health, "metrics": _run_metrics,
-            "play": _run_play}
+            "play": _run_play, "check": _run_check}
 
 
 DEFAULT_SITE = "state_ellsworth"
@@ -308,6 +309,45 @@ def _run_health(args) -> int:
     state = "not working" if reasons else "working" if checked else "alive"
     print(f"{args.service}: {state} ({n} tokens)")
     return 1 if reasons else 0
+
+
+def _add_check(sub) -> None:
+    p = sub.add_parser("check", help="a site's pre-flight: every service's start-up checks at once (masks, detector, "
+                       "sources, fusion, the files written, the bus's ports), before roadside up or docker compose up",
+                       description="Run what each service checks at start and report every problem at once (roadside/"
+                       "check.py). Exit 0 when all pass, 2 otherwise.")
+    p.add_argument("--site", required=True, type=Path,
+                   help="site folder or site.yaml (a name such as state_ellsworth means deploy/sites/NAME)")
+    p.add_argument("--source", help="recording, image folders, video file or stream URL (overrides ingest.source)")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
+                   help="override a setting, as roadside up --set (repeatable)")
+    p.add_argument("--no-live", action="store_true", help="do not read live streams (RTSP, HTTP)")
+    p.add_argument("--json", action="store_true", help="one JSON document instead of a table")
+
+
+def _run_check(args) -> int:
+    import json
+
+    from roadside.check import as_json, check_site
+    from shared.service import parse_sets
+    from shared.settings import load_settings
+
+    sets = list(args.set)
+    if args.source:
+        source = args.source if "://" in args.source else str(Path(args.source).resolve())
+        sets.append(f"ingest.source={json.dumps(source)}")
+    settings = load_settings(site_path(args.site), **parse_sets(sets))  # a bad site file: one error line, exit 2
+    checks = check_site(settings, live=not args.no_live)
+    if args.json:
+        print(dumps(as_json(settings.site, checks), indent=1))
+    else:
+        width = max(len(c.name) for c in checks)
+        for c in checks:
+            print(f"{'ok  ' if c.ok else 'FAIL'}  {c.name:<{width}}  {c.detail}")
+        failed = sum(not c.ok for c in checks)
+        print(f"site {settings.site}: " + (f"{failed} of {len(checks)} checks failed" if failed
+                                           else f"all {len(checks)} checks passed"))
+    return 0 if all(c.ok for c in checks) else 2
 
 
 def _pace(text: str) -> float | None:

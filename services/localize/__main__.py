@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from calibration.masks import excluded, load_masks
+from calibration.masks import LookupMasks, excluded, load_masks
 from services.localize.lift import GroundLookup, lift_kept
 from shared.bus import BadInput, Receiver, Stopper, declare_alive, open_session
 from shared.codec import encode
@@ -27,11 +27,28 @@ from shared.geo import GeoFrame
 from shared.keys import all_cameras_key, camera_key, camera_of
 from shared.messages import Detections, Objects
 from shared.service import run
-from shared.settings import Settings
+from shared.settings import CameraSettings, Settings
 from shared.status import StatusReporter
 
 log = logging.getLogger("roadside.localize")
 IDLE_WAIT_S = 0.1
+
+
+def camera_masks(settings: Settings, cam: CameraSettings) -> LookupMasks:
+    """A camera's lookup masks (site metres, no latitude and longitude) with its exclusion zones taken out;
+    ValueError when it has none, or they are not its image's size."""
+    if cam.masks is None:
+        raise ValueError(f"camera {cam.name}: no lookup masks in the site file (cameras[].masks)")
+    masks = load_masks(settings.path(cam.masks), with_latlon=False)
+    if masks.shape != (cam.height, cam.width):
+        raise ValueError(f"camera {cam.name}: masks {settings.path(cam.masks)} are {masks.shape[1]}x"
+                         f"{masks.shape[0]}, the camera is {cam.width}x{cam.height}")
+    if cam.exclude_px:
+        before = int(masks.valid.sum())
+        masks.valid = excluded(masks.valid, cam.exclude_px)
+        log.info("camera %s: %d exclusion polygon(s) take %d calibrated pixels out", cam.name,
+                 len(cam.exclude_px), before - int(masks.valid.sum()))
+    return masks
 
 
 def load_all_masks(settings: Settings) -> dict[str, GroundLookup]:
@@ -40,17 +57,7 @@ def load_all_masks(settings: Settings) -> dict[str, GroundLookup]:
     site_geo = GeoFrame.from_dict(settings.origin) if settings.origin else None
     out = {}
     for cam in settings.cameras:
-        if cam.masks is None:
-            raise ValueError(f"camera {cam.name}: no lookup masks in the site file (cameras[].masks)")
-        masks = load_masks(settings.path(cam.masks), with_latlon=False)
-        if masks.shape != (cam.height, cam.width):
-            raise ValueError(f"camera {cam.name}: masks {settings.path(cam.masks)} are {masks.shape[1]}x"
-                             f"{masks.shape[0]}, the camera is {cam.width}x{cam.height}")
-        if cam.exclude_px:
-            before = int(masks.valid.sum())
-            masks.valid = excluded(masks.valid, cam.exclude_px)
-            log.info("camera %s: %d exclusion polygon(s) take %d calibrated pixels out", cam.name,
-                     len(cam.exclude_px), before - int(masks.valid.sum()))
+        masks = camera_masks(settings, cam)
         site_geo = site_geo or masks.geo
         if masks.geo != site_geo:
             log.info("camera %s: masks made around another origin, re-expressed in the site frame", cam.name)

@@ -1,0 +1,109 @@
+"""`roadside check`: a site's pre-flight runs every service's start-up checks and reports every problem at once."""
+
+from __future__ import annotations
+
+import copy
+import json
+import socket
+
+import cv2
+import numpy as np
+import pytest
+from pipeline_fixtures import CAMERA, export_tiny_detector, free_port_base, site_config, write_exact_masks, write_site
+
+from roadside.cli import main
+
+
+@pytest.fixture(scope="module")
+def good_site(small_recording, tmp_path_factory):
+    folder = tmp_path_factory.mktemp("site")
+    write_exact_masks(small_recording, CAMERA, folder / "masks" / f"{CAMERA}.npz")
+    export_tiny_detector(folder / "model.onnx")
+    config = site_config(small_recording)
+    config["fuse_track"]["record"] = "out/tracks.jsonl"
+    return folder, config
+
+
+def checked(capsys, site, *flags: str) -> tuple[int, dict]:
+    rc = main(["check", "--site", str(site), "--json", *flags])
+    return rc, json.loads(capsys.readouterr().out)
+
+
+def by_name(doc: dict) -> dict[str, dict]:
+    return {c["name"]: c for c in doc["checks"]}
+
+
+def test_a_good_site_passes_every_check_and_says_what_it_found(good_site, capsys):
+    folder, config = good_site
+    site = write_site(folder, config)
+    port_base = free_port_base()
+    rc, doc = checked(capsys, site, "--set", f"bus.port_base={port_base}")
+    assert rc == 0 and doc["ok"], doc
+    checks = by_name(doc)
+    assert set(checks) == {f"masks {CAMERA}", "detector", f"source {CAMERA}", "fusion", "tracks recording", "bus"}
+    assert "1280x960, ground lookup for" in checks[f"masks {CAMERA}"]["detail"]
+    assert "CPUExecutionProvider" in checks["detector"]["detail"] and f"{CAMERA} " in checks["detector"]["detail"]
+    assert "2 frames over 0.5 s" in checks[f"source {CAMERA}"]["detail"]
+    assert "published at 640x480" in checks[f"source {CAMERA}"]["detail"]
+    assert "writable" in checks["tracks recording"]["detail"]
+    assert f"ports {port_base}-{port_base + 3} free" in checks["bus"]["detail"]
+    assert main(["check", "--site", str(site), "--set", f"bus.port_base={port_base}"]) == 0
+    assert "all 6 checks passed" in capsys.readouterr().out
+
+
+def test_every_problem_is_reported_at_once_each_naming_what_is_wrong(good_site, capsys, tmp_path):
+    folder, config = good_site
+    bad = copy.deepcopy(config)
+    bad["cameras"][0]["masks"] = "masks/missing.npz"
+    bad["detect"]["model"] = "no-such-model.onnx"
+    small = tmp_path / "frames"
+    small.mkdir()
+    cv2.imwrite(str(small / "1703001700000000000.jpg"), np.zeros((100, 100), np.uint8))
+    bad["ingest"]["source"] = str(small)
+    bad["ingest"]["record_dir"] = str(tmp_path / "frames-out")
+    bad["ingest"]["record_min_free_mb"] = 1e9  # no disk has a petabyte free
+    site = write_site(folder / "bad", bad)
+    port_base = free_port_base()
+    with socket.socket() as held:  # another pipeline's detect
+        held.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        held.bind(("127.0.0.1", port_base + 1))
+        held.listen()
+        rc, doc = checked(capsys, site, "--set", f"bus.port_base={port_base}")
+    assert rc == 2 and not doc["ok"]
+    checks = by_name(doc)
+    failed = {n for n, c in checks.items() if not c["ok"]}
+    assert failed == {f"masks {CAMERA}", "detector", f"source {CAMERA}", "fusion", "frames recording", "bus"}, doc
+    assert "missing.npz" in checks[f"masks {CAMERA}"]["detail"]
+    assert "detector model not found" in checks["detector"]["detail"]
+    assert "no-such-model.onnx" in checks["detector"]["detail"]
+    assert "1703001700000000000.jpg: JPEG is 100x100, expected 1280x960" in checks[f"source {CAMERA}"]["detail"]
+    assert "missing.npz" in checks["fusion"]["detail"]
+    assert "MB free, under the" in checks["frames recording"]["detail"]
+    assert "ports in use" in checks["bus"]["detail"] and "detect" in checks["bus"]["detail"]
+    assert checks["tracks recording"]["ok"]  # the checks after a failure still run
+
+    assert main(["check", "--site", str(site), "--set", f"bus.port_base={port_base}"]) == 2
+    out = capsys.readouterr().out
+    assert "FAIL  detector" in out and "5 of 7 checks failed" in out  # the port is free again
+
+
+def test_masks_of_another_size_and_a_source_not_found_are_named(good_site, capsys, tmp_path):
+    folder, config = good_site
+    other = copy.deepcopy(config)
+    other["cameras"][0].update(width=640, height=480, masks=f"../masks/{CAMERA}.npz")
+    other["detect"]["model"] = "../model.onnx"
+    other["ingest"]["source"] = str(tmp_path / "nowhere")
+    site = write_site(folder / "other", other)
+    rc, doc = checked(capsys, site, "--set", f"bus.port_base={free_port_base()}")
+    checks = by_name(doc)
+    assert rc == 2
+    assert checks[f"masks {CAMERA}"]["detail"].endswith("are 1280x960, the camera is 640x480")
+    assert checks["detector"]["ok"]
+    assert "source not found" in checks["source"]["detail"] and "nowhere" in checks["source"]["detail"]
+
+
+def test_a_site_file_that_does_not_load_is_one_error_line(tmp_path, capsys):
+    site = write_site(tmp_path, {"site": "x", "cameras": [{"name": "NE", "kind": "fisheye", "width": 0}]})
+    assert main(["check", "--site", str(site)]) == 2
+    err = capsys.readouterr().err
+    assert "width" in err and "Traceback" not in err
