@@ -36,6 +36,7 @@ import cv2
 import numpy as np
 
 from calibration.landmarks import load_landmarks
+from shared.files import visible_files
 
 GRID_MINOR = (90, 90, 90)
 GRID_MAJOR = (0, 220, 255)
@@ -61,11 +62,8 @@ class Ortho:
         folder = Path(folder)
         if not folder.is_dir():
             raise ValueError(f"--basemap {folder}: not a folder")
-        def visible(pattern: str) -> list[Path]:  # not hidden files: macOS's `._<name>` beside each file copied
-            return [p for p in folder.glob(pattern) if not p.name.startswith(".")]
-
-        imgs = sorted([*visible("*.jpg"), *visible("*.png")])
-        metas = sorted(visible("*.json"))
+        imgs = visible_files(folder, "*.jpg", "*.png")
+        metas = visible_files(folder, "*.json")
         if len(imgs) != 1 or len(metas) != 1:
             raise ValueError(f"--basemap {folder}: need exactly one .jpg/.png and one .json, found {imgs + metas}")
         image = cv2.imread(str(imgs[0]), cv2.IMREAD_COLOR)

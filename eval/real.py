@@ -28,6 +28,7 @@ from calibration.masks import LookupMasks, excluded, load_masks
 from services.ingest.sources import capture_time_from_name
 from services.localize.lift import footprint_rule, lift
 from shared.decode import Detections
+from shared.files import visible_files
 from shared.geo import GeoFrame
 from shared.settings import LocalizeSettings
 
@@ -223,7 +224,7 @@ def evaluate_real(labels_dir: str | Path, footage: str | Path, masks_dir: str | 
     dropped as localize drops them. `detect_area_px`: per camera, the site's `cameras[].detect_area_px`.
     `localize`: the site's localize settings (`score_camera`)."""
     labels_dir, footage, masks_dir = Path(labels_dir), Path(footage), Path(masks_dir)
-    files = sorted(labels_dir.glob("*.json"))
+    files = visible_files(labels_dir, "*.json")
     if not files:
         raise ValueError(f"no label files in {labels_dir}")
     if not footage.is_dir():
@@ -285,7 +286,7 @@ def evaluate_tracks_real(labels_dir: str | Path, tracks: str | Path, masks_dir: 
     from eval.tracking import covariance_measure, load_tracks
 
     labels_dir, masks_dir = Path(labels_dir), Path(masks_dir)
-    files = sorted(labels_dir.glob("*.json"))
+    files = visible_files(labels_dir, "*.json")
     if not files:
         raise ValueError(f"no label files in {labels_dir}")
     lines = sorted(load_tracks(tracks), key=lambda ln: ln.t_ns)

@@ -90,8 +90,8 @@ class Strict(BaseModel):
     @model_validator(mode="before")
     @classmethod
     def _empty_path_is_none(cls, data: object) -> object:
-        """An optional path given empty (`ROADSIDE_INGEST__RECORD_DIR=` in a compose file, `--set x.y=""`) is none,
-        not the current folder (pydantic reads "" as Path("."))."""
+        """An optional path given empty (`record_dir: ""` in a site file, `--set ingest.record_dir=""`) is none, not
+        the current folder (pydantic reads "" as Path(".")). An empty environment variable is not given at all."""
         if not isinstance(data, dict):
             return data
         empty = [name for name, field in cls.model_fields.items()
@@ -238,10 +238,11 @@ class IngestSettings(Strict):
     # would play the source's last frames again, late for fuse_track)
     at_end: Literal["exit", "idle"] = "exit"
     # also write every frame published, at the source's full resolution and its capture time, to
-    # RECORD_DIR/<camera>/<t_capture_ns>.jpg: a folder ingest plays back (`roadside up --source RECORD_DIR`;
-    # services/ingest/recorder.py); relative to the site folder. Frames decoded from a video or stream are written as
-    # JPEGs of record_jpeg_quality; frames that would not fit in record_queue_mb (a disk slower than the cameras)
-    # are dropped and counted, and below record_min_free_mb of free space recording pauses until space is freed
+    # RECORD_DIR/<camera>/<t_capture_ns>.jpg (.png, .bmp for such source files): a folder ingest plays back
+    # (`roadside up --source RECORD_DIR`; services/ingest/recorder.py); relative to the site folder. Frames decoded
+    # from a video or stream are written as JPEGs of record_jpeg_quality; frames that would not fit in
+    # record_queue_mb (a disk slower than the cameras) are dropped and counted, and below record_min_free_mb of free
+    # space recording pauses until space is freed
     record_dir: Path | None = None
     record_jpeg_quality: int = Field(92, ge=1, le=100)
     record_queue_mb: float = Field(24.0, gt=0, le=4096)  # counts towards ingest's memory
@@ -433,8 +434,9 @@ class MovementSettings(Strict):
 class Settings(BaseSettings):
     """Everything a process needs; build with `load_settings(path)`."""
 
+    # an empty variable is not given (compose's `${RECORD_FRAMES:-}` when unset): the site file's value stands
     model_config = SettingsConfigDict(env_prefix="ROADSIDE_", env_nested_delimiter="__", extra="forbid",
-                                      allow_inf_nan=False)
+                                      allow_inf_nan=False, env_ignore_empty=True)
 
     site: str
     site_dir: Path = Path(".")
@@ -641,6 +643,8 @@ def _environment_not_json() -> str | None:
         if not name.upper().startswith("ROADSIDE_"):
             continue
         value, annotation, model = os.environ[name], None, Settings
+        if value == "":  # not given (Settings' env_ignore_empty)
+            continue
         for part in name[len("ROADSIDE_"):].lower().split("__"):
             field = model.model_fields.get(part) if model is not None else None
             if field is None:  # an unknown name (unknown_environment), or one inside a list or a mapping

@@ -145,6 +145,8 @@ def test_perfect_detections_score_one(tmp_path):
     site, footage = _site(tmp_path)
     frames = {"2023-12-19 11-00-41-000000.jpg": [[150, 100], [180, 130]], "2023-12-19 11-00-43-000000.jpg": []}
     _labels(site, frames)
+    for p in (site / "labels").glob("*.json"):  # copied from a Mac: AppleDouble files beside the labels, not labels
+        (site / "labels" / f"._{p.name}").write_bytes(b"\x00\x05\x16\x07")
     r = evaluate_real(site / "labels", footage, site / "masks", _detector([frames[k] for k in sorted(frames)]))
     assert r["overall"]["precision"] == 1.0 and r["overall"]["recall"] == 1.0
 

@@ -3,6 +3,7 @@ published, nothing recorded is written over, and a full queue, a full disk or a 
 
 from __future__ import annotations
 
+import shutil
 import threading
 import time
 from pathlib import Path
@@ -10,6 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import yaml
 
 from services.ingest import recorder as recorder_module
 from services.ingest.recorder import FrameRecorder, RecorderConfig, check_not_the_source
@@ -149,6 +151,9 @@ def test_the_recording_must_not_overlap_the_folder_being_played(tmp_path):
     check_not_the_source(tmp_path / "recorded", str(src))
     check_not_the_source(src, "rtsp://10.0.0.7/stream1")
     check_not_the_source(src, None)
+    video = tmp_path / "cam.mp4"
+    video.write_bytes(b"")
+    check_not_the_source(tmp_path, str(video))  # a video file in the folder recorded into: nothing to overlap
 
 
 @pytest.mark.parametrize("field, value", [("jpeg_quality", 0), ("jpeg_quality", 101), ("queue_mb", 0.0),
@@ -169,15 +174,91 @@ def test_the_site_file_takes_the_recording_settings_and_refuses_bad_ones(tmp_pat
             IngestSettings(**{field: value})
 
 
-def test_an_empty_optional_path_in_the_environment_is_none_not_the_current_folder(monkeypatch):
-    """compose.yaml passes `ROADSIDE_INGEST__RECORD_DIR: ${RECORD_FRAMES:-}`: unset, it is empty, which pydantic would
-    read as Path(".") (ingest would record into its working folder, fuse_track open "." as its tracks file)."""
+def test_an_empty_variable_is_not_given_and_an_empty_path_in_the_site_file_is_none(tmp_path, monkeypatch):
+    """compose.yaml passes `ROADSIDE_INGEST__RECORD_DIR: ${RECORD_FRAMES:-}`: unset, it is empty, and the site file's
+    record_dir stands (pydantic would read "" as Path("."), and the environment would override the file); an empty
+    path in the site file is none, not the current folder."""
     from shared.settings import load_settings
 
-    site = Path(__file__).resolve().parents[1] / "deploy" / "sites" / "example" / "site.yaml"
-    for name in ("ROADSIDE_INGEST__RECORD_DIR", "ROADSIDE_FUSE_TRACK__RECORD", "ROADSIDE_DETECT__MODEL_GPU"):
+    example = Path(__file__).resolve().parents[1] / "deploy" / "sites" / "example" / "site.yaml"
+    config = yaml.safe_load(example.read_text())
+    config["ingest"] = {**config.get("ingest", {}), "record_dir": "frames"}
+    config["fuse_track"] = {**config.get("fuse_track", {}), "record": "out/tracks.jsonl"}
+    site = tmp_path / "site.yaml"
+    site.write_text(yaml.safe_dump(config))
+    for name in ("ROADSIDE_INGEST__RECORD_DIR", "ROADSIDE_FUSE_TRACK__RECORD", "ROADSIDE_DETECT__PROVIDERS"):
         monkeypatch.setenv(name, "")
     s = load_settings(site)
-    assert (s.ingest.record_dir, s.fuse_track.record, s.detect.model_gpu) == (None, None, None)
+    assert (s.ingest.record_dir, s.fuse_track.record, s.detect.providers) == (Path("frames"), Path("out/tracks.jsonl"),
+                                                                              None)
     monkeypatch.setenv("ROADSIDE_INGEST__RECORD_DIR", "/data/frames")
     assert load_settings(site).ingest.record_dir == Path("/data/frames")
+    monkeypatch.delenv("ROADSIDE_INGEST__RECORD_DIR")
+    config["ingest"]["record_dir"] = ""
+    config["fuse_track"]["record"] = ""
+    site.write_text(yaml.safe_dump(config))
+    s = load_settings(site)
+    assert (s.ingest.record_dir, s.fuse_track.record) == (None, None)
+    assert load_settings(site, ingest={"record_dir": ""}).ingest.record_dir is None  # --set ingest.record_dir=""
+
+
+def test_folders_deleted_to_free_space_are_made_again(tmp_path):
+    rec = FrameRecorder(RecorderConfig(tmp_path / "rec"))
+    rec.put("NE", T0, jpeg=jpeg(1))
+    while rec.pending:
+        time.sleep(0.01)
+    time.sleep(0.05)
+    shutil.rmtree(tmp_path / "rec" / "NE")  # an operator frees space
+    rec.put("NE", T0 + 1, jpeg=jpeg(2))
+    while rec.pending:
+        time.sleep(0.01)
+    time.sleep(0.05)
+    shutil.rmtree(tmp_path / "rec")  # all of it
+    rec.put("NE", T0 + 2, jpeg=jpeg(3))
+    closed(rec)
+    assert rec.written["NE"] == 3 and not rec.errors, rec.errors
+    assert [p.name for p in (tmp_path / "rec" / "NE").iterdir()] == [f"{T0 + 2}.jpg"]
+
+
+def test_a_frame_larger_than_the_queue_is_taken_when_the_queue_is_empty(tmp_path, monkeypatch):
+    release = threading.Event()
+    write = FrameRecorder._write
+
+    def slow_disk(self, *args):
+        release.wait(30)
+        write(self, *args)
+
+    monkeypatch.setattr(FrameRecorder, "_write", slow_disk)
+    rec = FrameRecorder(RecorderConfig(tmp_path / "rec", queue_mb=0.5))
+    big = np.zeros((600, 800, 3), np.uint8)  # 1.44 MB decoded, three times the queue
+    assert rec.put("NE", T0, image=big)
+    assert not rec.put("NE", T0 + 1, image=big)  # the queue holds one already
+    release.set()
+    closed(rec)
+    assert (rec.written["NE"], rec.dropped) == (1, 1)
+    assert rec.counts() == {"recorded.NE": 1, "record_dropped": 1, "record_no_space": 0, "record_duplicates": 0,
+                            "record_errors": 0}
+
+
+def test_frames_left_when_close_times_out_are_dropped_and_counted_once(tmp_path, monkeypatch):
+    write = FrameRecorder._write
+
+    def slow_disk(self, *args):
+        time.sleep(0.2)
+        write(self, *args)
+
+    monkeypatch.setattr(FrameRecorder, "_write", slow_disk)
+    rec = FrameRecorder(RecorderConfig(tmp_path / "rec"))
+    for i in range(10):
+        rec.put("NE", T0 + i, jpeg=jpeg(i))
+    rec.close(timeout_s=0.3)
+    time.sleep(0.5)
+    files = len(list((tmp_path / "rec" / "NE").iterdir()))
+    assert rec.written["NE"] == files and 1 <= files < 10
+    assert rec.written["NE"] + rec.dropped == 10
+
+
+def test_a_record_dir_that_cannot_be_made_is_named(tmp_path):
+    (tmp_path / "file").write_text("not a folder")
+    with pytest.raises(ValueError, match=r"ingest.record_dir .*file/frames: cannot be made"):
+        FrameRecorder(RecorderConfig(tmp_path / "file" / "frames"))

@@ -320,6 +320,8 @@ def test_basemap_world_file_with_lat_lon_corners(tmp_path: Path) -> None:
     )
     bm = Basemap.from_world_file(world, origin)
     assert bm.image[0, 0].tolist() == [0, 0, 255]  # stored RGB
+    (tmp_path / "._ortho.yaml").write_bytes(b"\x00\x05\x16\x07")  # copied from a Mac: not a second world file
+    assert Basemap.from_world_file(tmp_path, origin).corners_m[0] == pytest.approx([-100.0, 80.0], abs=0.01)
     assert bm.corners_m[0] == pytest.approx([-100.0, 80.0], abs=0.01)
     assert bm.corners_m[2] == pytest.approx([120.0, -60.0], abs=0.01)
     with pytest.raises(ValueError, match="no site origin"):

@@ -165,11 +165,8 @@ def resume_point(session, site: str, source, loop: bool = False) -> int | None:
 
 def record_status(status: StatusReporter, recorder: FrameRecorder) -> None:
     """The recording's counters in ingest's status reports (`roadside status`, `roadside metrics`)."""
-    for camera, n in recorder.written.items():
-        status.gauge(f"recorded.{camera}", n)
-    for name in ("dropped", "no_space", "duplicates"):
-        status.gauge(f"record_{name}", getattr(recorder, name))
-    status.gauge("record_errors", sum(recorder.errors.values()))
+    for name, n in recorder.counts().items():
+        status.gauge(name, n)
 
 
 def main(settings: Settings, stopper: Stopper) -> int:

@@ -11,9 +11,11 @@ The writing never holds up the pipeline: frames wait in a queue bounded in bytes
 when the disk is slower than the cameras the newest frames that do not fit are dropped and counted. Nothing already
 recorded is lost: a frame whose file exists (ingest restarted, or the same source recorded into the folder twice) is
 not written again; each file is written under a hidden name first (`.<name>.part`, which playback skips) and renamed
-when whole, so a crash or a full disk leaves no half image. Below `min_free_mb` of free space the recording pauses
-(frames counted as `no_space`) and goes on by itself once space is freed. A frame that cannot be written (no
-permission, an I/O error) is counted and logged, and the next is tried.
+when whole, so a crash of the process or a full disk leaves no half image under a name playback reads (files are not
+synced to the disk one by one: a power cut may lose the last seconds). Below `min_free_mb` of free space the
+recording pauses (frames counted as `no_space`) and goes on by itself once space is freed, camera folders deleted to
+free it made again. A frame that cannot be written (no permission, an I/O error) is counted and logged, and the next
+is tried. One frame larger than the whole queue is taken when the queue is empty.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ log = logging.getLogger("roadside.ingest.recorder")
 NAME_MIN_NS = 10**18  # 2001-09-09: an earlier capture time has fewer than 19 digits, which playback would not read
 SPACE_CHECK_S = 1.0  # how often the free space is looked at (a syscall per frame would cost the writer little, but
 # nothing is gained by it)
+ABANDON_WAIT_S = 5.0  # after close()'s timeout: for the frame being written to end (the rest is dropped at once)
 MAGIC = ((b"\xff\xd8", ".jpg"), (b"\x89PNG\r\n\x1a\n", ".png"), (b"BM", ".bmp"))
 
 
@@ -65,6 +68,8 @@ def check_not_the_source(folder: Path, source: str | None) -> None:
     if not source or "://" in source:
         return
     src, rec = Path(source).expanduser().resolve(), folder.expanduser().resolve()
+    if src.is_file():  # a video file: the recording's folder may hold it, or lie beside it
+        return
     if src == rec or src in rec.parents or rec in src.parents:
         raise ValueError(f"ingest.record_dir {folder} and the source {source} overlap: record the cameras into a "
                          "folder of its own, outside the one being played")
@@ -80,7 +85,10 @@ class FrameRecorder:
     def __init__(self, config: RecorderConfig) -> None:
         self.config = config
         self.folder = config.folder.expanduser()
-        self.folder.mkdir(parents=True, exist_ok=True)  # at start: a folder that cannot be made stops ingest at once
+        try:  # at start: a folder that cannot be made stops ingest at once, for good (exit 2, not restarted)
+            self.folder.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ValueError(f"ingest.record_dir {self.folder}: cannot be made ({exc.strerror or exc})") from None
         self.written: Counter[str] = Counter()
         self.errors: Counter[str] = Counter()
         self.dropped = self.no_space = self.duplicates = 0
@@ -89,8 +97,8 @@ class FrameRecorder:
         self._lock = threading.Lock()
         self._paused = False
         self._space_checked = -float("inf")
-        self._made: set[str] = set()  # camera folders made
         self._closed = False
+        self._abandon = False  # close() timed out: the writer drops what is left
         self._thread = threading.Thread(target=self._run, name="frame-recorder", daemon=True)
         self._thread.start()
 
@@ -107,7 +115,8 @@ class FrameRecorder:
             return False
         size = len(jpeg) if jpeg is not None else image.nbytes
         with self._lock:
-            if self._queued_bytes + size > self.config.queue_mb * 1e6:
+            # one frame at least, however large (a 4K stream's decoded frame is 25 MB)
+            if self._queued_bytes and self._queued_bytes + size > self.config.queue_mb * 1e6:
                 self.dropped += 1
                 if self.dropped == 1 or self.dropped % 100 == 0:
                     log.warning("recording %s: %d frames dropped so far, the disk is slower than the cameras (the "
@@ -116,6 +125,15 @@ class FrameRecorder:
             self._queued_bytes += size
         self._queue.put((camera, int(t_capture_ns), jpeg, image, size))
         return True
+
+    def counts(self) -> dict[str, float]:
+        """A snapshot of the counters, for status reports: `recorded.<camera>`, `record_dropped`, `record_no_space`,
+        `record_duplicates`, `record_errors` (read from another thread than the writer's)."""
+        with self._lock:
+            out = {f"recorded.{camera}": n for camera, n in self.written.items()}
+            out.update(record_dropped=self.dropped, record_no_space=self.no_space, record_duplicates=self.duplicates,
+                       record_errors=sum(self.errors.values()))
+        return out
 
     @property
     def pending(self) -> int:
@@ -129,10 +147,12 @@ class FrameRecorder:
         self._closed = True
         self._queue.put(None)
         self._thread.join(timeout_s)
-        left = self._queue.qsize() - 1 if self._thread.is_alive() else 0  # less the end marker
-        if left > 0:
-            self.dropped += left
-            log.warning("recording %s: %d frames not written within %.0f s of the end", self.folder, left, timeout_s)
+        if self._thread.is_alive():  # the rest is dropped, counted by the writer (the frame it writes now is written)
+            self._abandon = True
+            before = self.dropped
+            self._thread.join(ABANDON_WAIT_S)
+            log.warning("recording %s: %d frames not written within %.0f s of the end", self.folder,
+                        self.dropped - before, timeout_s)
         log.info("recording %s: %s", self.folder, self.summary())
 
     def summary(self) -> str:
@@ -148,6 +168,11 @@ class FrameRecorder:
             if item is None:
                 return
             camera, t_ns, data, image, size = item
+            if self._abandon:
+                with self._lock:
+                    self.dropped += 1
+                    self._queued_bytes -= size
+                continue
             try:
                 self._write(camera, t_ns, data, image)
             except Exception as exc:  # one frame's failure must not end the recording
@@ -158,7 +183,8 @@ class FrameRecorder:
 
     def _write(self, camera: str, t_ns: int, data: bytes | None, image: np.ndarray | None) -> None:
         if not self._space_left():
-            self.no_space += 1
+            with self._lock:
+                self.no_space += 1
             return
         if data is not None:
             suffix = next((s for magic, s in MAGIC if data.startswith(magic)), None)
@@ -171,12 +197,11 @@ class FrameRecorder:
                 raise ValueError(f"OpenCV could not encode a {image.shape} {image.dtype} image")
             data = buf.tobytes()
         folder = self.folder / camera
-        if camera not in self._made:
-            folder.mkdir(parents=True, exist_ok=True)
-            self._made.add(camera)
+        folder.mkdir(parents=True, exist_ok=True)  # every time: a folder deleted to free space is made again
         path = folder / f"{t_ns}{suffix}"
         if any((folder / f"{t_ns}{s}").exists() for _, s in MAGIC):  # recorded before: never written over
-            self.duplicates += 1
+            with self._lock:
+                self.duplicates += 1
             return
         part = folder / f".{path.name}.part"
         try:
@@ -185,14 +210,16 @@ class FrameRecorder:
         except OSError:
             part.unlink(missing_ok=True)
             raise
-        self.written[camera] += 1
+        with self._lock:
+            self.written[camera] += 1
 
     def _space_left(self) -> bool:
         now = time.monotonic()
         if now - self._space_checked < SPACE_CHECK_S:
             return not self._paused
         self._space_checked = now
-        free_mb = shutil.disk_usage(self.folder).free / 1e6
+        where = next(p for p in (self.folder, *self.folder.parents) if p.exists())  # the folder may have been deleted
+        free_mb = shutil.disk_usage(where).free / 1e6
         paused = free_mb < self.config.min_free_mb
         if paused != self._paused:
             if paused:

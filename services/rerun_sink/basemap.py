@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from shared.files import visible_files
 from shared.geo import GeoFrame
 
 MAX_SIDE_PX = 4096
@@ -118,7 +119,7 @@ class Basemap:
 
         path = Path(path)
         if path.is_dir():
-            found = sorted(path.glob("*.json")) + sorted(path.glob("*.yaml"))
+            found = visible_files(path, "*.json") + visible_files(path, "*.yaml")
             if len(found) != 1:
                 raise ValueError(f"basemap folder {path} must hold exactly one .json/.yaml world file, "
                                  f"found {len(found)}")
