@@ -16,6 +16,7 @@ Precedence, lowest first: the defaults, the site file, the environment, the comm
 
 from __future__ import annotations
 
+import difflib
 import ipaddress
 import json
 import os
@@ -573,11 +574,83 @@ def load_settings(path: str | Path, **overrides) -> Settings:
     try:
         return Settings(**data)
     except ValidationError as exc:
-        e = exc.errors()[0]
-        loc = [str(p) for p in e.get("loc", ())]
-        where = f"{'.'.join(loc)}: " if loc else ""  # nothing for a rule over the whole file
+        raise ValueError(f"{path}: {_validation_errors(exc, data, overrides)}") from None
+
+
+MAX_ERRORS = 10  # a site file's validation errors reported at once; the rest counted
+
+
+def _validation_errors(exc: ValidationError, data: dict, overrides: dict) -> str:
+    """Every mistake pydantic found in a site file, in one line joined by "; " (fixing them one run at a time took as
+    many runs as mistakes): each as `location: pydantic's words`, with where the value came from (_given_by). An
+    unknown key is named so, with the field it most likely misspells (`heigth`: did you mean height?), and that
+    field's own "Field required" at the same place is then left out: the typo is the one mistake. A camera's
+    mistakes keep its index in the location and add its name (`cameras.0.height: Field required (camera NE)`)."""
+    errors = exc.errors()
+    given_for: dict[tuple, str] = {}  # an unknown key's close match: its place -> the suggested field
+    for e in errors:
+        if e.get("type") == "extra_forbidden" and e.get("loc"):
+            loc = tuple(e["loc"])
+            close = _close_field(loc, data)
+            if close:
+                given_for[loc] = close
+    suggested = {(*loc[:-1], close) for loc, close in given_for.items()}
+    lines = []
+    for e in errors:
+        loc = tuple(e.get("loc", ()))
+        if e.get("type") == "missing" and loc in suggested:
+            continue  # said as the unknown key that misspells it
+        parts = [str(p) for p in loc]
+        where = f"{'.'.join(parts)}: " if parts else ""  # nothing for a rule over the whole file
         msg = str(e.get("msg")).removeprefix("Value error, ")  # pydantic's words for a validator's ValueError
-        raise ValueError(f"{path}: {where}{msg}{_given_by(loc, overrides)}") from None
+        camera = _camera_name(loc, data)
+        if e.get("type") == "extra_forbidden":
+            msg += ": unknown field" + (f" of camera {camera}" if camera else "")
+            msg += f" (did you mean {given_for[loc]}?)" if loc in given_for else ""
+        elif camera:
+            msg += f" (camera {camera})"
+        lines.append(f"{where}{msg}{_given_by(parts, overrides)}")
+    more = len(lines) - MAX_ERRORS
+    return "; ".join(lines[:MAX_ERRORS] + ([f"and {more} more"] if more > 0 else []))
+
+
+def _given_at(data: object, loc: tuple) -> object:
+    """What the merged site data holds at pydantic's location `loc` (None where nothing is)."""
+    for part in loc:
+        if isinstance(data, dict):
+            data = data.get(part)
+        elif isinstance(data, list) and isinstance(part, int) and 0 <= part < len(data):
+            data = data[part]
+        else:
+            return None
+    return data
+
+
+def _close_field(loc: tuple, data: dict) -> str | None:
+    """The field of the section at loc[:-1] that the unknown key loc[-1] most likely misspells, None when none is
+    close (fields already given there are no candidates)."""
+    model: type[BaseModel] | None = Settings
+    for part in loc[:-1]:
+        if isinstance(part, int):  # an item of a list of sections (cameras, movements.legs)
+            continue
+        field = model.model_fields.get(part) if model is not None else None
+        model = _section_model(field.annotation) if field is not None else None
+        if model is None:
+            return None
+    given = _given_at(data, loc[:-1])
+    taken = set(given) if isinstance(given, dict) else set()
+    fields = [f for f in model.model_fields if f not in taken and f != "site_dir"]
+    close = difflib.get_close_matches(str(loc[-1]), fields, n=1)
+    return close[0] if close else None
+
+
+def _camera_name(loc: tuple, data: dict) -> str | None:
+    """The name of the camera a location inside `cameras` is in (cameras.0.height: NE), None outside a camera, for
+    a camera without a name, or where the name itself is the mistake (its message quotes it)."""
+    if len(loc) < 2 or loc[0] != "cameras" or not isinstance(loc[1], int) or loc[2:3] == ("name",):
+        return None
+    name = _given_at(data, (*loc[:2], "name"))
+    return name if isinstance(name, str) and name else None
 
 
 def _file_id(path: Path) -> tuple[int, int] | None:
