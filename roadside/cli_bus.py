@@ -223,7 +223,7 @@ def _run_status(args) -> int:
                 print(dumps({"t_ns": time.time_ns(), "services": [r.model_dump() for r in reports],
                              "errors": errors}), flush=True)
             else:
-                print(status_table(reports) if reports else f"no service of site {args.site} answered", flush=True)
+                print(status_table(reports) if reports else _nobody(session, args.site, args.timeout), flush=True)
                 for e in errors:
                     print(f"  not a status report: {e}", flush=True)
             missing = sorted(set(args.require) - {r.service for r in reports})
@@ -236,6 +236,16 @@ def _run_status(args) -> int:
         print(f"not answering: {', '.join(missing)}", file=sys.stderr if args.json else sys.stdout)
         return 1
     return 0 if reports else 1
+
+
+def _nobody(session, site: str, timeout_s: float) -> str:
+    """What `roadside status` says when no service of `site` answered: the sites whose services are on the bus, if any
+    (a --connect or --port-base without --site asks for the default site)."""
+    from shared.bus import bus_sites
+
+    others = bus_sites(session, timeout_s) - {site}
+    told = f"; this bus has site{'s' * (len(others) > 1)} {', '.join(sorted(others))} (--site)" if others else ""
+    return f"no service of site {site} answered{told}"
 
 
 def _add_metrics(sub) -> None:
@@ -368,12 +378,56 @@ def _add_play(sub) -> None:
     p.add_argument("files", nargs="+", type=Path, help="tracks files (fuse_track.record), oldest first")
     p.add_argument("--pace", type=_pace, default=1.0, help="1 (real time, the default), N (N x real time) or max")
     p.add_argument("--loop", action="store_true", help="start again at the end, times and seq going on (Ctrl-C stops)")
+    p.add_argument("--site", type=Path,
+                   help="site folder or site.yaml (a name such as state_ellsworth means deploy/sites/NAME): play on "
+                   "its bus as its fuse_track would (bus.mode, host, port_base, TLS; ROADSIDE_BUS__* environment "
+                   "overrides included), where `roadside tracks --site` and a vehicle of that site look; a recording "
+                   "of another site is refused (default: the embedded default's bus)")
     p.add_argument("--connect", action="append", default=[], type=endpoint,
-                   help="Zenoh endpoint of a router to publish through (default: listen where the embedded "
-                   "default's fuse_track would, --port-base + 3); a development router, not a cabinet's: a cabinet's "
+                   help="Zenoh endpoint of a router to publish through (default: listen where fuse_track would, "
+                   "--port-base + 3); a development router, not a cabinet's: a cabinet's "
                    "router drops what the network publishes (deploy/sites/README.md)")
-    p.add_argument("--port-base", type=port_base, default=DEFAULT_PORT_BASE,
-                   help="embedded default's first service port")
+    p.add_argument("--port-base", type=port_base,
+                   help=f"embedded default's first service port, over the --site file's (default: {DEFAULT_PORT_BASE}, "
+                   "or the --site file's)")
+
+
+def _play_bus(args):
+    """The bus `roadside play` publishes on, and the --site file's site name (None without --site): the site's bus as
+    its fuse_track opens it (or the embedded default's), --connect (a router, client mode) or --port-base (the
+    embedded ports, peer mode) over where it plays; the site's TLS files stay."""
+    from pydantic import ValidationError
+
+    from shared.settings import BusSettings, load_settings
+
+    name = None
+    if args.site is None:
+        base = BusSettings()
+    else:
+        settings = load_settings(site_path(args.site))  # a bad site file: one error line, exit 2
+        base, name = settings.bus, settings.site
+    flags: dict = {}
+    if args.connect:
+        flags.update(mode="client", connect=list(args.connect), listen=[])
+    elif args.port_base is not None:
+        flags.update(mode="peer", port_base=args.port_base, connect=[], listen=[])
+    try:
+        return BusSettings.model_validate({**base.model_dump(), **flags}), name
+    except ValidationError as exc:
+        raise ValueError(exc.errors()[0]["msg"].removeprefix("Value error, ")) from None
+
+
+def _recorded_site(files: list[Path]) -> str | None:
+    """The site of the recording's first good line (the one play publishes under); None when none is good (play
+    then says so)."""
+    from services.fuse_track.player import records
+
+    lines = records(files, lambda reason, where: None)
+    try:
+        first = next(lines, None)
+    finally:
+        lines.close()
+    return None if first is None else first[1].site
 
 
 def _run_play(args) -> int:
@@ -381,7 +435,6 @@ def _run_play(args) -> int:
 
     from services.fuse_track.player import TracksPublisher, play
     from shared.bus import BadInput, Stopper, zenoh_config
-    from shared.settings import BusSettings
 
     missing = [str(f) for f in args.files if not f.exists()]
     if missing:
@@ -389,15 +442,21 @@ def _run_play(args) -> int:
     folders = [str(f) for f in args.files if not f.is_file()]
     if folders:
         raise ValueError(f"not a tracks file (a folder?): {', '.join(folders)}")
-    bus = BusSettings(mode="client", connect=args.connect) if args.connect else BusSettings(port_base=args.port_base)
-    where = ", ".join(args.connect) if args.connect else bus.service_endpoint("fuse_track")
+    bus, site = _play_bus(args)
+    recorded = _recorded_site(args.files) if site is not None else None
+    if recorded is not None and recorded != site:
+        raise ValueError(f"the recording's tracks are of site {recorded}, not of site {site} (--site {args.site}): a "
+                         f"vehicle or `roadside tracks` asking for site {site} would not see them; subscribe with "
+                         f"--site {recorded}, or play on another bus without --site (--port-base, --connect)")
+    client = bus.mode == "client"
+    where = ", ".join(bus.connect) if client else bus.service_endpoint("fuse_track")
     try:
-        session = zenoh.open(zenoh_config(bus, None if args.connect else "fuse_track"))
+        session = zenoh.open(zenoh_config(bus, None if client else "fuse_track"))
     except zenoh.ZError as exc:
         raise ValueError(f"cannot open the bus at {where} (is fuse_track, or another player, running there?): "
                          f"{exc}") from None
     stopper, bad = Stopper(), BadInput("play")
-    publish = TracksPublisher(session, block=args.pace is None)
+    publish = TracksPublisher(session, block=args.pace is None, status_period_s=bus.status_period_s)
     pace = "as fast as it goes" if args.pace is None else f"{args.pace:g} x real time"
     print(f"playing {len(args.files)} file(s) on {where}, {pace}{', looping' if args.loop else ''}", flush=True)
     try:

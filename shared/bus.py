@@ -271,3 +271,15 @@ def wait_for_peers(session: zenoh.Session, key: str, want: int, timeout_s: float
             break
         time.sleep(0.1)
     return seen
+
+
+def bus_sites(session, timeout_s: float = 1.0) -> set[str]:
+    """The sites whose services are on the bus: their liveliness tokens `roadside/<site>/alive/<service>/...` (an
+    observer's token, `.../alive/observer/...`, is no service's): what to tell a client that asked for another site."""
+    found = set()
+    for reply in session.liveliness().get("roadside/*/alive/**", timeout=timeout_s):
+        if reply.ok is not None:
+            parts = str(reply.ok.key_expr).split("/")
+            if len(parts) > 3 and parts[3] in SERVICES:
+                found.add(parts[1])
+    return found

@@ -45,7 +45,7 @@ from collections.abc import Iterator
 
 import zenoh
 
-from shared.bus import BadInput, Receiver, set_tls
+from shared.bus import BadInput, Receiver, bus_sites, set_tls
 from shared.codec import DecodeError, decode
 from shared.keys import latest_tracks_key, tracks_key
 from shared.messages import Tracks
@@ -100,13 +100,7 @@ class TrackClient:
     def sites(self, timeout_s: float = 1.0) -> set[str]:
         """The sites whose services are on this bus (their liveliness tokens, `roadside/<site>/alive/...`): what
         to tell a client that asked for a site none of them is."""
-        found = set()
-        for reply in self.session.liveliness().get("roadside/*/alive/**", timeout=timeout_s):
-            if reply.ok is not None:
-                parts = str(reply.ok.key_expr).split("/")
-                if len(parts) > 2:
-                    found.add(parts[1])
-        return found
+        return bus_sites(self.session, timeout_s)
 
     def stream(self, timeout_s: float | None = None, poll_s: float = 0.1,
                stop: threading.Event | None = None, current: Tracks | object | None = ...,

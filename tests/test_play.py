@@ -388,3 +388,97 @@ def test_a_vehicle_asking_for_another_site_is_told_which_sites_the_bus_has(tmp_p
     assert "no tracks of site elm on this bus; it has site se (--site)" in asked.stderr, asked.stderr
     assert listener.stdout == "" and "no tracks of site elm on this bus; it has se (--site)" in listener.stderr, \
         listener.stderr
+
+
+# --- on a site's bus (--site) --------------------------------------------------------------------------------------
+
+
+def site_file(folder: Path, name: str, port_base: int, **bus) -> Path:
+    """A one-camera site.yaml whose bus is on `port_base` (not the embedded default's 7451)."""
+    import yaml
+
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "site.yaml").write_text(yaml.safe_dump({
+        "site": name, "cameras": [{"name": "NE", "kind": "fisheye", "width": 64, "height": 64}],
+        "bus": {"port_base": port_base, **bus}}))
+    return folder
+
+
+def test_play_takes_its_bus_from_the_site_and_the_flags_over_it(tmp_path):
+    import argparse
+
+    import yaml
+
+    from roadside.cli_bus import DEFAULT_PORT_BASE, _play_bus, add_bus_jobs
+
+    parser = argparse.ArgumentParser()
+    add_bus_jobs(parser.add_subparsers(dest="job"))
+
+    def bus(*flags: str):
+        return _play_bus(parser.parse_args(["play", "tracks.jsonl", *flags]))
+
+    b, name = bus()  # without --site: the embedded default's bus, as before
+    assert name is None and (b.mode, b.port_base, b.host, b.connect) == ("peer", DEFAULT_PORT_BASE, "127.0.0.1", [])
+    b, _ = bus("--port-base", "20000")
+    assert (b.mode, b.port_base) == ("peer", 20000)
+    b, _ = bus("--connect", "tcp/10.0.0.2:7447")
+    assert (b.mode, b.connect) == ("client", ["tcp/10.0.0.2:7447"])
+    site = site_file(tmp_path / "elm", "elm", 31000, host="127.0.0.2", status_period_s=5.0)
+    for given in (site, site / "site.yaml"):
+        b, name = bus("--site", str(given))
+        assert name == "elm" and (b.mode, b.port_base, b.host, b.status_period_s) == ("peer", 31000, "127.0.0.2", 5.0)
+    b, _ = bus("--site", str(site), "--port-base", "20000")  # the flag over the file's
+    assert (b.mode, b.port_base, b.host) == ("peer", 20000, "127.0.0.2")
+    cabinet = site_file(tmp_path / "cab", "cab", 31000, mode="client", connect=["tls/10.0.0.2:7448"],
+                        tls_root_ca="/etc/ca.pem")
+    b, _ = bus("--site", str(cabinet))  # a cabinet's router, checked by its CA
+    assert (b.mode, b.connect, b.tls_root_ca) == ("client", ["tls/10.0.0.2:7448"], Path("/etc/ca.pem"))
+    b, _ = bus("--site", str(cabinet), "--connect", "tls/10.0.0.3:7448")  # another router: the file's CA still checks
+    assert (b.mode, b.connect, b.tls_root_ca) == ("client", ["tls/10.0.0.3:7448"], Path("/etc/ca.pem"))
+    b, name = bus("--site", "example")  # a name: deploy/sites/example
+    assert name == yaml.safe_load((REPO / "deploy" / "sites" / "example" / "site.yaml").read_text())["site"]
+    with pytest.raises(ValueError, match="site not found"):
+        bus("--site", str(tmp_path / "nosuch"))
+
+
+def test_roadside_play_refuses_a_recording_of_another_site_than_sites(tmp_path, capsys):
+    """The recording's tracks are of site se, --site's is elm: a vehicle asking for elm would not see them."""
+    from roadside.cli import main
+
+    path = recording(tmp_path / "tracks.jsonl", range(3))
+    site = site_file(tmp_path / "elm", "elm", free_port_base())
+    assert main(["play", str(path), "--site", str(site)]) == 2
+    err = capsys.readouterr().err
+    assert "the recording's tracks are of site se, not of site elm" in err and "--site se" in err, err
+
+
+@pytest.mark.slow
+def test_play_on_a_site_reaches_the_vehicles_of_that_site(tmp_path):
+    """`roadside play FILE --site SITE` then `roadside tracks --site SITE` (the README's sequence) on a site whose
+    bus.port_base is not the default: the tracks arrive, and a TrackClient on the site's bus gets them too."""
+    from shared.client import TrackClient
+    from shared.settings import load_settings
+
+    path = recording(tmp_path / "tracks.jsonl", range(20))
+    port_base = free_port_base()
+    site = site_file(tmp_path / "site", "se", port_base)
+    proc = subprocess.Popen([sys.executable, "-m", "roadside", "play", str(path), "--pace", "4", "--loop", "--site",
+                             str(site)], cwd=REPO, env=service_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    try:
+        with TrackClient("se", bus=load_settings(site).bus, wait_s=30.0) as client:
+            got: list = []
+            assert wait_until(lambda: got.append(client.latest(timeout_s=1.0)) or got[-1] is not None, 30)
+            assert got[-1].rows() == message(got[-1].seq % 20).rows()
+        asked = subprocess.run([sys.executable, "-m", "roadside", "tracks", "--site", str(site), "--json", "--count",
+                                "3", "--timeout", "10", "--wait", "20"], cwd=REPO, env=service_env(),
+                               capture_output=True, text=True, timeout=120)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0, out
+    assert f"playing 1 file(s) on tcp/127.0.0.1:{port_base + 3}," in out, out
+    assert asked.returncode == 0, asked.stderr
+    lines = [json.loads(line) for line in asked.stdout.splitlines()]
+    assert len(lines) == 3 and {r["site"] for r in lines} == {"se"}
+    assert all(r["tracks"] == message(r["seq"] % 20).rows() for r in lines)

@@ -317,3 +317,35 @@ def test_a_site_path_that_is_not_there_is_named_and_the_flags_go_over_the_site_f
     _, b = bus("--port-base", "20000", "--ca", "/tmp/other.pem")  # the embedded default on the file's host
     assert (b.mode, b.port_base, b.host, b.connect, b.tls_root_ca) == ("peer", 20000, "10.0.0.9", [],
                                                                         Path("/tmp/other.pem"))
+
+
+def test_roadside_status_without_site_names_the_sites_whose_services_are_on_the_bus(capsys):
+    """`roadside status --connect` (or --port-base) without --site asks for the default site; when the bus is another
+    site's, the answer names the sites whose services are there (their liveliness tokens; an observer's is none)."""
+    import zenoh
+
+    from roadside.cli import main
+    from shared.bus import declare_alive, zenoh_config
+    from shared.keys import observer_alive_key
+    from shared.settings import BusSettings
+
+    port_base = free_port_base()
+    session = zenoh.open(zenoh_config(BusSettings(port_base=port_base), "localize"))  # where localize listens
+    tokens = [*declare_alive(session, "elm", "localize", ["main"]), *declare_alive(session, "oak", "detect", ["gpu"]),
+              session.liveliness().declare_token(observer_alive_key("pine", "recorder"))]
+    try:
+        for flags in (["--port-base", str(port_base)], ["--connect", f"tcp/127.0.0.1:{port_base + 2}"]):
+            def told(flags=flags) -> bool:
+                rc = main(["status", *flags, "--timeout", "1"])
+                out = capsys.readouterr().out
+                return rc == 1 and "no service of site state_ellsworth answered; this bus has sites elm, oak (--site)" \
+                    in out and "pine" not in out
+
+            assert wait_until(told, 20.0, 0.2), flags
+        # the site asked for has a token but no status report: the other sites named
+        assert main(["status", "--port-base", str(port_base), "--site", "elm", "--timeout", "0.5"]) == 1
+        assert "no service of site elm answered; this bus has site oak (--site)" in capsys.readouterr().out
+    finally:
+        for t in tokens:
+            t.undeclare()
+        session.close()
