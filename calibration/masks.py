@@ -117,7 +117,7 @@ def _read_arrays(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
     if path.is_dir():
         raise ValueError(f"lookup masks {path} is a folder, not a masks file")
     if not path.is_file():
-        raise ValueError(f"lookup masks not found: {path}")
+        raise ValueError(f"lookup masks not found: {path} (roadside calibrate makes them: deploy/sites/README.md)")
     empty = path.stat().st_size == 0
     if empty or not zipfile.is_zipfile(path):  # numpy's own errors: EOFError (empty), TypeError (a .npy array)
         why = "an empty file" if empty else "not an .npz archive"

@@ -268,7 +268,9 @@ def run_calibration(job: CalibrateJob) -> dict:
     xy = lm.to_local(geo)
     area = calibrated_area(cal, xy)
     t0 = time.perf_counter()
-    masks = build_masks(cal, lm.digest(), area, {"landmarks_file": str(job.landmarks)})
+    # the camera the landmarks name: a site file that gives one camera another's masks is refused (localize)
+    masks = build_masks(cal, lm.digest(), area, {"landmarks_file": str(job.landmarks),
+                                                 "landmarks_camera": header.get("camera")})
     t_masks = time.perf_counter() - t0
     roi = _roi_local(job.roi, geo) or default_roi(cal)
     report = build_report(cal, lm, cfg, roi)

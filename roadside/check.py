@@ -12,6 +12,7 @@ services write, and whether the bus's ports are free.
 
 from __future__ import annotations
 
+import os
 import shutil
 import time
 from collections.abc import Callable
@@ -130,22 +131,29 @@ def check_fusion(settings: Settings) -> str:
     fusion, _, _, positions, _ = build(settings)
     where = ", ".join(f"{c} ({x:.1f}, {y:.1f}) m" for c, (x, y) in positions.items())
     own = [r.name for r in fusion.regions if r.polygon_xy is not None]
-    rest = len(positions) - len(own)
-    regions = (f"regions of their own: {', '.join(own)}" if own else "") + (
-        ("; " if own else "") + f"{rest} the ground nearer them than any other camera" if rest else "")
-    return f"cameras at {where}; {regions}"
+    rest = [r.name for r in fusion.regions if r.polygon_xy is None]
+    regions = [f"{', '.join(own)}: the region_m of the site file"] if own else []
+    if rest:
+        regions.append(f"{', '.join(rest)}: the ground nearer {'it' if len(rest) == 1 else 'each'} than any other "
+                       "camera")
+    return f"cameras at {where}; regions: {'; '.join(regions)}"
 
 
-def check_writable(folder: Path, min_free_mb: float = 0.0) -> str:
-    """A folder a service writes to: made if missing (as the service would), written to, with its free space."""
-    folder.mkdir(parents=True, exist_ok=True)
-    probe = folder / f".roadside-check-{time.time_ns()}"
-    probe.write_bytes(b"")
-    probe.unlink()
-    free_mb = shutil.disk_usage(folder).free / 1e6
+def check_writable(folder: Path, setting: str, min_free_mb: float = 0.0) -> str:
+    """A folder a service writes to (`setting` names it): there and writable, or one the service can make (the
+    check makes nothing), with its free space."""
+    folder = folder.resolve()
+    there = next(p for p in (folder, *folder.parents) if p.exists())
+    if not there.is_dir():
+        raise ValueError(f"{setting}: {folder} cannot be made: {there} is a file, not a folder")
+    if not os.access(there, os.W_OK | os.X_OK):
+        raise ValueError(f"{setting}: {there} is not writable by this user (uid "
+                         f"{os.getuid()})")
+    free_mb = shutil.disk_usage(there).free / 1e6
     if free_mb < min_free_mb:
-        raise ValueError(f"{folder}: {free_mb:.0f} MB free, under the {min_free_mb:.0f} MB it needs")
-    return f"{folder}: writable, {free_mb / 1e3:.1f} GB free"
+        raise ValueError(f"{setting}: {there}: {free_mb:.0f} MB free, under the {min_free_mb:.0f} MB it needs")
+    made = "writable" if there == folder else f"to be made in {there}"
+    return f"{setting}: {folder}: {made}, {free_mb / 1e3:.1f} GB free"
 
 
 def check_bus(settings: Settings) -> str:
@@ -168,9 +176,11 @@ def check_site(settings: Settings, live: bool = True) -> list[Check]:
     out += check_sources(settings, live)
     out.append(_run("fusion", lambda: check_fusion(settings)))
     if settings.fuse_track.record is not None:
-        out.append(_run("tracks recording", lambda: check_writable(settings.path(settings.fuse_track.record).parent)))
+        out.append(_run("tracks recording", lambda: check_writable(settings.path(settings.fuse_track.record).parent,
+                                                                    "fuse_track.record")))
     if settings.ingest.record_dir is not None:
         out.append(_run("frames recording", lambda: check_writable(settings.path(settings.ingest.record_dir),
+                                                                    "ingest.record_dir",
                                                                     settings.ingest.record_min_free_mb)))
     out.append(_run("bus", lambda: check_bus(settings)))
     return out

@@ -45,7 +45,8 @@ def test_a_good_site_passes_every_check_and_says_what_it_found(good_site, capsys
     assert "CPUExecutionProvider" in checks["detector"]["detail"] and f"{CAMERA} " in checks["detector"]["detail"]
     assert "2 frames over 0.5 s" in checks[f"source {CAMERA}"]["detail"]
     assert "published at 640x480" in checks[f"source {CAMERA}"]["detail"]
-    assert "writable" in checks["tracks recording"]["detail"]
+    assert f"fuse_track.record: {folder / 'out'}: to be made in {folder}" in checks["tracks recording"]["detail"]
+    assert not (folder / "out").exists()  # the check makes nothing
     assert f"ports {port_base}-{port_base + 3} free" in checks["bus"]["detail"]
     assert main(["check", "--site", str(site), "--set", f"bus.port_base={port_base}"]) == 0
     assert "all 6 checks passed" in capsys.readouterr().out
@@ -62,6 +63,8 @@ def test_every_problem_is_reported_at_once_each_naming_what_is_wrong(good_site, 
     bad["ingest"]["source"] = str(small)
     bad["ingest"]["record_dir"] = str(tmp_path / "frames-out")
     bad["ingest"]["record_min_free_mb"] = 1e9  # no disk has a petabyte free
+    (tmp_path / "a-file").write_text("")
+    bad["fuse_track"]["record"] = str(tmp_path / "a-file" / "tracks.jsonl")
     site = write_site(folder / "bad", bad)
     port_base = free_port_base()
     with socket.socket() as held:  # another pipeline's detect
@@ -72,19 +75,24 @@ def test_every_problem_is_reported_at_once_each_naming_what_is_wrong(good_site, 
     assert rc == 2 and not doc["ok"]
     checks = by_name(doc)
     failed = {n for n, c in checks.items() if not c["ok"]}
-    assert failed == {f"masks {CAMERA}", "detector", f"source {CAMERA}", "fusion", "frames recording", "bus"}, doc
+    assert failed == {f"masks {CAMERA}", "detector", f"source {CAMERA}", "fusion", "tracks recording",
+                      "frames recording", "bus"}, doc
     assert "missing.npz" in checks[f"masks {CAMERA}"]["detail"]
     assert "detector model not found" in checks["detector"]["detail"]
     assert "no-such-model.onnx" in checks["detector"]["detail"]
     assert "1703001700000000000.jpg: JPEG is 100x100, expected 1280x960" in checks[f"source {CAMERA}"]["detail"]
     assert "missing.npz" in checks["fusion"]["detail"]
+    assert "ingest.record_dir: " in checks["frames recording"]["detail"]
     assert "MB free, under the" in checks["frames recording"]["detail"]
+    assert not (tmp_path / "frames-out").exists()
+    assert checks["tracks recording"]["detail"] == (f"fuse_track.record: {tmp_path / 'a-file'} cannot be made: "
+                                                     f"{tmp_path / 'a-file'} is a file, not a folder")
     assert "ports in use" in checks["bus"]["detail"] and "detect" in checks["bus"]["detail"]
-    assert checks["tracks recording"]["ok"]  # the checks after a failure still run
+    assert checks["bus"]["detail"].startswith("ports in use")  # the checks after a failure still run
 
     assert main(["check", "--site", str(site), "--set", f"bus.port_base={port_base}"]) == 2
     out = capsys.readouterr().out
-    assert "FAIL  detector" in out and "5 of 7 checks failed" in out  # the port is free again
+    assert "FAIL  detector" in out and "6 of 7 checks failed" in out  # the port is free again
 
 
 def test_masks_of_another_size_and_a_source_not_found_are_named(good_site, capsys, tmp_path):
@@ -97,9 +105,37 @@ def test_masks_of_another_size_and_a_source_not_found_are_named(good_site, capsy
     rc, doc = checked(capsys, site, "--set", f"bus.port_base={free_port_base()}")
     checks = by_name(doc)
     assert rc == 2
-    assert checks[f"masks {CAMERA}"]["detail"].endswith("are 1280x960, the camera is 640x480")
+    masks = checks[f"masks {CAMERA}"]["detail"]
+    assert "are 1280x960, the camera is 640x480: set the camera's width and height" in masks
     assert checks["detector"]["ok"]
     assert "source not found" in checks["source"]["detail"] and "nowhere" in checks["source"]["detail"]
+
+
+def test_the_masks_of_two_cameras_swapped_in_the_site_file_are_refused(good_site, capsys, tmp_path):
+    """Masks of the same size given to the wrong camera would place every vehicle through the other camera's lookup:
+    the camera the landmarks named (kept in the masks since 2026-11-30; before, the landmark file's name) must not
+    be another camera of the site."""
+    from calibration.masks import load_masks
+
+    folder, config = good_site
+    exact = load_masks(folder / "masks" / f"{CAMERA}.npz")
+    for own, named in (("A", {"landmarks_camera": "B"}), ("B", {"landmarks_file": "landmarks/A.json"}),
+                       ("C", {"landmarks_camera": "elsewhere"})):
+        exact.meta = {**load_masks(folder / "masks" / f"{CAMERA}.npz").meta, **named}
+        exact.save(tmp_path / "masks" / f"{own}.npz")
+    swapped = copy.deepcopy(config)
+    base = swapped["cameras"][0]
+    swapped["cameras"] = [{**base, "name": n, "masks": str(tmp_path / "masks" / f"{n}.npz")} for n in "ABC"]
+    swapped["ingest"]["source"] = None
+    site = write_site(tmp_path / "site", swapped)
+    rc, doc = checked(capsys, site, "--set", f"bus.port_base={free_port_base()}")
+    checks = by_name(doc)
+    assert rc == 2
+    assert "camera A: masks" in checks["masks A"]["detail"]
+    assert "were calibrated from camera B's landmarks" in checks["masks A"]["detail"]
+    assert "swapped in the site file?" in checks["masks A"]["detail"]
+    assert "from camera A's landmarks (landmarks/A.json)" in checks["masks B"]["detail"]
+    assert checks["masks C"]["ok"]  # a name that is no camera of the site: landmarks named otherwise, not a swap
 
 
 def test_a_site_file_that_does_not_load_is_one_error_line(tmp_path, capsys):

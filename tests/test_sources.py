@@ -363,3 +363,16 @@ def test_an_oversized_png_or_bmp_is_refused_from_its_header_before_it_is_decoded
     monkeypatch.setattr(cv2, "imdecode", lambda *a: pytest.fail("decoded"))
     with pytest.raises(ValueError, match=rf"big{ext}: {ext[1:].upper()} is 2000x2000, expected 64x48"):
         decode_grey(big, 64, 48, what=f"big{ext}")
+
+
+def test_every_camera_without_its_image_folder_is_named_at_once(tmp_path):
+    from services.ingest.sources import open_source
+
+    for name in ("cam1", "cam2", "t_sw"):
+        (tmp_path / name).mkdir()
+    with pytest.raises(ValueError) as err:
+        open_source(str(tmp_path), ["NE", "NW", "T_SW"], {})
+    msg = str(err.value)
+    assert "camera NE: expected one sub-folder" in msg and "camera NW: expected one sub-folder" in msg
+    assert "camera T_SW" not in msg  # t_sw is its folder, in any case
+    assert "among ['cam1', 'cam2', 't_sw']" in msg and "cameras[].source" in msg

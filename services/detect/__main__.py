@@ -102,6 +102,10 @@ def usable_providers(wanted: list[str]) -> list[str]:
     return usable
 
 
+# where `pip install` or a checkout keeps the shipped models (the image: /app/models)
+SHIPPED_MODELS = Path(__file__).resolve().parents[2] / "models"
+
+
 def load_detector(settings: Settings) -> OnnxDetector:
     cfg = settings.detect
     providers = usable_providers(cfg.providers) if cfg.providers else available_providers()
@@ -114,7 +118,8 @@ def load_detector(settings: Settings) -> OnnxDetector:
         if path.is_dir():
             raise ValueError(f"detector model {path} is a folder, not a model file (set detect.model in the site file)")
         if not path.is_file():
-            raise ValueError(f"detector model not found: {path} (set detect.model in the site file)")
+            raise ValueError(f"detector model not found: {path} (set detect.model in the site file: a path relative "
+                             f"to the site folder, or absolute; the shipped ones are {SHIPPED_MODELS})")
         return OnnxDetector(path, providers=providers, threads=cfg.threads, score_thr=cfg.score_thr, spin=cfg.spin,
                             mirror=cfg.mirror, votes=cfg.votes)
 

@@ -332,13 +332,17 @@ def open_source(source: str, cameras: list[str], camera_sources: dict[str, str |
         if len(cameras) != 1:
             raise ValueError(f"{path} holds images of one camera; the site has {len(cameras)} cameras")
         return ImageFolderSource({cameras[0]: path}, fps, tz)
-    folders = {}
+    folders, wrong = {}, []
     for cam in cameras:
         match = matching(cam)
         if len(match) != 1:
-            raise ValueError(f"camera {cam}: expected one sub-folder of {path} named {cam} or *_{cam}, "
-                             f"found {sorted(p.name for p in match) or 'none'} among {sorted(subdirs)}")
-        folders[cam] = match[0]
+            wrong.append(f"camera {cam}: expected one sub-folder of {path} named {cam} or *_{cam} (any case), found "
+                         f"{sorted(p.name for p in match) or 'none'}")
+        else:
+            folders[cam] = match[0]
+    if wrong:  # every camera without its folder at once; a camera's own cameras[].source is the other way
+        raise ValueError(f"{'; '.join(wrong)} among {sorted(subdirs)} (or give such a camera its own "
+                         "cameras[].source)")
     return ImageFolderSource(folders, fps, tz)
 
 

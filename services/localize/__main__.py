@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -34,15 +35,32 @@ log = logging.getLogger("roadside.localize")
 IDLE_WAIT_S = 0.1
 
 
+def masks_camera(meta: dict) -> str | None:
+    """The camera a masks file was calibrated for: the one its landmark file names (`landmarks_camera`, since
+    2026-11-30), else that file's name without its suffix (`landmarks/NE.json`); None when unknown."""
+    named = meta.get("landmarks_camera")
+    if named:
+        return str(named)
+    file = meta.get("landmarks_file")
+    return Path(str(file)).stem if file else None
+
+
 def camera_masks(settings: Settings, cam: CameraSettings) -> LookupMasks:
     """A camera's lookup masks (site metres, no latitude and longitude) with its exclusion zones taken out;
     ValueError when it has none, or they are not its image's size."""
     if cam.masks is None:
         raise ValueError(f"camera {cam.name}: no lookup masks in the site file (cameras[].masks)")
-    masks = load_masks(settings.path(cam.masks), with_latlon=False)
+    path = settings.path(cam.masks)
+    masks = load_masks(path, with_latlon=False)
     if masks.shape != (cam.height, cam.width):
-        raise ValueError(f"camera {cam.name}: masks {settings.path(cam.masks)} are {masks.shape[1]}x"
-                         f"{masks.shape[0]}, the camera is {cam.width}x{cam.height}")
+        raise ValueError(f"camera {cam.name}: masks {path} are {masks.shape[1]}x{masks.shape[0]}, the camera is "
+                         f"{cam.width}x{cam.height}: set the camera's width and height to its images' size, or "
+                         "calibrate it again at that size (roadside calibrate --width --height)")
+    other = masks_camera(masks.meta)
+    if other != cam.name and other in {c.name for c in settings.cameras}:
+        raise ValueError(f"camera {cam.name}: masks {path} were calibrated from camera {other}'s landmarks "
+                         f"({masks.meta.get('landmarks_file')}): are the masks of {cam.name} and {other} swapped in "
+                         "the site file?")
     if cam.exclude_px:
         before = int(masks.valid.sum())
         masks.valid = excluded(masks.valid, cam.exclude_px)
