@@ -7,33 +7,43 @@ the errors come one restart at a time. This runs what each service runs at start
 every problem at once, with what it found where all is well: each camera's masks and how much of its image they
 cover, the detector and the providers it runs on (one inference per camera size), the sources (each camera's first
 frame read and checked against the camera's size, recorded frames' spans), fusion's camera positions, the files the
-services write, and whether the bus's ports are free.
+services write (nothing is made: a folder to be made is said to be), each service's Zenoh configuration and whether
+the bus's ports are free. What passes with something the services work around (a bad first frame ingest skips, too
+little disk for the frames' recording, which then pauses) is a warning.
 """
 
 from __future__ import annotations
 
 import os
 import shutil
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from shared.settings import Settings
 
-SOURCE_SCAN_MAX = 2000  # frames read from a recorded source to find each camera's first one
-LIVE_READ_S = 10.0  # how long a live camera may take to give its first frame
+FIRST_FRAMES = 5  # frames tried per camera: ingest skips a bad one and plays the next
+LIVE_READ_S = 10.0  # how long live cameras and video files may take to give their first frames
 
 
 @dataclass
 class Check:
-    """One check: `name` (what was checked), `ok`, `detail` (what was found, or the error)."""
+    """One check: `name` (what was checked), `ok`, `detail` (what was found, or the error), `warning`: passed, but
+    with something the services work around that a person should know (the detail says what)."""
 
     name: str
     ok: bool
     detail: str
+    warning: bool = False
+
+
+class Warned(Exception):
+    """A check that passes with a warning: its text is the detail."""
 
 
 def _failed(name: str, exc: Exception) -> Check:
@@ -43,6 +53,8 @@ def _failed(name: str, exc: Exception) -> Check:
 def _run(name: str, fn: Callable[[], str]) -> Check:
     try:
         return Check(name, True, fn())
+    except Warned as w:
+        return Check(name, True, str(w), warning=True)
     except Exception as exc:  # every failure is reported, the checks after it still run
         return _failed(name, exc)
 
@@ -53,7 +65,8 @@ def check_masks(settings: Settings, camera: str) -> str:
     cam = settings.camera(camera)
     masks = camera_masks(settings, cam)
     share = float(masks.valid.mean())
-    zones = f" ({len(cam.exclude_px)} exclusion zones)" if cam.exclude_px else ""
+    n = len(cam.exclude_px or ())
+    zones = f" ({n} exclusion zone{'s' * (n > 1)})" if n else ""
     return (f"{settings.path(cam.masks).resolve()}: {masks.shape[1]}x{masks.shape[0]}, ground lookup for {share:.0%} "
             f"of the image{zones}")
 
@@ -75,9 +88,10 @@ def check_detector(settings: Settings) -> str:
 
 
 def check_sources(settings: Settings, live: bool = True) -> list[Check]:
-    """The source opened as ingest opens it, then each camera's first frame read and made into a Frame's image as
-    ingest makes it (decoded, its size checked against the camera's). Live streams are read only with `live`."""
-    from services.ingest.__main__ import decode_scale_for, to_frame_fields
+    """The source opened as ingest opens it, then each camera's first frames made into a Frame's image as ingest
+    makes them (decoded, the size checked against the camera's): the first good one passes, with a warning when
+    frames before it are bad (ingest skips them). Recorded files are read camera by camera; live streams and video
+    files are played until each camera has given a frame (live streams only with `live`: else not even opened)."""
     from services.ingest.sources import open_source
 
     cfg = settings.ingest
@@ -86,43 +100,75 @@ def check_sources(settings: Settings, live: bool = True) -> list[Check]:
     def resolve(src: str | None) -> str | None:
         return src if not src or "://" in src else str(settings.path(src))
 
+    main, own = resolve(cfg.source), {c.name: resolve(c.source) for c in cams.values()}
+    streams = sorted({s for s in (main, *own.values()) if s and "://" in s})
+    if streams and not live:
+        return [Check("source", True, f"live streams not read (--no-live): {', '.join(streams)}")]
+    stop = threading.Event()  # ends the reader threads of live streams, and their reconnecting
     try:
-        source = open_source(resolve(cfg.source) or "", list(cams), {c.name: resolve(c.source) for c in cams.values()},
-                             cfg.fps, cfg.tzinfo())
-    except Exception as exc:  # reported as the check's failure
-        return [_failed("source", exc)]
-    parts = getattr(source, "parts", [source])
-    if any(getattr(p, "live", False) for p in parts) and not live:
-        return [Check("source", True, "live streams, not read (--no-live)")]
-    recorded: dict[str, list[int]] = {}  # recorded files: each camera's capture times
-    for t, cam, _ in getattr(source, "items", None) or []:
-        recorded.setdefault(cam, []).append(t)
-    first = {}
+        try:
+            source = open_source(main or "", list(cams), own, cfg.fps, cfg.tzinfo(), stop)
+        except Exception as exc:  # reported as the check's failure
+            return [_failed("source", exc)]
+        frames, recorded = _first_frames(source, set(cams))
+    finally:
+        stop.set()
+    return [_run(f"source {name}", lambda name=name: _camera_frames(settings, cams[name], frames.get(name, []),
+                                                                   recorded.get(name)))
+            for name in cams]
+
+
+def _first_frames(source, cameras: set[str]) -> tuple[dict[str, list], dict[str, list[int]]]:
+    """Each camera's first FIRST_FRAMES frames, and for recorded files each camera's capture times."""
+    from services.ingest.sources import SourceFrame
+
+    frames: dict[str, list] = {}
+    items = getattr(source, "items", None)
+    if items:  # recorded files: each camera's own first files, however late it starts
+        times: dict[str, list[int]] = {}
+        for t, cam, path in items:
+            times.setdefault(cam, []).append(t)
+            if cam in cameras and len(frames.setdefault(cam, [])) < FIRST_FRAMES:
+                try:
+                    frames[cam].append(SourceFrame(cam, t, jpeg=path.read_bytes(), origin=str(path)))
+                except OSError as exc:
+                    frames[cam].append(SourceFrame(cam, t, origin=str(path), error=f"cannot read {path}: {exc}"))
+        return frames, times
     deadline = time.monotonic() + LIVE_READ_S
-    for n, sf in enumerate(source):
-        if sf.camera in cams and sf.camera not in first:
-            first[sf.camera] = sf
-        if len(first) == len(cams) or n >= SOURCE_SCAN_MAX or time.monotonic() > deadline:
+    for sf in source:
+        if sf.camera in cameras and len(frames.setdefault(sf.camera, [])) < FIRST_FRAMES:
+            frames[sf.camera].append(sf)
+        done = all(len(frames.get(c, ())) >= FIRST_FRAMES or any(not f.error for f in frames.get(c, ()))
+                   for c in cameras)
+        if done or time.monotonic() > deadline:
             break
-    out = []
-    for name, cam in cams.items():
-        def one(name=name, cam=cam) -> str:
-            sf = first.get(name)
-            if sf is None:
-                raise ValueError(f"camera {name}: no frame within the first {SOURCE_SCAN_MAX} frames or "
-                                 f"{LIVE_READ_S:.0f} s of the source")
+    return frames, {}
+
+
+def _camera_frames(settings: Settings, cam, frames: list, times: list[int] | None) -> str:
+    from services.ingest.__main__ import decode_scale_for, to_frame_fields
+
+    if not frames:
+        raise ValueError(f"camera {cam.name}: no frame within {LIVE_READ_S:.0f} s of the source")
+    bad = []
+    for sf in frames:
+        try:
             if sf.error:
                 raise ValueError(sf.error)
-            scale = decode_scale_for(cam.width, cam.height, cfg.decode_long_side)
-            fields = to_frame_fields(sf, cam, cfg.encoding, scale)
-            size = f"{cam.width}x{cam.height}, published at {fields['width']}x{fields['height']}"
-            times = recorded.get(name)
-            if not times:
-                return f"{sf.origin or 'stream'}: {size}"
-            first_file = Path(sf.origin).resolve()
-            return f"{len(times)} frames over {(times[-1] - times[0]) / 1e9:.1f} s, the first {first_file}: {size}"
-        out.append(_run(f"source {name}", one))
-    return out
+            scale = decode_scale_for(cam.width, cam.height, settings.ingest.decode_long_side)
+            fields = to_frame_fields(sf, cam, settings.ingest.encoding, scale)
+        except (ValueError, cv2.error) as exc:
+            bad.append(str(exc))
+            continue
+        size = f"{cam.width}x{cam.height}, published at {fields['width']}x{fields['height']}"
+        where = f"{Path(sf.origin).resolve()}" if times else (sf.origin or "stream")
+        first = "the first good one" if bad else "the first"
+        found = f"{len(times)} frames over {(times[-1] - times[0]) / 1e9:.1f} s, {first} {where}: {size}" \
+            if times else f"{where}: {size}"
+        if bad:
+            raise Warned(f"{found}; {len(bad)} before it refused (ingest skips them): {bad[0]}")
+        return found
+    raise ValueError(bad[0] + (f" (and the {len(bad) - 1} frames after it)" if len(bad) > 1 else ""))
 
 
 def check_fusion(settings: Settings) -> str:
@@ -150,16 +196,48 @@ def check_writable(folder: Path, setting: str, min_free_mb: float = 0.0) -> str:
         raise ValueError(f"{setting}: {there} is not writable by this user (uid "
                          f"{os.getuid()})")
     free_mb = shutil.disk_usage(there).free / 1e6
-    if free_mb < min_free_mb:
-        raise ValueError(f"{setting}: {there}: {free_mb:.0f} MB free, under the {min_free_mb:.0f} MB it needs")
     made = "writable" if there == folder else f"to be made in {there}"
-    return f"{setting}: {folder}: {made}, {free_mb / 1e3:.1f} GB free"
+    found = f"{setting}: {folder}: {made}, {free_mb / 1e3:.1f} GB free"
+    if free_mb < min_free_mb:
+        raise Warned(f"{found}: under the {min_free_mb:.0f} MB below which recording pauses")
+    return found
+
+
+def check_tracks_file(settings: Settings) -> str:
+    """fuse_track's recording: a file it can append to, in a folder it can make."""
+    path = settings.path(settings.fuse_track.record).resolve()
+    if path.is_dir():
+        raise ValueError(f"fuse_track.record: {path} is a folder; name the file to append the tracks to "
+                         "(e.g. tracks.jsonl in it)")
+    if path.exists() and not os.access(path, os.W_OK):
+        raise ValueError(f"fuse_track.record: {path} is not writable by this user (uid {os.getuid()})")
+    return check_writable(path.parent, "fuse_track.record").replace(f"{path.parent}:", f"{path}:", 1)
+
+
+def check_frames_folder(settings: Settings) -> str:
+    """ingest's recording of the frames: outside the folder it plays, in a folder it can make, with room."""
+    from services.ingest.recorder import check_not_the_source
+
+    cfg = settings.ingest
+    folder = settings.path(cfg.record_dir)
+    played = {cfg.source, *(c.source for c in settings.cameras)}
+    for src in played:
+        check_not_the_source(folder, src if not src or "://" in src else str(settings.path(src)))
+    return check_writable(folder, "ingest.record_dir", cfg.record_min_free_mb)
 
 
 def check_bus(settings: Settings) -> str:
-    from shared.bus import ports_in_use
+    """Each service's Zenoh configuration built as it builds it (TLS files, endpoints), and in peer mode the ports."""
+    from shared.bus import ports_in_use, zenoh_config
+    from shared.keys import SERVICES
 
     bus = settings.bus
+    for service in SERVICES:
+        zenoh_config(bus, service)
+    if bus.mode == "peer" and bus.listen:
+        raise ValueError(f"bus.listen {bus.listen}: in peer mode on one machine every service would listen there, "
+                         "and only the first can; give the endpoint to one service only (its own environment, "
+                         "ROADSIDE_BUS__LISTEN) or connect through a router")
     if bus.mode != "peer":
         return f"client mode through {', '.join(bus.connect)} (the router is not checked)"
     busy = ports_in_use(bus)
@@ -176,12 +254,9 @@ def check_site(settings: Settings, live: bool = True) -> list[Check]:
     out += check_sources(settings, live)
     out.append(_run("fusion", lambda: check_fusion(settings)))
     if settings.fuse_track.record is not None:
-        out.append(_run("tracks recording", lambda: check_writable(settings.path(settings.fuse_track.record).parent,
-                                                                    "fuse_track.record")))
+        out.append(_run("tracks recording", lambda: check_tracks_file(settings)))
     if settings.ingest.record_dir is not None:
-        out.append(_run("frames recording", lambda: check_writable(settings.path(settings.ingest.record_dir),
-                                                                    "ingest.record_dir",
-                                                                    settings.ingest.record_min_free_mb)))
+        out.append(_run("frames recording", lambda: check_frames_folder(settings)))
     out.append(_run("bus", lambda: check_bus(settings)))
     return out
 

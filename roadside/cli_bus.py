@@ -346,17 +346,24 @@ def _run_check(args) -> int:
     if args.source:
         source = args.source if "://" in args.source else str(Path(args.source).resolve())
         sets.append(f"ingest.source={json.dumps(source)}")
-    settings = load_settings(site_path(args.site), **parse_sets(sets))  # a bad site file: one error line, exit 2
+    try:
+        settings = load_settings(site_path(args.site), **parse_sets(sets))
+    except ValueError as exc:
+        if not args.json:
+            raise  # one error line, exit 2
+        print(dumps({"site": str(args.site), "ok": False, "error": str(exc), "checks": []}, indent=1))
+        return 2
     checks = check_site(settings, live=not args.no_live)
     if args.json:
         print(dumps(as_json(settings.site, checks), indent=1))
     else:
         width = max(len(c.name) for c in checks)
         for c in checks:
-            print(f"{'ok  ' if c.ok else 'FAIL'}  {c.name:<{width}}  {c.detail}")
-        failed = sum(not c.ok for c in checks)
+            print(f"{'FAIL' if not c.ok else 'WARN' if c.warning else 'ok  '}  {c.name:<{width}}  {c.detail}")
+        failed, warned = sum(not c.ok for c in checks), sum(c.ok and c.warning for c in checks)
         print(f"site {settings.site}: " + (f"{failed} of {len(checks)} checks failed" if failed
-                                           else f"all {len(checks)} checks passed"))
+                                           else f"all {len(checks)} checks passed") +
+              (f", {warned} with a warning" if warned else ""))
     return 0 if all(c.ok for c in checks) else 2
 
 

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import copy
 import json
+import shutil
 import socket
+import time
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -45,7 +48,8 @@ def test_a_good_site_passes_every_check_and_says_what_it_found(good_site, capsys
     assert "CPUExecutionProvider" in checks["detector"]["detail"] and f"{CAMERA} " in checks["detector"]["detail"]
     assert "2 frames over 0.5 s" in checks[f"source {CAMERA}"]["detail"]
     assert "published at 640x480" in checks[f"source {CAMERA}"]["detail"]
-    assert f"fuse_track.record: {folder / 'out'}: to be made in {folder}" in checks["tracks recording"]["detail"]
+    assert f"fuse_track.record: {folder / 'out' / 'tracks.jsonl'}: to be made in {folder}" in \
+        checks["tracks recording"]["detail"]
     assert not (folder / "out").exists()  # the check makes nothing
     assert f"ports {port_base}-{port_base + 3} free" in checks["bus"]["detail"]
     assert main(["check", "--site", str(site), "--set", f"bus.port_base={port_base}"]) == 0
@@ -61,8 +65,7 @@ def test_every_problem_is_reported_at_once_each_naming_what_is_wrong(good_site, 
     small.mkdir()
     cv2.imwrite(str(small / "1703001700000000000.jpg"), np.zeros((100, 100), np.uint8))
     bad["ingest"]["source"] = str(small)
-    bad["ingest"]["record_dir"] = str(tmp_path / "frames-out")
-    bad["ingest"]["record_min_free_mb"] = 1e9  # no disk has a petabyte free
+    bad["ingest"]["record_dir"] = str(small / "rec")  # inside the folder played
     (tmp_path / "a-file").write_text("")
     bad["fuse_track"]["record"] = str(tmp_path / "a-file" / "tracks.jsonl")
     site = write_site(folder / "bad", bad)
@@ -82,9 +85,9 @@ def test_every_problem_is_reported_at_once_each_naming_what_is_wrong(good_site, 
     assert "no-such-model.onnx" in checks["detector"]["detail"]
     assert "1703001700000000000.jpg: JPEG is 100x100, expected 1280x960" in checks[f"source {CAMERA}"]["detail"]
     assert "missing.npz" in checks["fusion"]["detail"]
-    assert "ingest.record_dir: " in checks["frames recording"]["detail"]
-    assert "MB free, under the" in checks["frames recording"]["detail"]
-    assert not (tmp_path / "frames-out").exists()
+    assert "ingest.record_dir" in checks["frames recording"]["detail"] and "overlap" in checks["frames recording"][
+        "detail"]
+    assert not (small / "rec").exists()
     assert checks["tracks recording"]["detail"] == (f"fuse_track.record: {tmp_path / 'a-file'} cannot be made: "
                                                      f"{tmp_path / 'a-file'} is a file, not a folder")
     assert "ports in use" in checks["bus"]["detail"] and "detect" in checks["bus"]["detail"]
@@ -143,3 +146,52 @@ def test_a_site_file_that_does_not_load_is_one_error_line(tmp_path, capsys):
     assert main(["check", "--site", str(site)]) == 2
     err = capsys.readouterr().err
     assert "width" in err and "Traceback" not in err
+    rc, doc = checked(capsys, site)  # --json: a JSON document all the same
+    assert rc == 2 and doc["ok"] is False and "width" in doc["error"] and doc["checks"] == []
+
+
+def test_what_the_services_work_around_passes_with_a_warning(good_site, capsys, tmp_path):
+    """A bad first frame (ingest skips it and plays the next) and little disk space for the frames' recording (it
+    pauses) pass with a warning; a recording file that is a folder, the bus's missing TLS file and extra listen
+    endpoints every service would take fail; live streams are not even opened with --no-live."""
+    folder, config = good_site
+    site_cfg = copy.deepcopy(config)
+    src = tmp_path / "images"
+    src.mkdir()
+    good = sorted((Path(config["ingest"]["source"]) / "frames" / CAMERA).glob("*.jpg"))
+    for p in good:
+        shutil.copy(p, src / p.name)
+    (src / f"{int(good[0].stem) - 100_000_000}.jpg").write_bytes(b"\xff\xd8 truncated")  # the first frame, corrupt
+    site_cfg["ingest"].update(source=str(src), record_dir=str(tmp_path / "recorded"), record_min_free_mb=1e9)
+    (tmp_path / "tracks-folder").mkdir()
+    site_cfg["fuse_track"]["record"] = str(tmp_path / "tracks-folder")
+    site_cfg["bus"] = {"mode": "peer", "listen": ["tcp/127.0.0.1:45999"], "tls_root_ca": str(tmp_path / "no-ca.pem")}
+    site = write_site(tmp_path / "site", {**site_cfg, "detect": {**site_cfg["detect"], "model": str(folder /
+                                                                                                 "model.onnx")},
+                                          "cameras": [{**site_cfg["cameras"][0],
+                                                       "masks": str(folder / "masks" / f"{CAMERA}.npz")}]})
+    rc, doc = checked(capsys, site, "--set", f"bus.port_base={free_port_base()}")
+    checks = by_name(doc)
+    assert rc == 2
+    source = checks[f"source {CAMERA}"]
+    assert source["ok"] and source["warning"] and "1 before it refused (ingest skips them)" in source["detail"]
+    assert "3 frames over" in source["detail"] and "the first good one" in source["detail"]
+    recording = checks["frames recording"]
+    assert recording["ok"] and recording["warning"] and "below which recording pauses" in recording["detail"]
+    assert not checks["tracks recording"]["ok"] and "is a folder" in checks["tracks recording"]["detail"]
+    assert not checks["bus"]["ok"] and "no-ca.pem" in checks["bus"]["detail"]
+    site_cfg["bus"].pop("tls_root_ca")
+    site = write_site(tmp_path / "site", {**site_cfg, "detect": {**site_cfg["detect"], "model": str(folder /
+                                                                                                 "model.onnx")},
+                                          "cameras": [{**site_cfg["cameras"][0], "source": "rtsp://10.255.255.1/x",
+                                                       "masks": str(folder / "masks" / f"{CAMERA}.npz")}]})
+    t = time.monotonic()
+    rc, doc = checked(capsys, site, "--no-live", "--set", f"bus.port_base={free_port_base()}")
+    assert time.monotonic() - t < 30  # nothing connects to the stream
+    checks = by_name(doc)
+    assert checks["source"]["ok"] and "live streams not read (--no-live): rtsp://10.255.255.1/x" in checks["source"][
+        "detail"]
+    assert not checks["bus"]["ok"] and "in peer mode on one machine every service would listen there" in checks[
+        "bus"]["detail"]
+    main(["check", "--site", str(site), "--no-live", "--set", f"bus.port_base={free_port_base()}"])
+    assert "WARN  frames recording" in capsys.readouterr().out
