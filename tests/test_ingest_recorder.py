@@ -77,7 +77,9 @@ def test_a_frame_recorded_before_is_never_written_over(tmp_path):
     assert not (folder / f"{T0 + 1}.jpg").exists()
 
 
-def test_frames_that_do_not_fit_in_the_queue_are_dropped_and_counted_never_waited_for(tmp_path, monkeypatch):
+@pytest.fixture
+def stalled_disk(monkeypatch) -> threading.Event:
+    """Every write waits until the returned event is set (a disk slower than the cameras)."""
     release = threading.Event()
     write = FrameRecorder._write
 
@@ -86,6 +88,11 @@ def test_frames_that_do_not_fit_in_the_queue_are_dropped_and_counted_never_waite
         write(self, *args)
 
     monkeypatch.setattr(FrameRecorder, "_write", slow_disk)
+    return release
+
+
+def test_frames_that_do_not_fit_in_the_queue_are_dropped_and_counted_never_waited_for(tmp_path, stalled_disk):
+    release = stalled_disk
     one = jpeg(5)
     rec = FrameRecorder(RecorderConfig(tmp_path / "rec", queue_mb=2.5 * len(one) / 1e6))
     t = time.monotonic()
@@ -220,15 +227,8 @@ def test_folders_deleted_to_free_space_are_made_again(tmp_path):
     assert [p.name for p in (tmp_path / "rec" / "NE").iterdir()] == [f"{T0 + 2}.jpg"]
 
 
-def test_a_frame_larger_than_the_queue_is_taken_when_the_queue_is_empty(tmp_path, monkeypatch):
-    release = threading.Event()
-    write = FrameRecorder._write
-
-    def slow_disk(self, *args):
-        release.wait(30)
-        write(self, *args)
-
-    monkeypatch.setattr(FrameRecorder, "_write", slow_disk)
+def test_a_frame_larger_than_the_queue_is_taken_when_the_queue_is_empty(tmp_path, stalled_disk):
+    release = stalled_disk
     rec = FrameRecorder(RecorderConfig(tmp_path / "rec", queue_mb=0.5))
     big = np.zeros((600, 800, 3), np.uint8)  # 1.44 MB decoded, three times the queue
     assert rec.put("NE", T0, image=big)

@@ -903,21 +903,32 @@ def test_fuse_track_drops_bad_objects_and_keeps_running(site, site_name, port_ba
     assert bad_count(fuse, r"(\d+) bad") >= len(cases)  # and any repeats of the warm-up message (late)
 
 
-def test_ingest_skips_a_corrupt_jpeg_in_an_image_folder(site, site_name, small_recording, port_base, peer, launch,
-                                                        tmp_path):
-    folder = tmp_path / "images"
+def image_folder_with_a_corrupt_jpeg(recording: Path, folder: Path) -> tuple[list[Path], list[int], Path]:
+    """`folder` holding the recording's frames of CAMERA and, between the first two, a truncated JPEG: (the good
+    files, their capture times, the corrupt file)."""
     folder.mkdir()
-    good = sorted((small_recording / "frames" / CAMERA).glob("*.jpg"))
+    good = sorted((recording / "frames" / CAMERA).glob("*.jpg"))
     for p in good:
         shutil.copy(p, folder / p.name)
     times = [int(p.stem) for p in good]
     corrupt = folder / f"{(times[0] + times[1]) // 2}.jpg"
     corrupt.write_bytes(b"\xff\xd8\xff\xe0 truncated or not a jpeg at all")
-    (folder / f"{times[-1] + 1}.jpg").write_bytes(b"")  # an empty file
+    return good, times, corrupt
+
+
+def stand_in_for_the_pipeline(peer: Peer, site_name: str) -> None:
+    """Subscribe to CAMERA's frames and hold the liveliness tokens ingest waits for (detect, localize, fuse_track)."""
     peer.subscribe("frames", camera_key(site_name, CAMERA, "frame"), Frame)
-    # ingest waits for the rest of the pipeline's liveliness tokens: the test stands in for it
     peer.declare_tokens([alive_key(site_name, "detect", CAMERA), alive_key(site_name, "localize", CAMERA),
                          alive_key(site_name, "fuse_track", "t0")])
+
+
+def test_ingest_skips_a_corrupt_jpeg_in_an_image_folder(site, site_name, small_recording, port_base, peer, launch,
+                                                        tmp_path):
+    folder = tmp_path / "images"
+    _, times, corrupt = image_folder_with_a_corrupt_jpeg(small_recording, folder)
+    (folder / f"{times[-1] + 1}.jpg").write_bytes(b"")  # an empty file
+    stand_in_for_the_pipeline(peer, site_name)
     ingest = launch("ingest", site, *bus_sets(port_base), f"ingest.source={folder}", "ingest.pace=100")
     assert_clean_exit(ingest, ingest.wait(WAIT_S))
     assert peer.wait_for(lambda: len(peer.got["frames"]) >= 2, 10.0), ingest.log()
@@ -934,16 +945,9 @@ def test_ingest_records_what_it_publishes_as_a_folder_it_plays_back(site, site_n
     files as they are; a corrupt one is not published, so not recorded); played from that folder, ingest publishes the
     same frames; a second recording into the same folder writes nothing over; the folder being played is refused."""
     folder = tmp_path / "images"
-    folder.mkdir()
-    good = sorted((small_recording / "frames" / CAMERA).glob("*.jpg"))
-    for p in good:
-        shutil.copy(p, folder / p.name)
-    times = [int(p.stem) for p in good]
-    (folder / f"{(times[0] + times[1]) // 2}.jpg").write_bytes(b"\xff\xd8\xff\xe0 truncated")
+    good, times, _ = image_folder_with_a_corrupt_jpeg(small_recording, folder)
     recorded = tmp_path / "recorded"
-    peer.subscribe("frames", camera_key(site_name, CAMERA, "frame"), Frame)
-    peer.declare_tokens([alive_key(site_name, "detect", CAMERA), alive_key(site_name, "localize", CAMERA),
-                         alive_key(site_name, "fuse_track", "t0")])
+    stand_in_for_the_pipeline(peer, site_name)
     sets = [*bus_sets(port_base), "ingest.pace=100", "ingest.encoding=jpeg"]
     ingest = launch("ingest", site, *sets, f"ingest.source={folder}", f"ingest.record_dir={recorded}")
     assert_clean_exit(ingest, ingest.wait(WAIT_S))
