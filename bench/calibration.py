@@ -21,13 +21,13 @@ ground surface fitted to every camera's landmarks, the pinhole and thermal camer
 
 from __future__ import annotations
 
-import argparse
 import os
 import time
 from pathlib import Path
 
 import numpy as np
 
+from bench import bench_parser
 from bench.calibration_real import default_data_root, real_data_rows
 from calibration.fit import CalibConfig, calibrate
 from calibration.landmarks import landmarks_from_rows
@@ -145,11 +145,18 @@ def group_means(rows: list[dict], site_rows: list[dict]) -> dict:
     return out
 
 
+CALIBRATION_EPILOG = ("Takes minutes: about 3 with --stride 3 (the README's figures) on a 2-core machine, 3.5-5 "
+                      "measured on a busier shared one; the default --stride 2 scores more pixels and takes longer.")
+
+
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--stride", type=positive_int, default=2, help="score every n-th ground pixel (n >= 1)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--data", type=Path, default=default_data_root(), help="real data folder (../shared/data)")
+    p = bench_parser("calibration", __doc__, argv, epilog=CALIBRATION_EPILOG)
+    p.add_argument("--stride", type=positive_int, default=2,
+                   help="score every n-th ground pixel in each direction (n >= 1; default 2; the README's figures "
+                        "use --stride 3)")
+    p.add_argument("--seed", type=int, default=0, help="landmark draw (default 0)")
+    p.add_argument("--data", type=Path, default=default_data_root(),
+                   help="real data folder (default ../shared/data; skipped when absent)")
     p.add_argument("--exact", action="store_true",
                    help="landmarks without noise or mistakes: what is left is the model's own error (lens, planes)")
     args = p.parse_args(argv)

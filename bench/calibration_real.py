@@ -46,6 +46,7 @@ import cv2
 import numpy as np
 import yaml
 
+from bench import first_paragraph
 from calibration.fit import CalibConfig, Calibration, calibrate
 from calibration.landmarks import Landmarks, validate_landmarks
 from shared.geo import GeoFrame
@@ -593,7 +594,7 @@ def main(settings: RealBenchSettings, data_root: Path) -> int:
 
 
 if __name__ == "__main__":
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m bench.calibration_real", description=first_paragraph(__doc__))
     p.add_argument("--data", type=Path, default=default_data_root(), help="the shared data folder")
     p.add_argument("--n-fit", type=int, default=10)
     p.add_argument("--draws", type=int, default=20)

@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
+from bench import bench_parser
 from shared.decode import CONFIG_KEY
 from shared.jsonio import dumps
 from training.export import INPUT_NAME, export_onnx
@@ -216,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _parse(argv: list[str] | None = None) -> BenchSettings:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = bench_parser("detector", __doc__, argv)
     p.add_argument("--model", type=Path, help="exported fp32 ONNX model (default: untrained, for timing only)")
     p.add_argument("--model-fp16", type=Path, help="its fp16 copy, timed on CUDA / TensorRT where available")
     p.add_argument("--size", type=int, default=512, help="input width (and height, without --height) in pixels")

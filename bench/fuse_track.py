@@ -16,7 +16,6 @@ figures are upper bounds; compare two variants within one run or back to back.
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import platform
@@ -24,6 +23,7 @@ import time
 
 import numpy as np
 
+from bench import bench_parser
 from roadside.demo import DemoConfig
 from services.fuse_track.__main__ import fusion_config, tracker_config
 from services.fuse_track.fusion import CameraRegion, Fusion, ObjectBatch
@@ -120,7 +120,7 @@ def run(vehicles: int, ticks: int, warmup: int, range_m: float, seed: int) -> di
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bench.fuse_track", description=__doc__.split("\n\n")[0])
+    p = bench_parser("fuse_track", __doc__, argv)
     p.add_argument("--vehicles", type=int, default=40, help="vehicles in the scene (default 40)")
     p.add_argument("--ticks", type=int, default=600, help="ticks timed (default 600: a minute at 10 Hz)")
     p.add_argument("--warmup", type=int, default=30, help="ticks run first and not timed (tracks are born)")

@@ -12,7 +12,6 @@ not the target's machine).
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import shutil
@@ -20,6 +19,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from bench import bench_parser
 from sim.clip import ClipConfig, simulate_clip
 
 DEFAULT_FRAMES = 4800  # 8 cameras, 60 s at 10 Hz
@@ -60,12 +60,12 @@ def off_condition(frames: int, workers: int, cpu_count: int | None) -> list[str]
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--seconds", type=float, default=60.0)
-    p.add_argument("--hz", type=float, default=10.0)
-    p.add_argument("--workers", type=int, default=2)
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--weather", default="clear")
+    p = bench_parser("sim", __doc__, argv, module="sim_render")
+    p.add_argument("--seconds", type=float, default=60.0, help="clip length in seconds (default 60)")
+    p.add_argument("--hz", type=float, default=10.0, help="frames per second per camera (default 10)")
+    p.add_argument("--workers", type=int, default=2, help="rendering processes (default 2)")
+    p.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
+    p.add_argument("--weather", default="clear", help="weather of the clip (default clear)")
     args = p.parse_args(argv)
     tmp = Path(tempfile.mkdtemp(prefix="bench_sim_"))
     render_start: list[float] = []

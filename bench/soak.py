@@ -20,7 +20,6 @@ drops the rest, as at a real cabinet. The load average is recorded; other work o
 
 from __future__ import annotations
 
-import argparse
 import os
 import platform
 import signal
@@ -34,6 +33,7 @@ from pathlib import Path
 import numpy as np
 import psutil
 
+from bench import bench_parser
 from roadside.argtypes import site_path
 from shared.jsonio import dumps
 from shared.messages import SERVICES
@@ -197,7 +197,7 @@ def run(site: Path, source: str, minutes: float, pace: str, sample_s: float, war
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bench.soak", description=__doc__.split("\n\n")[0])
+    p = bench_parser("soak", __doc__, argv)
     p.add_argument("--site", type=Path, default=Path("out/demo/site"), help="site folder (default: the demo's)")
     p.add_argument("--source", default="out/demo/recording", help="recording or footage, played in a loop")
     p.add_argument("--minutes", type=float, default=30.0, help="how long to run (default 30)")

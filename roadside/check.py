@@ -110,7 +110,7 @@ def check_sources(settings: Settings, live: bool = True) -> list[Check]:
             source = open_source(main or "", list(cams), own, cfg.fps, cfg.tzinfo(), stop)
         except Exception as exc:  # reported as the check's failure
             return [_failed("source", exc)]
-        frames, recorded = _first_frames(source, set(cams))
+        frames, recorded = _first_frames(source, set(cams), cfg.window_ns())
     finally:
         stop.set()
     return [_run(f"source {name}", lambda name=name: _camera_frames(settings, cams[name], frames.get(name, []),
@@ -118,13 +118,17 @@ def check_sources(settings: Settings, live: bool = True) -> list[Check]:
             for name in cams]
 
 
-def _first_frames(source, cameras: set[str]) -> tuple[dict[str, list], dict[str, list[int]]]:
-    """Each camera's first FIRST_FRAMES frames, and for recorded files each camera's capture times."""
+def _first_frames(source, cameras: set[str], window: tuple[int | None, int | None]
+                  ) -> tuple[dict[str, list], dict[str, list[int]]]:
+    """Each camera's first FIRST_FRAMES frames, and for recorded files each camera's capture times (within
+    ingest.play_from / play_until, `window`)."""
+    from services.ingest.__main__ import in_window
     from services.ingest.sources import SourceFrame
 
     frames: dict[str, list] = {}
     items = getattr(source, "items", None)
     if items:  # recorded files: each camera's own first files, however late it starts
+        items = in_window(items, window)
         times: dict[str, list[int]] = {}
         for t, cam, path in items:
             times.setdefault(cam, []).append(t)

@@ -81,13 +81,19 @@ def _run_sim(args) -> int:
 
 def _add_demo(sub) -> None:
     p = sub.add_parser("demo", help="the demo: the simulated State/Ellsworth roundabout through the live pipeline")
-    p.add_argument("--out", type=Path, default=Path("out/demo"))
-    p.add_argument("--seconds", type=positive_float, default=60.0)
-    p.add_argument("--hz", type=positive_float, default=10.0)
-    p.add_argument("--seed", type=int, default=2024)
-    p.add_argument("--landmarks", type=int, default=20, help="landmarks per camera for calibration")
+    p.add_argument("--out", type=Path, default=Path("out/demo"),
+                   help="output folder: the recording, site, tracks, logs, summary.json and demo.rrd (default "
+                        "out/demo; a recording already there with the same --seconds, --hz and --seed is reused)")
+    p.add_argument("--seconds", type=positive_float, default=60.0, help="length of the simulated clip (default 60)")
+    p.add_argument("--hz", type=positive_float, default=10.0, help="camera frame rate of the clip (default 10)")
+    p.add_argument("--seed", type=int, default=2024,
+                   help="seed of the simulated clip: traffic, weather, landmark clicks (default 2024, the README's "
+                        "figures)")
+    p.add_argument("--landmarks", type=int, default=20, help="landmarks per camera for calibration (default 20)")
     p.add_argument("--model", type=Path, help="detector ONNX (default: the shipped models/detector_fp32.onnx)")
-    p.add_argument("--port-base", type=port_base, default=7451)
+    p.add_argument("--port-base", type=port_base, default=7451,
+                   help="first bus port of the pipeline (default 7451; its services and clients take the next few; "
+                        "change it when another pipeline runs on this machine)")
     p.add_argument("--pace", default="max",
                    help="playback: max (as fast as the pipeline takes frames, every frame processed: the default) or "
                         "1 (real time, as at a cabinet: a detector slower than the cameras drops frames)")
@@ -365,6 +371,11 @@ def _add_up(sub) -> None:
     p.add_argument("--source", help="recording, image folders, video file or stream URL (overrides ingest.source)")
     p.add_argument("--pace", help="1 (real time), N (N x real time) or max (as fast as the pipeline goes)")
     p.add_argument("--loop", action="store_true", help="repeat the source")
+    p.add_argument("--from", dest="play_from", metavar="DATETIME",
+                   help="play only frames captured from then on: ISO 8601, e.g. 2023-12-19T11:00:40, in the site's "
+                   "ingest.timezone unless it carries an offset (ingest.play_from)")
+    p.add_argument("--until", dest="play_until", metavar="DATETIME", help="and before then (ingest.play_until)")
+    p.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames of each camera (ingest.max_frames)")
     p.add_argument("--record", type=Path, help="append tracks to this JSON-lines file")
     p.add_argument("--record-frames", type=Path, metavar="DIR",
                    help="also write every frame played, at full resolution, to DIR/<camera>/<capture ns>.jpg: "
@@ -390,6 +401,11 @@ def _run_up(args) -> int:
         sets.append(f"ingest.pace={args.pace}")
     if args.loop:
         sets.append("ingest.loop=true")
+    for field in ("play_from", "play_until"):
+        if getattr(args, field):
+            sets.append(f"ingest.{field}={json.dumps(getattr(args, field))}")
+    if args.max_frames is not None:
+        sets.append(f"ingest.max_frames={args.max_frames}")
     if args.record:
         sets.append(f"fuse_track.record={json.dumps(str(args.record.resolve()))}")
     if args.record_frames:
@@ -625,6 +641,9 @@ def _run_counts_live(args, settings, junction) -> int:
             signal.signal(sig, handler)
 
 
+VIZ_FRAMES_MARGIN_NS = 10**9  # viz --frames: frames this much before the first / after the last tracks are kept too
+
+
 def _add_viz(sub) -> None:
     p = sub.add_parser("viz", help="turn a tracks file, or the live tracks, into a Rerun .rrd (trajectories over the "
                        "site map)")
@@ -641,18 +660,71 @@ def _add_viz(sub) -> None:
                    "rerun+http://127.0.0.1:9876/proxy)")
     p.add_argument("--count", type=int, help="with --live: stop after this many messages")
     p.add_argument("--timeout", type=finite_float, help="with --live: stop after this many seconds without tracks")
-    p.add_argument("--basemap", type=Path, help="world file (YAML/JSON: image + corners) of an orthophoto")
+    p.add_argument("--basemap", type=Path, help="world file (YAML/JSON: image + corners) of an orthophoto, or a folder "
+                   "holding one such world file and its image")
     p.add_argument("--recording", type=Path, help="simulator recording: draw its site's ground as the map")
     p.add_argument("--frames", help="also log the camera frames of this source (recording, image folders; needs "
-                   "--site for the camera names) with the detections of --model")
+                   "--site for the camera names) with the detections of --model: those captured within the tracks "
+                   f"file's time span (+- {VIZ_FRAMES_MARGIN_NS / 1e9:g} s)")
     p.add_argument("--model", type=Path, help="ONNX detector for the logged frames' detections")
     p.add_argument("--frames-every", type=int, help="log every n-th frame of each camera (default 5)")
 
 
-def _viz_frames(args):
-    """(camera, t_ns, grey image, detections) of every n-th frame of each camera of --frames; the flags, the site,
-    the model and the source are checked at once (before any output is written), the frames read as they are
-    taken."""
+def _tracks_span(path: Path) -> tuple[int, int] | None:
+    """(first, last) capture time in ns of the messages of a tracks file (`t_ns`, or `t_capture_ns`); lines that are
+    not JSON objects with such a time are passed over. None when the file is missing or has no such line."""
+    first = last = None
+    try:
+        with Path(path).open(encoding="utf-8", errors="replace") as f:
+            for line in f:
+                if not line.strip():
+                    continue
+                try:
+                    obj = json.loads(line)
+                except ValueError:
+                    continue
+                t = obj.get("t_ns", obj.get("t_capture_ns")) if isinstance(obj, dict) else None
+                if not isinstance(t, int) or isinstance(t, bool) or t < 0:
+                    continue
+                first = t if first is None else min(first, t)
+                last = t if last is None else max(last, t)
+    except OSError:
+        return None
+    return None if first is None else (first, last)
+
+
+def _frames_within(source, span: tuple[int, int] | None, cameras, margin_ns: int = VIZ_FRAMES_MARGIN_NS,
+                   counts: dict | None = None):
+    """The frames of `source` (SourceFrames in capture-time order per camera) captured within `span` (first, last
+    ns) widened by `margin_ns` on each side; all of them when `span` is None. Stops reading once every one of
+    `cameras` has passed the span's end. `counts` (a dict) gets the frames read and kept."""
+    counts = {} if counts is None else counts
+    counts.update(read=0, kept=0)
+    if span is None:
+        for sf in source:
+            counts["read"] += 1
+            counts["kept"] += 1
+            yield sf
+        return
+    lo, hi = span[0] - margin_ns, span[1] + margin_ns
+    waiting, past = set(cameras), set()
+    for sf in source:
+        counts["read"] += 1
+        if sf.t_capture_ns > hi:
+            past.add(sf.camera)
+            if waiting and waiting <= past:
+                return
+            continue
+        if sf.t_capture_ns < lo:
+            continue
+        counts["kept"] += 1
+        yield sf
+
+
+def _viz_frames(args, span: tuple[int, int] | None = None, counts: dict | None = None):
+    """(camera, t_ns, grey image, detections) of every n-th frame of each camera of --frames captured within `span`
+    (the tracks file's, `_frames_within`); the flags, the site, the model and the source are checked at once (before
+    any output is written), the frames read as they are taken."""
     from services.ingest.sources import open_source
     from shared.inference import OnnxDetector
     from shared.settings import load_settings
@@ -666,7 +738,7 @@ def _viz_frames(args):
     det = OnnxDetector(args.model, threads=2, score_thr=settings.detect.score_thr)
     # the frames' capture times as ingest gives them: from the names in the site's time zone, or its frame rate
     source = open_source(str(args.frames), cams, {}, settings.ingest.fps, settings.ingest.tzinfo())
-    return _viz_frame_rows(args, settings, det, source)
+    return _viz_frame_rows(args, settings, det, _frames_within(source, span, cams, counts=counts))
 
 
 def _viz_frame_rows(args, settings, det, source):
@@ -715,7 +787,9 @@ def _run_viz(args) -> int:
     if not args.frames and (args.model or args.frames_every is not None):
         raise ValueError("--model and --frames-every go with --frames (the camera frames to log)")
     args.frames_every = 5 if args.frames_every is None else args.frames_every
-    frames = _viz_frames(args) if args.frames else None
+    frame_counts: dict = {}
+    span = _tracks_span(args.tracks) if args.frames else None
+    frames = _viz_frames(args, span, frame_counts) if args.frames else None
     import signal
 
     # SIGTERM as Ctrl-C: the conversion stops and its partial file is removed (an existing .rrd is kept)
@@ -726,6 +800,10 @@ def _run_viz(args) -> int:
     finally:
         signal.signal(signal.SIGTERM, before)
     print(dumps(summary, indent=1))
+    if frame_counts.get("read") and not frame_counts.get("kept"):
+        print(f"roadside viz: warning: none of the {frame_counts['read']} frames of {args.frames} read lies within "
+              f"the tracks' time span (+- {VIZ_FRAMES_MARGIN_NS / 1e9:g} s): another clip, or another clock?",
+              file=sys.stderr)
     if summary["messages"] == 0:  # the .rrd holds the map alone: say so, as --live does when nothing came
         why = (f"; line {summary['first_bad_line']}: {summary['first_bad_reason']}" if summary["bad_lines"] else "")
         print(f"roadside viz: no valid tracks line in {args.tracks} ({summary['lines']} lines{why})", file=sys.stderr)

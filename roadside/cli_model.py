@@ -1,7 +1,9 @@
-"""`roadside train | export | mix | calibrate-heads`: the detector's training, export and heads' calibration."""
+"""`roadside train | export | mix | calibrate-heads | coco`: the detector's training, export and heads' calibration,
+and a recording's labels as COCO-style annotations."""
 
 from __future__ import annotations
 
+import json
 import math
 import os
 from pathlib import Path
@@ -15,7 +17,34 @@ def add_model_jobs(sub) -> dict:
     _add_export(sub)
     _add_calibrate_heads(sub)
     _add_mix(sub)
-    return {"train": _run_train, "export": _run_export, "calibrate-heads": _run_calibrate_heads, "mix": _run_mix}
+    _add_coco(sub)
+    return {"train": _run_train, "export": _run_export, "calibrate-heads": _run_calibrate_heads, "mix": _run_mix,
+            "coco": _run_coco}
+
+
+def _add_coco(sub) -> None:
+    p = sub.add_parser("coco", help="a simulator recording's labels as a COCO-style annotation file and its images "
+                       "(docs/annotations.md): what `roadside train --coco` reads")
+    p.add_argument("recording", type=Path, help="simulator recording (roadside sim)")
+    p.add_argument("--cameras", help="comma list of its cameras (default: all)")
+    p.add_argument("--out", type=Path, required=True,
+                   help="the JSON file to write; its images go beside it, where --coco looks for them")
+    p.add_argument("--every", type=positive_int, default=10, help="every N-th frame of each camera (default 10)")
+    p.add_argument("--jpeg", action="store_true", help="write the images as JPEG (default PNG, lossless)")
+
+
+def _run_coco(args) -> int:
+    from training.data import samples_from_recording, write_coco
+
+    cameras = [c.strip() for c in args.cameras.split(",") if c.strip()] if args.cameras else None
+    samples = samples_from_recording(args.recording, cameras, every=args.every)
+    if not samples:
+        raise ValueError(f"{args.recording}: no frames")
+    out = write_coco(samples, args.out, args.out.parent, ".jpg" if args.jpeg else ".png")
+    doc = json.loads(out.read_text())
+    print(f"{out}: {len(doc['images'])} images, {len(doc['annotations'])} vehicles "
+          f"({sum(a.get('iscrowd', 0) for a in doc['annotations'])} to ignore), the images beside it")
+    return 0
 
 
 def _loss_type_weights_arg(text: str) -> dict[str, float]:
@@ -34,18 +63,25 @@ def _add_train(sub) -> None:
     p.add_argument("--minutes", type=positive_float,
                    help="time budget: the learning-rate schedule follows the clock to its end (with --steps too, it "
                         "follows the clock or the steps, whichever is further along, and that one ends the run)")
-    p.add_argument("--batch-size", type=int, default=16)
-    p.add_argument("--crop", type=int, default=256)
-    p.add_argument("--lr", type=positive_float, default=2e-3)
+    p.add_argument("--batch-size", type=int, default=16,
+                   help="samples per step (default 16); at most the number of training images and frames")
+    p.add_argument("--crop", type=int, default=256,
+                   help="side of the square training crops in pixels, a multiple of 32 (default 256)")
+    p.add_argument("--lr", type=positive_float, default=2e-3, help="peak learning rate (default 0.002)")
     p.add_argument("--every", type=int, default=1,
-                   help="use every n-th frame of each recording's camera and every n-th image of each COCO file")
-    p.add_argument("--center", choices=["bottom", "box"], default="bottom", help="box: the 2D-box-centre ablation")
+                   help="use every n-th frame of each recording's camera and every n-th image of each COCO file "
+                        "(default 1: all)")
+    p.add_argument("--center", choices=["bottom", "box"], default="bottom",
+                   help="the point trained for: bottom (the vehicle's bottom centre, default) or box (the 2D-box-"
+                        "centre ablation)")
     p.add_argument("--no-topk", action="store_true", help="ablation: plain mean squared heat-map loss")
     p.add_argument("--heat-loss", choices=["mse", "focal"],
                    help="heat-map loss: mse (the paper's squared error with TopK, the default) or focal (CenterNet's "
                         "penalty-reduced focal loss; training/loss.py); with --init, the checkpoint's")
-    p.add_argument("--stride", type=int, default=4, choices=[1, 2, 4])
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--stride", type=int, default=4, choices=[1, 2, 4],
+                   help="output stride of the network (default 4)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seeds the shuffle, augmentation and initial weights (default 0)")
     p.add_argument("--init", help="model.pt to start from (fine-tuning); its network settings are kept")
     p.add_argument("--resume", action="store_true",
                    help="continue the interrupted run in --out from its resume.pt (saved every 500 steps): the same "
@@ -77,7 +113,7 @@ def _add_train(sub) -> None:
                         "(e.g. bus=4,truck=2; the others 1; with --init, the checkpoint's; 'none': all 1)")
     p.add_argument("--fisheye-rotation", choices=["any", "quarter", "off"], default="any",
                    help="augmentation: turn fisheye crops about the principal point by any angle (2D boxes "
-                        "approximated), by multiples of 90 degrees (boxes exact) or not at all")
+                        "approximated, the default), by multiples of 90 degrees (boxes exact) or not at all")
     p.add_argument("--input-long-side", type=int,
                    help="network input: images shrunk so their longer side is at most this (default 640, or the "
                         "--init model's); with --init, the starting weights are kept")
@@ -87,11 +123,12 @@ def _add_train(sub) -> None:
     p.add_argument("--device", default="cpu",
                    help="cpu (default), cuda or cuda:N (needs a PyTorch with CUDA; the train extra's is CPU-only)")
     p.add_argument("--workers", type=int, default=0,
-                   help="processes preparing batches in the background (a GPU needs several; 0: in this process, "
-                        "reproducible from --seed)")
+                   help="processes preparing batches in the background (a GPU needs several; 0, the default: in "
+                        "this process, reproducible from --seed)")
     p.add_argument("--train-only", default="",
                    help="with --init: train only these heads (comma-separated: heat, size, heading, vtype, offset, "
-                        "axis), the rest frozen; e.g. offset sharpens localization and leaves detection as it is")
+                        "axis), the rest frozen; e.g. offset sharpens localization and leaves detection as it is "
+                        "(default: all)")
 
 
 UNLIMITED_STEPS = 10**9  # with --minutes alone the clock ends the run

@@ -23,7 +23,7 @@ import os
 import re
 import types
 import typing
-from datetime import UTC
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Literal
 
@@ -248,6 +248,28 @@ class IngestSettings(Strict):
     record_jpeg_quality: int = Field(92, ge=1, le=100)
     record_queue_mb: float = Field(24.0, gt=0, le=4096)  # counts towards ingest's memory
     record_min_free_mb: float = Field(1024.0, ge=0, le=1e9)
+    # play only the frames captured from play_from on and before play_until: ISO 8601 dates and times
+    # (2023-12-19T11:00:40), in `timezone` unless they carry a UTC offset; the held-out slice of a recording, an hour
+    # of a day's footage. With `loop` the slice repeats
+    play_from: datetime | None = None
+    play_until: datetime | None = None
+
+    @model_validator(mode="after")
+    def _window(self) -> IngestSettings:
+        start, end = self.window_ns()
+        if start is not None and end is not None and end <= start:
+            raise ValueError(f"play_until {self.play_until} is not after play_from {self.play_from}")
+        return self
+
+    def window_ns(self) -> tuple[int | None, int | None]:
+        """(play_from, play_until) in ns since the epoch (None: open), times without an offset in `timezone`."""
+        def ns(t: datetime | None) -> int | None:
+            if t is None:
+                return None
+            t = t if t.tzinfo is not None else t.replace(tzinfo=self.tzinfo())
+            return round(t.timestamp() * 1e6) * 1000
+
+        return ns(self.play_from), ns(self.play_until)
 
     @field_validator("timezone")
     @classmethod

@@ -175,7 +175,7 @@ def test_summary_table_renders_a_summary():
                        "leaving_error": 0.0345, "movement_recall": 0.7391, "movement_precision": 1.0}}
     table = summary_table(s)
     assert "17 (23): count error 0.261, entering 0.036; per vehicle recall 0.739, precision 1.000" in table
-    assert "0.970 of 33 (within 40 m of a camera)" in table
+    assert "32 of 33 (within 40 m of a camera)" in table
     assert "frames through the pipeline" in table and "2393 of 2400" in table
     assert "80.0 / 75.0 frames/s" in table
     assert "NE 0.71 / 0.62, SW 0.36 / 0.35 m" in table

@@ -254,6 +254,28 @@ def test_coco_round_trip(recording, tmp_path):
 GOOD = {"id": 5, "image_id": 1, "category_id": 1, "bbox": [10, 20, 30, 25]}
 
 
+def test_roadside_coco_writes_a_file_train_reads_as_it_is(recording, tmp_path, capsys):
+    """`roadside coco`: a recording's labels and images as a COCO-style file that `samples_from_coco` reads with its
+    defaults (the images beside the JSON), every vehicle kept, ignore vehicles as iscrowd."""
+    from roadside.cli import main
+    from training.data import samples_from_recording
+
+    out = tmp_path / "coco" / "annotations.json"
+    assert main(["coco", str(recording), "--out", str(out), "--every", "1"]) == 0
+    assert "images, " in capsys.readouterr().out
+    back = samples_from_coco(out)
+    original = samples_from_recording(recording)
+    assert len(back) == len(original)
+    for a, b in zip(original, back, strict=True):
+        a, b = a.load(), b.load()
+        np.testing.assert_array_equal(a.image, b.image)
+        np.testing.assert_allclose(b.bottom_uv, a.bottom_uv, atol=1e-3)
+        np.testing.assert_array_equal(b.weight > 0, a.weight > 0)
+    assert main(["coco", str(recording), "--out", str(out), "--cameras", "nowhere"]) == 2
+    assert "no camera 'nowhere'" in capsys.readouterr().err
+
+
+
 @pytest.mark.parametrize(
     ("change", "message"),
     [

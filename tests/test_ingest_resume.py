@@ -143,3 +143,35 @@ def test_at_the_end_of_its_source_ingest_exits_or_stays_up_idle_until_told_to_st
     thread.join(5.0)
     assert not thread.is_alive() and time.monotonic() - t < 1.5
     assert out == [ingest.STOPPED] and _Status.made[-1].closed
+
+
+def test_a_played_slice_loops_on_its_own_span_not_the_whole_source():
+    """With ingest.play_from / play_until and `loop`, the rounds follow one another by the slice's span (at pace 1 the
+    whole source's would leave the rest of it as idle time between rounds)."""
+    from types import SimpleNamespace
+
+    from services.ingest.__main__ import LOOP_GAP_NS, in_window, loop_period
+
+    s = 10**9
+    source = SimpleNamespace(items=[(t * s, "NE", f"{t}.jpg") for t in range(60)])
+    assert loop_period(source) == 59 * s + LOOP_GAP_NS
+    assert [t for t, _, _ in in_window(source.items, (40 * s, 50 * s))] == [t * s for t in range(40, 50)]
+    assert loop_period(source, (40 * s, 50 * s)) == 9 * s + LOOP_GAP_NS
+    assert loop_period(source, (40 * s, None)) == 19 * s + LOOP_GAP_NS
+    assert loop_period(source, (100 * s, None)) is None
+    assert loop_period(SimpleNamespace(items=None), (40 * s, None)) is None  # a video file: spaced as played
+
+
+def test_the_played_slice_is_read_in_the_sites_time_zone_and_must_not_be_empty():
+    import pytest
+
+    from shared.settings import IngestSettings
+
+    real = IngestSettings(play_from="2023-12-19T11:00:40", timezone="America/Detroit")  # the real minute's held-out
+    assert real.window_ns() == (1_703_001_640_000_000_000, None)  # 16:00:40 UTC
+    assert IngestSettings(play_from="2023-12-19T16:00:40+00:00", timezone="America/Detroit").window_ns()[0] == \
+        1_703_001_640_000_000_000  # an offset given wins
+    with pytest.raises(ValueError, match=r"play_until .* is not after play_from"):
+        IngestSettings(play_from="2023-12-19T11:00:40", play_until="2023-12-19T11:00:40")
+    with pytest.raises(ValueError, match="play_from"):
+        IngestSettings(play_from="11:00:40 tomorrow")

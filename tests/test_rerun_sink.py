@@ -399,13 +399,33 @@ def test_viz_logs_camera_frames_with_detections_when_asked(tracks_file: Path, sm
 
     config = site_config(small_recording)
     site = write_site(tmp_path / "site", config)
-    tracks_file.write_text(tracks_file.read_text().replace('"site": "s1"', f'"site": "{config["site"]}"'))
+    text = tracks_file.read_text().replace('"site": "s1"', f'"site": "{config["site"]}"')
+    # the tracks over the recording's first 1.9 s (its frames' capture times), as fuse_track would write them
+    t0 = json.loads((small_recording / "recording.json").read_text())["t0_ns"]
+    lines = []
+    for line in text.splitlines():
+        try:
+            obj = json.loads(line)
+        except ValueError:
+            lines.append(line)
+            continue
+        lines.append(json.dumps({**obj, "t_ns": obj["t_ns"] - T0_NS + t0}))
+    tracks_file.write_text("\n".join(lines) + "\n")
     model = export_tiny_detector(tmp_path / "tiny.onnx")
     out = tmp_path / "frames.rrd"
     assert main(["viz", str(tracks_file), "--out", str(out), "--site", str(site), "--frames", str(small_recording),
                  "--model", str(model), "--frames-every", "1"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["frames"] == 2 and out.stat().st_size > 0  # the site's one camera, two frames
+    # tracks of another hour: none of the frames lies within their span, and viz says so
+    late = tmp_path / "late.jsonl"
+    late.write_text("\n".join(json.dumps({**json.loads(line), "t_ns": json.loads(line)["t_ns"] + 3600 * 10**9})
+                              for line in lines if line.startswith('{"')) + "\n")
+    assert main(["viz", str(late), "--out", str(out), "--site", str(site), "--frames", str(small_recording),
+                 "--model", str(model), "--frames-every", "1"]) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["frames"] == 0
+    assert "none of the 2 frames" in captured.err and "within the tracks' time span" in captured.err
     no_model = ["viz", str(tracks_file), "--out", str(out), "--site", str(site), "--frames", str(small_recording)]
     assert main(no_model) == 2
     assert "viz --frames needs --site (camera names) and --model" in capsys.readouterr().err

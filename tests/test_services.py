@@ -976,6 +976,34 @@ def test_ingest_records_what_it_publishes_as_a_folder_it_plays_back(site, site_n
     assert re.search(r"ingest: error: ingest.record_dir .* overlap", refused.log()), refused.log()
 
 
+def test_ingest_plays_only_the_frames_between_play_from_and_play_until(site, site_name, small_recording, port_base,
+                                                                       peer, launch):
+    """ingest.play_from / play_until (ISO 8601; here with a UTC offset): the held-out slice of a recording; a slice
+    holding no frame stops ingest at start, naming the settings."""
+    from datetime import UTC, datetime
+
+    times = sorted(int(p.stem) for p in (small_recording / "frames" / CAMERA).glob("*.jpg"))
+
+    def iso(t_ns: int) -> str:
+        return datetime.fromtimestamp(t_ns / 1e9, UTC).isoformat()
+
+    stand_in_for_the_pipeline(peer, site_name)
+    sets = [*bus_sets(port_base), "ingest.pace=100"]
+    ingest = launch("ingest", site, *sets, f"ingest.play_from={iso(times[1] - 500_000)}")
+    assert_clean_exit(ingest, ingest.wait(WAIT_S))
+    assert "done: 1 frames published" in ingest.log(), ingest.log()
+    assert peer.wait_for(lambda: len(peer.got["frames"]) >= 1, 10.0), ingest.log()
+    assert [f.t_capture_ns for f in peer.got["frames"]] == [times[1]]
+    peer.got["frames"].clear()
+    ingest = launch("ingest", site, *sets, f"ingest.play_until={iso(times[1] - 500_000)}")
+    assert_clean_exit(ingest, ingest.wait(WAIT_S))
+    assert peer.wait_for(lambda: len(peer.got["frames"]) >= 1, 10.0), ingest.log()
+    assert [f.t_capture_ns for f in peer.got["frames"]] == [times[0]]
+    empty = launch("ingest", site, *sets, f"ingest.play_from={iso(times[-1] + 10**9)}")
+    assert empty.wait(WAIT_S) == 2
+    assert "no frame of the source lies within ingest.play_from" in empty.log(), empty.log()
+
+
 # --- c. a missing file stops a service at start with exit status 2 and one error line -------------------------------
 
 
@@ -1341,7 +1369,8 @@ def test_roadside_up_plays_a_source_to_the_end_and_stops_every_service(site, sma
     tracks = tmp_path / "tracks.jsonl"
     cmd = [sys.executable, "-m", "roadside", "up", "--site", str(site), "--pace", "max", "--record", str(tracks),
            "--record-frames", str(tmp_path / "frames"), "--log-dir", str(tmp_path / "logs"),
-           "--set", f"bus.port_base={port_base}", "--set", "ingest.max_frames=2"]
+           "--set", f"bus.port_base={port_base}", "--max-frames", "2", "--from", "2001-09-09T01:46:40+00:00",
+           "--until", "2100-01-01T00:00:00"]
     proc = subprocess.run(cmd, env=service_env(), capture_output=True, text=True, timeout=180)
     assert proc.returncode == 0, proc.stderr[-2000:]
     for s in ("fuse_track", "localize", "detect", "ingest"):

@@ -519,6 +519,12 @@ def write_coco(
 # ---- batches ------------------------------------------------------------------------------------
 
 
+def too_few_samples(n: int, batch_size: int) -> str:
+    """What to say when `n` samples do not fill one batch of `batch_size` (training keeps whole batches only)."""
+    return (f"{n} samples, fewer than one batch of {batch_size}: give --batch-size {n} or less, or more data "
+            f"(more images, a smaller --every)")
+
+
 class Batcher:
     """Shuffled epochs of augmented Samples, prepared in this process (training runs torch in the same
     process on few cores, so data preparation stays a small, synchronous cost).
@@ -548,7 +554,7 @@ class Batcher:
         if not (isinstance(batch_size, int) and batch_size >= 1):
             raise ValueError(f"Batcher: batch_size must be an integer >= 1, got {batch_size!r}")
         if drop_last and batch_size > len(refs):
-            raise ValueError(f"Batcher: batch_size {batch_size} > {len(refs)} samples with drop_last")
+            raise ValueError(too_few_samples(len(refs), batch_size))
         if cache_bytes is None:
             cache_bytes = default_cache_bytes()
         if cache_bytes < 0:
