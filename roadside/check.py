@@ -7,7 +7,8 @@ the errors come one restart at a time. This runs what each service runs at start
 every problem at once, with what it found where all is well: each camera's masks and how much of its image they
 cover, the detector and the providers it runs on (one inference per camera size), the sources (each camera's first
 frame read and checked against the camera's size, recorded frames' spans), fusion's camera positions, the files the
-services write (nothing is made: a folder to be made is said to be), each service's Zenoh configuration and whether
+services write (nothing is made: a folder to be made is said to be), the GPU model opened on the CPU where no GPU
+would load it, each service's Zenoh configuration and whether
 the bus's ports are free. What passes with something the services work around (a bad first frame ingest skips, too
 little disk for the frames' recording, which then pauses) is a warning.
 """
@@ -85,6 +86,27 @@ def check_detector(settings: Settings) -> str:
         timings.append(f"{cam.name} {(time.perf_counter() - t) * 1e3:.0f} ms")
     runs_on = ", ".join(detector.providers)
     return f"{Path(detector.path).resolve()} on {runs_on}; one blank frame each: {', '.join(timings)}"
+
+
+def _gpu_here() -> bool:
+    """Whether this ONNX Runtime has a GPU provider (the detector check then loads the GPU model itself)."""
+    from shared.inference import available_providers
+
+    return any(p != "CPUExecutionProvider" for p in available_providers())
+
+
+def check_gpu_model(settings: Settings) -> str:
+    """The GPU model (detect.model_gpu) where this machine runs the CPU one: opened on the CPU and run once, so that a
+    missing or broken fp16 file is found here rather than on the cabinet's GPU."""
+    from shared.inference import OnnxDetector
+
+    path = settings.path(settings.detect.model_gpu)
+    if not path.is_file():
+        raise ValueError(f"detect.model_gpu: {path} not found (a GPU would use it; set it, or to null for none)")
+    cam = settings.cameras[0]
+    detector = OnnxDetector(path, providers=["CPUExecutionProvider"], threads=1, score_thr=settings.detect.score_thr)
+    detector.detect(np.zeros((min(cam.height, 480), min(cam.width, 640)), np.uint8))
+    return f"{path.resolve()}: opens and runs (here on the CPU, for a GPU provider at the cabinet)"
 
 
 def check_sources(settings: Settings, live: bool = True) -> list[Check]:
@@ -255,6 +277,9 @@ def check_site(settings: Settings, live: bool = True) -> list[Check]:
     """Every check of a loaded site, in the pipeline's order."""
     out = [_run(f"masks {c.name}", lambda c=c: check_masks(settings, c.name)) for c in settings.cameras]
     out.append(_run("detector", lambda: check_detector(settings)))
+    if settings.detect.model_gpu is not None and not _gpu_here() and settings.path(
+            settings.detect.model_gpu) != settings.path(settings.detect.model):
+        out.append(_run("detector (GPU)", lambda: check_gpu_model(settings)))
     out += check_sources(settings, live)
     out.append(_run("fusion", lambda: check_fusion(settings)))
     if settings.fuse_track.record is not None:

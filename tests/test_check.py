@@ -141,6 +141,22 @@ def test_the_masks_of_two_cameras_swapped_in_the_site_file_are_refused(good_site
     assert checks["masks C"]["ok"]  # a name that is no camera of the site: landmarks named otherwise, not a swap
 
 
+def test_the_gpu_model_is_opened_on_the_cpu_where_no_gpu_would_load_it(good_site, capsys, tmp_path):
+    folder, config = good_site
+    site_cfg = copy.deepcopy(config)
+    site_cfg["cameras"][0]["masks"] = str(folder / "masks" / f"{CAMERA}.npz")
+    site_cfg["detect"].update(model=str(folder / "model.onnx"), model_gpu=str(tmp_path / "model_fp16.onnx"))
+    (tmp_path / "model_fp16.onnx").write_bytes(b"not a model")
+    site = write_site(tmp_path / "site", site_cfg)
+    rc, doc = checked(capsys, site, "--set", f"bus.port_base={free_port_base()}")
+    checks = by_name(doc)
+    assert rc == 2 and checks["detector"]["ok"]
+    assert not checks["detector (GPU)"]["ok"] and "model_fp16.onnx" in checks["detector (GPU)"]["detail"]
+    shutil.copy(folder / "model.onnx", tmp_path / "model_fp16.onnx")
+    rc, doc = checked(capsys, site, "--set", f"bus.port_base={free_port_base()}")
+    assert rc == 0 and "opens and runs" in by_name(doc)["detector (GPU)"]["detail"]
+
+
 def test_a_site_file_that_does_not_load_is_one_error_line(tmp_path, capsys):
     site = write_site(tmp_path, {"site": "x", "cameras": [{"name": "NE", "kind": "fisheye", "width": 0}]})
     assert main(["check", "--site", str(site)]) == 2
