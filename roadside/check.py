@@ -114,6 +114,7 @@ def check_sources(settings: Settings, live: bool = True) -> list[Check]:
     makes them (decoded, the size checked against the camera's): the first good one passes, with a warning when
     frames before it are bad (ingest skips them). Recorded files are read camera by camera; live streams and video
     files are played until each camera has given a frame (live streams only with `live`: else not even opened)."""
+    from services.ingest.__main__ import play_window
     from services.ingest.sources import open_source
 
     cfg = settings.ingest
@@ -130,27 +131,25 @@ def check_sources(settings: Settings, live: bool = True) -> list[Check]:
     try:
         try:
             source = open_source(main or "", list(cams), own, cfg.fps, cfg.tzinfo(), stop)
+            play_window(cfg, source)  # as ingest cuts it to ingest.play_from / play_until
         except Exception as exc:  # reported as the check's failure
             return [_failed("source", exc)]
-        frames, recorded = _first_frames(source, set(cams), cfg.window_ns())
+        frames, recorded = _first_frames(source, set(cams))
     finally:
         stop.set()
+    sliced = cfg.play_from is not None or cfg.play_until is not None
     return [_run(f"source {name}", lambda name=name: _camera_frames(settings, cams[name], frames.get(name, []),
-                                                                   recorded.get(name)))
+                                                                   recorded.get(name), sliced))
             for name in cams]
 
 
-def _first_frames(source, cameras: set[str], window: tuple[int | None, int | None]
-                  ) -> tuple[dict[str, list], dict[str, list[int]]]:
-    """Each camera's first FIRST_FRAMES frames, and for recorded files each camera's capture times (within
-    ingest.play_from / play_until, `window`)."""
-    from services.ingest.__main__ import in_window
+def _first_frames(source, cameras: set[str]) -> tuple[dict[str, list], dict[str, list[int]]]:
+    """Each camera's first FIRST_FRAMES frames, and for recorded files each camera's capture times."""
     from services.ingest.sources import SourceFrame
 
     frames: dict[str, list] = {}
     items = getattr(source, "items", None)
     if items:  # recorded files: each camera's own first files, however late it starts
-        items = in_window(items, window)
         times: dict[str, list[int]] = {}
         for t, cam, path in items:
             times.setdefault(cam, []).append(t)
@@ -171,9 +170,11 @@ def _first_frames(source, cameras: set[str], window: tuple[int | None, int | Non
     return frames, {}
 
 
-def _camera_frames(settings: Settings, cam, frames: list, times: list[int] | None) -> str:
+def _camera_frames(settings: Settings, cam, frames: list, times: list[int] | None, sliced: bool = False) -> str:
     from services.ingest.__main__ import decode_scale_for, to_frame_fields
 
+    if not frames and sliced:  # the others play
+        raise Warned(f"camera {cam.name}: no frame within ingest.play_from / play_until")
     if not frames:
         raise ValueError(f"camera {cam.name}: no frame within {LIVE_READ_S:.0f} s of the source")
     bad = []

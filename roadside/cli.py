@@ -372,8 +372,9 @@ def _add_up(sub) -> None:
     p.add_argument("--pace", help="1 (real time), N (N x real time) or max (as fast as the pipeline goes)")
     p.add_argument("--loop", action="store_true", help="repeat the source")
     p.add_argument("--from", dest="play_from", metavar="DATETIME",
-                   help="play only frames captured from then on: ISO 8601, e.g. 2023-12-19T11:00:40, in the site's "
-                   "ingest.timezone unless it carries an offset (ingest.play_from)")
+                   help="play only the recorded frames captured from then on: ISO 8601, e.g. 2023-12-19T11:00:40, or a "
+                   "time of day (11:00:40, on the day of the first frame), in the site's ingest.timezone unless it "
+                   "carries an offset (ingest.play_from)")
     p.add_argument("--until", dest="play_until", metavar="DATETIME", help="and before then (ingest.play_until)")
     p.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames of each camera (ingest.max_frames)")
     p.add_argument("--record", type=Path, help="append tracks to this JSON-lines file")

@@ -23,7 +23,7 @@ import os
 import re
 import types
 import typing
-from datetime import UTC, datetime
+from datetime import UTC, datetime, time
 from pathlib import Path
 from typing import Literal
 
@@ -248,25 +248,45 @@ class IngestSettings(Strict):
     record_jpeg_quality: int = Field(92, ge=1, le=100)
     record_queue_mb: float = Field(24.0, gt=0, le=4096)  # counts towards ingest's memory
     record_min_free_mb: float = Field(1024.0, ge=0, le=1e9)
-    # play only the frames captured from play_from on and before play_until: ISO 8601 dates and times
-    # (2023-12-19T11:00:40), in `timezone` unless they carry a UTC offset; the held-out slice of a recording, an hour
-    # of a day's footage. With `loop` the slice repeats
-    play_from: datetime | None = None
-    play_until: datetime | None = None
+    # play only the recorded frames captured from play_from on and before play_until: ISO 8601 dates and times
+    # (2023-12-19T11:00:40) or times of day (11:00:40: on the day of the source's first frame), in `timezone` unless
+    # they carry a UTC offset; the held-out slice of a recording, an hour of a day's footage. With `loop` the slice
+    # repeats. Not for a video file or a stream, whose capture times are the clock's when they are played
+    play_from: datetime | time | None = None
+    play_until: datetime | time | None = None
+
+    @field_validator("play_from", "play_until", mode="before")
+    @classmethod
+    def _moment(cls, v: object) -> object:
+        if isinstance(v, int | float) and not isinstance(v, bool):  # YAML reads 11:00:40 unquoted as 39640
+            raise ValueError(f"{v!r} is a number: give an ISO 8601 date and time (2023-12-19T11:00:40) or a time of "
+                             "day (11:00:40), in quotes in YAML")
+        return v
 
     @model_validator(mode="after")
     def _window(self) -> IngestSettings:
-        start, end = self.window_ns()
-        if start is not None and end is not None and end <= start:
-            raise ValueError(f"play_until {self.play_until} is not after play_from {self.play_from}")
+        a, b = self.play_from, self.play_until
+        if a is not None and b is not None and type(a) is type(b):
+            start, end = self.window_ns(0)
+            if end <= start:
+                raise ValueError(f"play_until {b} is not after play_from {a}")
         return self
 
-    def window_ns(self) -> tuple[int | None, int | None]:
-        """(play_from, play_until) in ns since the epoch (None: open), times without an offset in `timezone`."""
-        def ns(t: datetime | None) -> int | None:
+    def window_ns(self, day_of_ns: int | None = None) -> tuple[int | None, int | None]:
+        """(play_from, play_until) in ns since the epoch (None: open), times without an offset in `timezone`; a time
+        of day on the day (in `timezone`) of `day_of_ns` (the source's first frame)."""
+        tz = self.tzinfo()
+
+        def ns(t: datetime | time | None) -> int | None:
             if t is None:
                 return None
-            t = t if t.tzinfo is not None else t.replace(tzinfo=self.tzinfo())
+            if isinstance(t, time):
+                if day_of_ns is None:
+                    raise ValueError(f"ingest.play_from / play_until {t}: a time of day needs the day of a recorded "
+                                     "source's first frame")
+                day = datetime.fromtimestamp(day_of_ns / 1e9, tz).date()
+                t = datetime.combine(day, t)  # an offset it carries stays
+            t = t if t.tzinfo is not None else t.replace(tzinfo=tz)
             return round(t.timestamp() * 1e6) * 1000
 
         return ns(self.play_from), ns(self.play_until)

@@ -273,6 +273,13 @@ def test_roadside_coco_writes_a_file_train_reads_as_it_is(recording, tmp_path, c
         np.testing.assert_array_equal(b.weight > 0, a.weight > 0)
     assert main(["coco", str(recording), "--out", str(out), "--cameras", "nowhere"]) == 2
     assert "no camera 'nowhere'" in capsys.readouterr().err
+    # a second file in the same folder keeps its own images (they were both 000001.png ...)
+    other = tmp_path / "coco" / "thermal.json"
+    assert main(["coco", str(recording), "--out", str(other), "--cameras", "T_SW", "--every", "1"]) == 0
+    for a, b in zip(original, samples_from_coco(out), strict=True):
+        np.testing.assert_array_equal(a.load().image, b.load().image)
+    assert main(["coco", str(recording), "--out", str(tmp_path / "coco")]) == 2  # a folder
+    assert "must be named *.json" in capsys.readouterr().err
 
 
 

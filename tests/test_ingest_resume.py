@@ -175,3 +175,34 @@ def test_the_played_slice_is_read_in_the_sites_time_zone_and_must_not_be_empty()
         IngestSettings(play_from="2023-12-19T11:00:40", play_until="2023-12-19T11:00:40")
     with pytest.raises(ValueError, match="play_from"):
         IngestSettings(play_from="11:00:40 tomorrow")
+
+
+def test_a_played_slice_cuts_the_files_read_and_is_refused_for_a_video_or_an_empty_slice():
+    """play_window: the recorded files outside the slice are not even read (each part of a merged source cut too); a
+    time of day is on the day of the source's first frame, in the site's time zone; a video file or a stream (no
+    recorded capture times) and a slice holding no frame are refused, naming what the frames span."""
+    from types import SimpleNamespace
+
+    import pytest
+
+    from services.ingest.__main__ import play_window
+    from shared.settings import IngestSettings
+
+    s = 10**9
+    t0 = 1_703_001_600 * s  # 2023-12-19 11:00:00 in America/Detroit
+    a = SimpleNamespace(items=[(t0 + t * s, "NE", f"a{t}") for t in range(0, 60, 2)])
+    b = SimpleNamespace(items=[(t0 + t * s, "SW", f"b{t}") for t in range(1, 60, 2)])
+    merged = SimpleNamespace(items=sorted(a.items + b.items), parts=[a, b])
+    cfg = IngestSettings(play_from="11:00:40", play_until="11:00:50", timezone="America/Detroit")
+    assert play_window(cfg, merged) == (t0 + 40 * s, t0 + 50 * s)
+    assert [t for t, _, _ in merged.items] == [t0 + t * s for t in range(40, 50)]
+    assert [t for t, _, _ in a.items] == [t0 + t * s for t in range(40, 50, 2)] and len(b.items) == 5
+    assert play_window(IngestSettings(), SimpleNamespace(items=None)) == (None, None)  # no slice: any source
+    with pytest.raises(ValueError, match="apply to recorded files"):
+        play_window(cfg, SimpleNamespace(items=None))
+    late = IngestSettings(play_from="12:00:00", timezone="America/Detroit")
+    with pytest.raises(ValueError, match=r"its frames run 2023-12-19 11:00:00 to 2023-12-19 11:00:58 "
+                                         r"\(America/Detroit\)"):
+        play_window(late, SimpleNamespace(items=[(t0 + t * s, "NE", f"a{t}") for t in range(0, 60, 2)]))
+    with pytest.raises(ValueError, match="is a number"):
+        IngestSettings(play_from=39640)  # YAML's reading of 11:00:40 unquoted

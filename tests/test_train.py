@@ -140,6 +140,11 @@ def test_background_workers_feed_the_training_and_a_dead_worker_stops_it(small_r
         def crash(*_args, **_kwargs):
             raise SystemExit(3)
 
+        # a batch larger than the data is said plainly before any worker starts (it died with it there)
+        with pytest.raises(ValueError, match=r"4 samples, fewer than one batch of 5: give --batch-size 4 or less"):
+            train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "y"), steps=2, batch_size=5,
+                              crop=64, model=TINY, threads=1, workers=1), log=lambda _m: None)
+
         monkeypatch.setattr(train_module, "_prepare_batches", crash)
         with pytest.raises(RuntimeError, match=r"worker died \(exit code 3\)"):
             train(TrainConfig(recordings=(str(small_recording),), out=str(tmp_path / "x"), steps=2, batch_size=2,

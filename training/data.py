@@ -469,6 +469,8 @@ def write_coco(
     (`image_ext` .png, lossless, or .jpg) in `images_dir`. Bottom centre, heading (as `heading_uv`)
     and size are written where known; weight-0 vehicles as `iscrowd` 1. Returns the JSON path."""
     json_path, images_dir = Path(json_path), Path(images_dir)
+    if json_path.is_dir() or json_path.suffix.lower() != ".json":
+        raise ValueError(f"{json_path}: the annotation file to write must be named *.json (not a folder)")
     if image_ext not in (".png", ".jpg"):
         raise ValueError(f"{json_path}: image_ext must be .png or .jpg, got {image_ext!r}")
     images_dir.mkdir(parents=True, exist_ok=True)
@@ -480,7 +482,7 @@ def write_coco(
     o = COCO_PIXEL_OFFSET
     for image_id, item in enumerate(samples, 1):
         sample = item.load() if isinstance(item, SampleRef) else item
-        name = f"{image_id:06d}{image_ext}"
+        name = f"{json_path.stem}_{image_id:06d}{image_ext}"  # two files' images may share a folder
         if not cv2.imwrite(str(images_dir / name), sample.image):
             raise ValueError(f"{images_dir / name}: cannot write image")
         h, w = sample.shape

@@ -40,7 +40,14 @@ from shared.cameras import select_cameras
 from shared.inference import input_scale
 from sim.recording import Recording
 from training.augment import AugmentConfig, augment
-from training.data import Batcher, SampleRef, default_cache_bytes, samples_from_coco, samples_from_recording
+from training.data import (
+    Batcher,
+    SampleRef,
+    default_cache_bytes,
+    samples_from_coco,
+    samples_from_recording,
+    too_few_samples,
+)
 from training.loss import LossConfig, detector_loss
 from training.model import Detector, DetectorConfig, count_macs, load_detector, save_detector
 from training.sample import Sample
@@ -361,6 +368,8 @@ def train(cfg: TrainConfig, log=print) -> dict:
     refs = training_refs(cfg)
     n_pos = sum(r.n_positive for r in refs)
     log(f"[train] {len(refs)} images, {n_pos} vehicles to detect")
+    if cfg.batch_size > len(refs):  # here, not in a batch-preparing worker, where it would end as "a worker died"
+        raise ValueError(too_few_samples(len(refs), cfg.batch_size))
     aug = partial(augment, out_hw=(cfg.crop, cfg.crop), config=cfg.augment)
     if cfg.workers:  # started before CUDA is touched: forked workers must not inherit a CUDA context
         # a resumed run's workers get other seeds: the interrupted run's would repeat its first batches

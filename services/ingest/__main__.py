@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import time
+from datetime import datetime
 
 import cv2
 import numpy as np
@@ -29,7 +30,7 @@ from shared.jpeg import decode_grey, jpeg_size
 from shared.keys import LATEST_ANY_AGE, all_alive_key, all_cameras_key, camera_key, latest_tracks_key
 from shared.messages import Detections, Frame, Tracks
 from shared.service import run
-from shared.settings import CameraSettings, Settings
+from shared.settings import CameraSettings, IngestSettings, Settings
 from shared.status import StatusReporter
 
 log = logging.getLogger("roadside.ingest")
@@ -140,6 +141,28 @@ def in_window(items: list, window: tuple[int | None, int | None]) -> list:
     return [i for i in items if (start is None or i[0] >= start) and (end is None or i[0] < end)]
 
 
+def play_window(cfg: IngestSettings, source) -> tuple[int | None, int | None]:
+    """ingest.play_from / play_until in ns for this source (a time of day on the day of its first frame), with the
+    source's files cut to them, so that those outside are not even read (every part of a merged source); ValueError
+    for a video file or a stream (their capture times are the clock's as they play), or when no frame is left."""
+    if cfg.play_from is None and cfg.play_until is None:
+        return None, None
+    items = getattr(source, "items", None)
+    if not items:
+        raise ValueError(f"ingest.play_from / play_until ({cfg.play_from or 'open'} to {cfg.play_until or 'open'}) "
+                         "apply to recorded files (image folders, a simulator recording): a video file's or a "
+                         "stream's frames are timed by the clock as they play")
+    window = cfg.window_ns(items[0][0])
+    for part in (source, *getattr(source, "parts", ())):
+        part.items = in_window(part.items, window)
+    if not source.items:
+        when = " to ".join(datetime.fromtimestamp(t / 1e9, cfg.tzinfo()).strftime("%Y-%m-%d %H:%M:%S") for t in
+                           (items[0][0], items[-1][0]))
+        raise ValueError(f"no frame of the source lies within ingest.play_from {cfg.play_from or '(open)'} / "
+                         f"play_until {cfg.play_until or '(open)'}; its frames run {when} ({cfg.timezone})")
+    return window
+
+
 def loop_period(source, window: tuple[int | None, int | None] = (None, None)) -> int | None:
     """With ingest.loop, the time from one round's first frame to the next's: the span of the source's frames
     (within play_from / play_until) and `LOOP_GAP_NS`, for recorded files (a source with `items`, whose rounds a
@@ -183,6 +206,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
 
     own_sources = {c.name: resolve(c.source) for c in settings.cameras}
     source = open_source(resolve(cfg.source) or "", list(cams), own_sources, cfg.fps, cfg.tzinfo(), stopper.event)
+    window = play_window(cfg, source)  # before the bus: a slice without frames stops ingest at once
     recorder = None
     if cfg.record_dir is not None:
         record_dir = settings.path(cfg.record_dir)
@@ -211,11 +235,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
         resume_ns = resume_point(session, settings.site, source, cfg.loop)
         # rounds of max_frames frames are spaced by what they play, as before (a source's whole span would leave
         # most of each round's time empty); a restart then skips through the rounds to fuse_track's time
-        window = cfg.window_ns()
-        played = in_window(getattr(source, "items", None) or [], window)
-        if getattr(source, "items", None) and not played:
-            raise ValueError(f"no frame of the source lies within ingest.play_from {cfg.play_from} / play_until "
-                             f"{cfg.play_until}")
+        played = getattr(source, "items", None) or []
         period_ns = loop_period(source, window) if cfg.loop and not cfg.max_frames else None
         offset_ns = 0
         if resume_ns is not None:

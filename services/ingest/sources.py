@@ -336,7 +336,7 @@ def open_source(source: str, cameras: list[str], camera_sources: dict[str, str |
     for cam in cameras:
         match = matching(cam)
         if len(match) != 1:
-            wrong.append(f"camera {cam}: expected one sub-folder of {path} named {cam} or *_{cam} (any case), found "
+            wrong.append(f"camera {cam}: expected one sub-folder of {path} named {cam} (in any case) or *_{cam}, found "
                          f"{sorted(p.name for p in match) or 'none'}")
         else:
             folders[cam] = match[0]

@@ -60,7 +60,8 @@ def camera_masks(settings: Settings, cam: CameraSettings) -> LookupMasks:
     if other != cam.name and other in {c.name for c in settings.cameras}:
         raise ValueError(f"camera {cam.name}: masks {path} were calibrated from camera {other}'s landmarks "
                          f"({masks.meta.get('landmarks_file')}): are the masks of {cam.name} and {other} swapped in "
-                         "the site file?")
+                         "the site file? (If the cameras were renamed: give each landmark file its camera's new name, "
+                         "`camera` in its header, and calibrate again)")
     if cam.exclude_px:
         before = int(masks.valid.sum())
         masks.valid = excluded(masks.valid, cam.exclude_px)
