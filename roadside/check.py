@@ -8,9 +8,9 @@ every problem at once, with what it found where all is well: each camera's masks
 cover, the detector and the providers it runs on (one inference per camera size), the sources (each camera's first
 frame read and checked against the camera's size, recorded frames' spans), fusion's camera positions, the files the
 services write (nothing is made: a folder to be made is said to be), the GPU model opened on the CPU where no GPU
-would load it, each service's Zenoh configuration and whether
-the bus's ports are free. What passes with something the services work around (a bad first frame ingest skips, too
-little disk for the frames' recording, which then pauses) is a warning.
+would load it, each service's Zenoh configuration and whether the bus's ports are free. What passes with something
+the services work around (a bad first frame ingest skips, too little disk for the frames' recording, which then
+pauses, a camera without frames in the played slice) is a warning.
 """
 
 from __future__ import annotations
