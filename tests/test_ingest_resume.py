@@ -150,16 +150,23 @@ def test_a_played_slice_loops_on_its_own_span_not_the_whole_source():
     whole source's would leave the rest of it as idle time between rounds)."""
     from types import SimpleNamespace
 
-    from services.ingest.__main__ import LOOP_GAP_NS, in_window, loop_period
+    from services.ingest.__main__ import LOOP_GAP_NS, loop_period, play_window
+    from shared.settings import IngestSettings
 
     s = 10**9
-    source = SimpleNamespace(items=[(t * s, "NE", f"{t}.jpg") for t in range(60)])
-    assert loop_period(source) == 59 * s + LOOP_GAP_NS
-    assert [t for t, _, _ in in_window(source.items, (40 * s, 50 * s))] == [t * s for t in range(40, 50)]
-    assert loop_period(source, (40 * s, 50 * s)) == 9 * s + LOOP_GAP_NS
-    assert loop_period(source, (40 * s, None)) == 19 * s + LOOP_GAP_NS
-    assert loop_period(source, (100 * s, None)) is None
-    assert loop_period(SimpleNamespace(items=None), (40 * s, None)) is None  # a video file: spaced as played
+    t0 = 1_703_001_600 * s  # 2023-12-19 16:00:00 UTC
+
+    def source() -> SimpleNamespace:
+        return SimpleNamespace(items=[(t0 + t * s, "NE", f"{t}.jpg") for t in range(60)])
+
+    assert loop_period(source()) == 59 * s + LOOP_GAP_NS
+    cut = source()
+    play_window(IngestSettings(play_from="16:00:40", play_until="16:00:50"), cut)
+    assert loop_period(cut) == 9 * s + LOOP_GAP_NS
+    cut = source()
+    play_window(IngestSettings(play_from="16:00:40"), cut)
+    assert loop_period(cut) == 19 * s + LOOP_GAP_NS
+    assert loop_period(SimpleNamespace(items=None)) is None  # a video file: spaced as played
 
 
 def test_the_played_slice_is_read_in_the_sites_time_zone_and_must_not_be_empty():

@@ -163,11 +163,11 @@ def play_window(cfg: IngestSettings, source) -> tuple[int | None, int | None]:
     return window
 
 
-def loop_period(source, window: tuple[int | None, int | None] = (None, None)) -> int | None:
-    """With ingest.loop, the time from one round's first frame to the next's: the span of the source's frames
-    (within play_from / play_until) and `LOOP_GAP_NS`, for recorded files (a source with `items`, whose rounds a
-    restart must find again); None for a video file (its rounds are spaced as played)."""
-    items = in_window(getattr(source, "items", None) or [], window)
+def loop_period(source) -> int | None:
+    """With ingest.loop, the time from one round's first frame to the next's: the span of the source's frames (cut to
+    play_from / play_until by `play_window`) and `LOOP_GAP_NS`, for recorded files (a source with `items`, whose rounds
+    a restart must find again); None for a video file (its rounds are spaced as played)."""
+    items = getattr(source, "items", None)
     return items[-1][0] - items[0][0] + LOOP_GAP_NS if items else None
 
 
@@ -206,7 +206,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
 
     own_sources = {c.name: resolve(c.source) for c in settings.cameras}
     source = open_source(resolve(cfg.source) or "", list(cams), own_sources, cfg.fps, cfg.tzinfo(), stopper.event)
-    window = play_window(cfg, source)  # before the bus: a slice without frames stops ingest at once
+    play_window(cfg, source)  # the files cut to the slice, before the bus: a slice without frames stops ingest at once
     recorder = None
     if cfg.record_dir is not None:
         record_dir = settings.path(cfg.record_dir)
@@ -235,12 +235,11 @@ def main(settings: Settings, stopper: Stopper) -> int:
         resume_ns = resume_point(session, settings.site, source, cfg.loop)
         # rounds of max_frames frames are spaced by what they play, as before (a source's whole span would leave
         # most of each round's time empty); a restart then skips through the rounds to fuse_track's time
-        played = getattr(source, "items", None) or []
-        period_ns = loop_period(source, window) if cfg.loop and not cfg.max_frames else None
+        period_ns = loop_period(source) if cfg.loop and not cfg.max_frames else None
         offset_ns = 0
         if resume_ns is not None:
             if period_ns is not None:  # the round fuse_track's tracks reached: its times shifted as it played them
-                offset_ns = (resume_ns - played[0][0]) // period_ns * period_ns
+                offset_ns = (resume_ns - source.items[0][0]) // period_ns * period_ns
             log.info("fuse_track's tracks reach %d: resuming the files after it (round %d)", resume_ns,
                      offset_ns // period_ns if period_ns else 0)
         pacer = Pacer(cfg.pace, stopper)
@@ -254,10 +253,6 @@ def main(settings: Settings, stopper: Stopper) -> int:
                     break
                 if sf.camera not in cams:
                     continue
-                if window[0] is not None and sf.t_capture_ns < window[0]:
-                    continue
-                if window[1] is not None and sf.t_capture_ns >= window[1]:
-                    break  # frames come in capture order
                 if cfg.max_frames is not None and seq[sf.camera] >= cfg.max_frames * (loop_idx + 1):
                     if all(n >= cfg.max_frames * (loop_idx + 1) for n in seq.values()):
                         break
