@@ -976,6 +976,58 @@ def test_ingest_records_what_it_publishes_as_a_folder_it_plays_back(site, site_n
     assert re.search(r"ingest: error: ingest.record_dir .* overlap", refused.log()), refused.log()
 
 
+def test_ingest_records_a_live_stream_it_publishes(site, site_name, small_recording, port_base, peer, launch, tmp_path):
+    """A live MJPEG-over-HTTP camera: the frames ingest decodes from it are recorded as JPEGs at the camera's full
+    size under their capture times (the clock's at grab), and play back as an image folder."""
+    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+    from threading import Thread
+
+    from services.ingest.sources import open_source
+
+    jpegs = [p.read_bytes() for p in sorted((small_recording / "frames" / CAMERA).glob("*.jpg"))]
+
+    class Camera(BaseHTTPRequestHandler):
+        def log_message(self, *args) -> None:
+            pass
+
+        def do_GET(self) -> None:
+            self.send_response(200)
+            self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=frame")
+            self.end_headers()
+            try:
+                for k in range(40):
+                    jpg = jpegs[k % len(jpegs)]
+                    self.wfile.write(b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n\r\n" % len(jpg)
+                                     + jpg + b"\r\n")
+                    self.wfile.flush()
+                    time.sleep(0.1)
+            except OSError:
+                pass  # ingest hung up
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), Camera)
+    Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        url = f"http://127.0.0.1:{server.server_address[1]}/stream.mjpg"
+        stand_in_for_the_pipeline(peer, site_name)
+        recorded = tmp_path / "recorded"
+        ingest = launch("ingest", site, *bus_sets(port_base), f"ingest.source={url}", "ingest.max_frames=3",
+                        f"ingest.record_dir={recorded}")
+        assert_clean_exit(ingest, ingest.wait(WAIT_S))
+    finally:
+        server.shutdown()
+    assert f"3 frames written ({CAMERA} 3), 0 dropped" in ingest.log(), ingest.log()
+    assert peer.wait_for(lambda: len(peer.got["frames"]) >= 3, 10.0), ingest.log()
+    published = [f.t_capture_ns for f in peer.got["frames"]]
+    files = sorted((recorded / CAMERA).iterdir())
+    assert [int(p.stem) for p in files] == published
+    source = cv2.imdecode(np.frombuffer(jpegs[0], np.uint8), cv2.IMREAD_COLOR)
+    for p in files:
+        img = cv2.imread(str(p), cv2.IMREAD_COLOR)
+        assert img.shape == (960, 1280, 3)
+    assert np.abs(cv2.imread(str(files[0]), cv2.IMREAD_COLOR).astype(int) - source).mean() < 3.0  # quality 92
+    assert [f.t_capture_ns for f in open_source(str(recorded), [CAMERA], {})] == published
+
+
 def test_ingest_plays_only_the_frames_between_play_from_and_play_until(site, site_name, small_recording, port_base,
                                                                        peer, launch):
     """ingest.play_from / play_until (ISO 8601; here with a UTC offset): the held-out slice of a recording; a slice
