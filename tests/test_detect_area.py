@@ -225,3 +225,21 @@ def test_the_detect_service_mirrors_when_its_site_says_so(tmp_path):
     site["detect"]["mirror"] = True
     (tmp_path / "site.yaml").write_text(yaml.safe_dump(site))
     assert load_detector(load_settings(tmp_path / "site.yaml")).mirror is True
+
+
+def test_the_network_input_is_the_image_over_255_and_its_padding_one_half(tiny):
+    """preprocess writes the scaled image into the padded input in place: the values are those of
+    `image.astype(float32) / 255` to the bit, the padding out to the 32-pixel grid 0.5."""
+    import cv2
+
+    rng = np.random.default_rng(3)
+    for shape in ((480, 640), (470, 630), (100, 90)):
+        grey = rng.integers(0, 256, shape, dtype=np.uint8)
+        x, scale = tiny.preprocess(grey)
+        h, w = round(shape[0] * scale), round(shape[1] * scale)
+        small = cv2.resize(grey, (w, h), interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR)
+        assert x.dtype == np.float32 and x.shape[2] % 32 == 0 and x.shape[3] % 32 == 0
+        np.testing.assert_array_equal(x[0, 0, :h, :w], small.astype(np.float32) / 255.0)
+        pad = np.ones(x.shape[2:], bool)
+        pad[:h, :w] = False
+        assert (x[0, 0][pad] == 0.5).all()
