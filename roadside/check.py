@@ -101,10 +101,12 @@ def check_gpu_model(settings: Settings) -> str:
     from shared.inference import OnnxDetector
 
     path = settings.path(settings.detect.model_gpu)
-    if not path.is_file():
-        raise ValueError(f"detect.model_gpu: {path} not found (a GPU would use it; set it, or to null for none)")
+    if not path.is_file():  # detect then runs the CPU model on the GPU
+        raise Warned(f"detect.model_gpu: {path} not found: a GPU would run detect.model instead (give the fp16 "
+                     "file, or set model_gpu to null)")
     cam = settings.cameras[0]
-    detector = OnnxDetector(path, providers=["CPUExecutionProvider"], threads=1, score_thr=settings.detect.score_thr)
+    detector = OnnxDetector(path, providers=["CPUExecutionProvider"], threads=1, score_thr=settings.detect.score_thr,
+                            mirror=settings.detect.mirror)
     detector.detect(np.zeros((min(cam.height, 480), min(cam.width, 640)), np.uint8))
     return f"{path.resolve()}: opens and runs (here on the CPU, for a GPU provider at the cabinet)"
 
@@ -126,6 +128,9 @@ def check_sources(settings: Settings, live: bool = True) -> list[Check]:
     main, own = resolve(cfg.source), {c.name: resolve(c.source) for c in cams.values()}
     streams = sorted({s for s in (main, *own.values()) if s and "://" in s})
     if streams and not live:
+        if cfg.play_from is not None or cfg.play_until is not None:  # as ingest refuses it, without opening them
+            return [Check("source", False, "ingest.play_from / play_until apply to recorded files, not to live "
+                                           f"streams ({', '.join(streams)})")]
         return [Check("source", True, f"live streams not read (--no-live): {', '.join(streams)}")]
     stop = threading.Event()  # ends the reader threads of live streams, and their reconnecting
     try:

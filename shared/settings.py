@@ -249,9 +249,10 @@ class IngestSettings(Strict):
     record_queue_mb: float = Field(24.0, gt=0, le=4096)  # counts towards ingest's memory
     record_min_free_mb: float = Field(1024.0, ge=0, le=1e9)
     # play only the recorded frames captured from play_from on and before play_until: ISO 8601 dates and times
-    # (2023-12-19T11:00:40) or times of day (11:00:40: on the day of the source's first frame), in `timezone` unless
-    # they carry a UTC offset; the held-out slice of a recording, an hour of a day's footage. With `loop` the slice
-    # repeats. Not for a video file or a stream, whose capture times are the clock's when they are played
+    # (2023-12-19T11:00:40) or times of day (11:00:40: on the day of the source's first frame; for footage across
+    # midnight or a clock change give date-times), in `timezone` unless they carry a UTC offset; the held-out slice of a
+    # recording, an hour of a day's footage. With `loop` the slice repeats. Not for a video file, a stream or a folder
+    # timed by `fps`, whose capture times are the clock's when they are played
     play_from: datetime | time | None = None
     play_until: datetime | time | None = None
 
@@ -266,7 +267,9 @@ class IngestSettings(Strict):
     @model_validator(mode="after")
     def _window(self) -> IngestSettings:
         a, b = self.play_from, self.play_until
-        if a is not None and b is not None and type(a) is type(b):
+        if a is not None and b is not None and type(a) is not type(b):
+            raise ValueError(f"play_from {a} and play_until {b}: give both as date-times or both as times of day")
+        if a is not None and b is not None:
             start, end = self.window_ns(0)
             if end <= start:
                 raise ValueError(f"play_until {b} is not after play_from {a}")
@@ -284,7 +287,7 @@ class IngestSettings(Strict):
                 if day_of_ns is None:
                     raise ValueError(f"ingest.play_from / play_until {t}: a time of day needs the day of a recorded "
                                      "source's first frame")
-                day = datetime.fromtimestamp(day_of_ns / 1e9, tz).date()
+                day = datetime.fromtimestamp(day_of_ns / 1e9, t.tzinfo or tz).date()  # the day where the time is told
                 t = datetime.combine(day, t)  # an offset it carries stays
             t = t if t.tzinfo is not None else t.replace(tzinfo=tz)
             return round(t.timestamp() * 1e6) * 1000

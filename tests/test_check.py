@@ -155,6 +155,10 @@ def test_the_gpu_model_is_opened_on_the_cpu_where_no_gpu_would_load_it(good_site
     shutil.copy(folder / "model.onnx", tmp_path / "model_fp16.onnx")
     rc, doc = checked(capsys, site, "--set", f"bus.port_base={free_port_base()}")
     assert rc == 0 and "opens and runs" in by_name(doc)["detector (GPU)"]["detail"]
+    (tmp_path / "model_fp16.onnx").unlink()  # missing: detect would run the CPU model on a GPU, so a warning
+    rc, doc = checked(capsys, site, "--set", f"bus.port_base={free_port_base()}")
+    gpu = by_name(doc)["detector (GPU)"]
+    assert rc == 0 and gpu["ok"] and gpu["warning"] and "a GPU would run detect.model instead" in gpu["detail"]
 
 
 def test_a_site_file_that_does_not_load_is_one_error_line(tmp_path, capsys):
@@ -209,5 +213,7 @@ def test_what_the_services_work_around_passes_with_a_warning(good_site, capsys, 
         "detail"]
     assert not checks["bus"]["ok"] and "in peer mode on one machine every service would listen there" in checks[
         "bus"]["detail"]
+    rc, doc = checked(capsys, site, "--no-live", "--set", 'ingest.play_from="11:00:40"')  # refused by ingest too
+    assert not by_name(doc)["source"]["ok"] and "not to live streams" in by_name(doc)["source"]["detail"]
     main(["check", "--site", str(site), "--no-live", "--set", f"bus.port_base={free_port_base()}"])
     assert "WARN  frames recording" in capsys.readouterr().out

@@ -213,3 +213,27 @@ def test_a_played_slice_cuts_the_files_read_and_is_refused_for_a_video_or_an_emp
         play_window(late, SimpleNamespace(items=[(t0 + t * s, "NE", f"a{t}") for t in range(0, 60, 2)]))
     with pytest.raises(ValueError, match="is a number"):
         IngestSettings(play_from=39640)  # YAML's reading of 11:00:40 unquoted
+
+
+def test_a_slice_is_refused_for_a_folder_timed_by_its_frame_rate_and_for_mixed_kinds(tmp_path):
+    """A folder whose names carry no time is timed from when it is opened (`fps`): a slice of capture time would cut
+    it differently at each opening, so it is refused as for a video. play_from and play_until must be of one kind; a
+    time of day with an offset is on the day where that offset tells it."""
+    import cv2
+    import numpy as np
+    import pytest
+
+    from services.ingest.__main__ import play_window
+    from services.ingest.sources import ImageFolderSource
+    from shared.settings import IngestSettings
+
+    for k in range(3):
+        cv2.imwrite(str(tmp_path / f"frame{k}.png"), np.zeros((8, 8), np.uint8))
+    source = ImageFolderSource({"NE": tmp_path}, fps=10)
+    with pytest.raises(ValueError, match=r"a folder timed by ingest\.fps"):
+        play_window(IngestSettings(play_until="23:59:59"), source)
+    with pytest.raises(ValueError, match="both as date-times or both as times of day"):
+        IngestSettings(play_from="2023-12-19T11:00:40", play_until="11:00:50")
+    # 2023-12-20 01:30 UTC is 2023-12-19 20:30 in Detroit: 01:10+00:00 is that UTC day's, not the local one's
+    cfg = IngestSettings(play_from="01:10:00+00:00", timezone="America/Detroit")
+    assert cfg.window_ns(1_703_035_800 * 10**9)[0] == 1_703_034_600 * 10**9

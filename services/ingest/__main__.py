@@ -148,10 +148,11 @@ def play_window(cfg: IngestSettings, source) -> tuple[int | None, int | None]:
     if cfg.play_from is None and cfg.play_until is None:
         return None, None
     items = getattr(source, "items", None)
-    if not items:
+    if not items or any(getattr(p, "timed_by_clock", False) for p in (source, *getattr(source, "parts", ()))):
         raise ValueError(f"ingest.play_from / play_until ({cfg.play_from or 'open'} to {cfg.play_until or 'open'}) "
-                         "apply to recorded files (image folders, a simulator recording): a video file's or a "
-                         "stream's frames are timed by the clock as they play")
+                         "apply to recorded files whose names carry their capture times (image folders, a simulator "
+                         "recording): a video file's, a stream's or a folder timed by ingest.fps are timed by the "
+                         "clock as they play")
     window = cfg.window_ns(items[0][0])
     for part in (source, *getattr(source, "parts", ())):
         part.items = in_window(part.items, window)

@@ -155,6 +155,7 @@ class ImageFolderSource:
 
     def __init__(self, folders: dict[str, str | Path], fps: float | None = None, tz: tzinfo = UTC,
                  start_ns: int | None = None) -> None:
+        self.timed_by_clock = False
         streams: dict[str, list[tuple[int, Path]]] = {}
         for cam, folder in folders.items():
             folder = Path(folder)
@@ -175,6 +176,7 @@ class ImageFolderSource:
                     raise ValueError(f"camera {cam}: no capture time (or one outside 1970-2116) in file name "
                                      f"{files[0].name!r}; give a frame rate (fps)")
                 t0 = time.time_ns() if start_ns is None else start_ns
+                self.timed_by_clock = True  # from when it is opened (`fps`): no slice of capture time applies
                 files = sorted(files, key=_natural)
                 times = [t0 + round(i * 1e9 / fps) for i in range(len(files))]
             streams[cam] = sorted(zip(times, files, strict=True))
