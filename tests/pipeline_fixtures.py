@@ -18,7 +18,8 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -241,3 +242,41 @@ class Peer:
         for r in self.receivers.values():
             r.undeclare()
         self.session.close()
+
+
+# --- a live camera --------------------------------------------------------------------------------------------------
+
+
+@contextmanager
+def mjpeg_camera(frame: Callable[[int], bytes], count: int, period_s: float, port: int = 0) -> Iterator[str]:
+    """An MJPEG-over-HTTP camera on loopback (`port`, 0: any free one): each connection gets `count` JPEGs
+    (`frame(k)`), `period_s` apart, then the connection drops (a camera's reboot, a network blip, or simply the end).
+    Yields the stream's URL."""
+    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+    from threading import Thread
+
+    class Camera(BaseHTTPRequestHandler):
+        def log_message(self, *args) -> None:
+            pass
+
+        def do_GET(self) -> None:
+            self.send_response(200)
+            self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=frame")
+            self.end_headers()
+            try:
+                for k in range(count):
+                    jpg = frame(k)
+                    self.wfile.write(b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n\r\n" % len(jpg)
+                                     + jpg + b"\r\n")
+                    self.wfile.flush()
+                    time.sleep(period_s)
+            except OSError:
+                pass  # the reader hung up
+            self.close_connection = True
+
+    server = ThreadingHTTPServer(("127.0.0.1", port), Camera)
+    Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        yield f"http://127.0.0.1:{server.server_address[1]}/stream.mjpg"
+    finally:
+        server.shutdown()

@@ -33,6 +33,7 @@ from pipeline_fixtures import (
     bus_sets,
     export_tiny_detector,
     free_port_base,
+    mjpeg_camera,
     service_env,
     site_config,
     wait_until,
@@ -979,42 +980,15 @@ def test_ingest_records_what_it_publishes_as_a_folder_it_plays_back(site, site_n
 def test_ingest_records_a_live_stream_it_publishes(site, site_name, small_recording, port_base, peer, launch, tmp_path):
     """A live MJPEG-over-HTTP camera: the frames ingest decodes from it are recorded as JPEGs at the camera's full
     size under their capture times (the clock's at grab), and play back as an image folder."""
-    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
-    from threading import Thread
-
     from services.ingest.sources import open_source
 
     jpegs = [p.read_bytes() for p in sorted((small_recording / "frames" / CAMERA).glob("*.jpg"))]
-
-    class Camera(BaseHTTPRequestHandler):
-        def log_message(self, *args) -> None:
-            pass
-
-        def do_GET(self) -> None:
-            self.send_response(200)
-            self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=frame")
-            self.end_headers()
-            try:
-                for k in range(40):
-                    jpg = jpegs[k % len(jpegs)]
-                    self.wfile.write(b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n\r\n" % len(jpg)
-                                     + jpg + b"\r\n")
-                    self.wfile.flush()
-                    time.sleep(0.1)
-            except OSError:
-                pass  # ingest hung up
-
-    server = ThreadingHTTPServer(("127.0.0.1", 0), Camera)
-    Thread(target=server.serve_forever, daemon=True).start()
-    try:
-        url = f"http://127.0.0.1:{server.server_address[1]}/stream.mjpg"
+    with mjpeg_camera(lambda k: jpegs[k % len(jpegs)], 40, 0.1) as url:
         stand_in_for_the_pipeline(peer, site_name)
         recorded = tmp_path / "recorded"
         ingest = launch("ingest", site, *bus_sets(port_base), f"ingest.source={url}", "ingest.max_frames=3",
                         f"ingest.record_dir={recorded}")
         assert_clean_exit(ingest, ingest.wait(WAIT_S))
-    finally:
-        server.shutdown()
     assert f"3 frames written ({CAMERA} 3), 0 dropped" in ingest.log(), ingest.log()
     assert peer.wait_for(lambda: len(peer.got["frames"]) >= 3, 10.0), ingest.log()
     published = [f.t_capture_ns for f in peer.got["frames"]]

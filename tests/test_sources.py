@@ -5,46 +5,26 @@ from __future__ import annotations
 import socket
 import threading
 import time
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import cv2
 import numpy as np
 import pytest
-from pipeline_fixtures import free_port_base
+from pipeline_fixtures import free_port_base, mjpeg_camera
 
 from services.ingest.sources import MergedSource, SourceFrame, VideoSource
 
 FRAMES_PER_CONNECTION = 4
 
 
-class _Camera(BaseHTTPRequestHandler):
-    """An MJPEG-over-HTTP camera that sends a few frames, then drops the connection (a reboot, a network blip)."""
-
-    def log_message(self, *args) -> None:
-        pass
-
-    def do_GET(self) -> None:
-        self.send_response(200)
-        self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=frame")
-        self.end_headers()
-        for k in range(FRAMES_PER_CONNECTION):
-            jpg = cv2.imencode(".jpg", np.full((48, 64, 3), 40 * k, np.uint8))[1].tobytes()
-            self.wfile.write(b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n\r\n" % len(jpg) + jpg
-                             + b"\r\n")
-            self.wfile.flush()
-            time.sleep(0.05)
-        self.close_connection = True
+def _grey_frame(k: int) -> bytes:
+    return cv2.imencode(".jpg", np.full((48, 64, 3), 40 * k, np.uint8))[1].tobytes()
 
 
 @pytest.fixture
 def camera_url():
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    server = ThreadingHTTPServer(("127.0.0.1", port), _Camera)
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    yield f"http://127.0.0.1:{port}/stream.mjpg"
-    server.shutdown()
+    """A camera that sends a few frames a connection, then drops it (a reboot, a network blip)."""
+    with mjpeg_camera(_grey_frame, FRAMES_PER_CONNECTION, 0.05) as url:
+        yield url
 
 
 def _take(frames, good: int, deadline_s: float = 30.0) -> list[SourceFrame]:
@@ -227,12 +207,8 @@ def test_a_live_camera_down_at_start_is_reported_and_opened_again(monkeypatch):
     frames = iter(source)
     down = next(frames)
     assert down.error == f"camera NE: cannot open stream {url}; trying again in 0.05 s" and down.image is None
-    server = ThreadingHTTPServer(("127.0.0.1", port), _Camera)
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    try:
+    with mjpeg_camera(_grey_frame, FRAMES_PER_CONNECTION, 0.05, port=port):
         got = _take(frames, good=2)
-    finally:
-        server.shutdown()
     assert sum(not f.error for f in got) >= 2, [f.error for f in got]
     with pytest.raises(ValueError, match=r"OpenCV cannot open file:///nowhere/clip\.avi"):
         VideoSource("file:///nowhere/clip.avi", "NE")
