@@ -116,16 +116,12 @@ def check_sources(settings: Settings, live: bool = True) -> list[Check]:
     makes them (decoded, the size checked against the camera's): the first good one passes, with a warning when
     frames before it are bad (ingest skips them). Recorded files are read camera by camera; live streams and video
     files are played until each camera has given a frame (live streams only with `live`: else not even opened)."""
-    from services.ingest.__main__ import play_window
+    from services.ingest.__main__ import play_window, site_sources
     from services.ingest.sources import open_source
 
     cfg = settings.ingest
     cams = {c.name: c for c in settings.cameras}
-
-    def resolve(src: str | None) -> str | None:
-        return src if not src or "://" in src else str(settings.path(src))
-
-    main, own = resolve(cfg.source), {c.name: resolve(c.source) for c in cams.values()}
+    main, own = site_sources(settings)
     streams = sorted({s for s in (main, *own.values()) if s and "://" in s})
     if streams and not live:
         if cfg.play_from is not None or cfg.play_until is not None:  # as ingest refuses it, without opening them
@@ -135,7 +131,7 @@ def check_sources(settings: Settings, live: bool = True) -> list[Check]:
     stop = threading.Event()  # ends the reader threads of live streams, and their reconnecting
     try:
         try:
-            source = open_source(main or "", list(cams), own, cfg.fps, cfg.tzinfo(), stop)
+            source = open_source(main, list(cams), own, cfg.fps, cfg.tzinfo(), stop)
             play_window(cfg, source)  # as ingest cuts it to ingest.play_from / play_until
         except Exception as exc:  # reported as the check's failure
             return [_failed("source", exc)]
@@ -217,19 +213,18 @@ def check_fusion(settings: Settings) -> str:
     return f"cameras at {where}; regions: {'; '.join(regions)}"
 
 
-def check_writable(folder: Path, setting: str, min_free_mb: float = 0.0) -> str:
-    """A folder a service writes to (`setting` names it): there and writable, or one the service can make (the
-    check makes nothing), with its free space."""
+def check_writable(folder: Path, setting: str, min_free_mb: float = 0.0, file: Path | None = None) -> str:
+    """A folder a service writes to (`setting` names it; `file`: the file it writes there, named instead): there and
+    writable, or one the service can make (the check makes nothing), with its free space."""
     folder = folder.resolve()
     there = next(p for p in (folder, *folder.parents) if p.exists())
     if not there.is_dir():
         raise ValueError(f"{setting}: {folder} cannot be made: {there} is a file, not a folder")
     if not os.access(there, os.W_OK | os.X_OK):
-        raise ValueError(f"{setting}: {there} is not writable by this user (uid "
-                         f"{os.getuid()})")
+        raise ValueError(f"{setting}: {there} is not writable by this user (uid {os.getuid()})")
     free_mb = shutil.disk_usage(there).free / 1e6
     made = "writable" if there == folder else f"to be made in {there}"
-    found = f"{setting}: {folder}: {made}, {free_mb / 1e3:.1f} GB free"
+    found = f"{setting}: {file or folder}: {made}, {free_mb / 1e3:.1f} GB free"
     if free_mb < min_free_mb:
         raise Warned(f"{found}: under the {min_free_mb:.0f} MB below which recording pauses")
     return found
@@ -243,19 +238,14 @@ def check_tracks_file(settings: Settings) -> str:
                          "(e.g. tracks.jsonl in it)")
     if path.exists() and not os.access(path, os.W_OK):
         raise ValueError(f"fuse_track.record: {path} is not writable by this user (uid {os.getuid()})")
-    return check_writable(path.parent, "fuse_track.record").replace(f"{path.parent}:", f"{path}:", 1)
+    return check_writable(path.parent, "fuse_track.record", file=path)
 
 
 def check_frames_folder(settings: Settings) -> str:
     """ingest's recording of the frames: outside the folder it plays, in a folder it can make, with room."""
-    from services.ingest.recorder import check_not_the_source
+    from services.ingest.__main__ import record_folder
 
-    cfg = settings.ingest
-    folder = settings.path(cfg.record_dir)
-    played = {cfg.source, *(c.source for c in settings.cameras)}
-    for src in played:
-        check_not_the_source(folder, src if not src or "://" in src else str(settings.path(src)))
-    return check_writable(folder, "ingest.record_dir", cfg.record_min_free_mb)
+    return check_writable(record_folder(settings), "ingest.record_dir", settings.ingest.record_min_free_mb)
 
 
 def check_bus(settings: Settings) -> str:

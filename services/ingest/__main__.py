@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import time
 from datetime import datetime
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -199,20 +200,33 @@ def record_status(status: StatusReporter, recorder: FrameRecorder) -> None:
         status.gauge(name, n)
 
 
-def main(settings: Settings, stopper: Stopper) -> int:
-    cfg = settings.ingest
-    cams = {c.name: c for c in settings.cameras}
+def site_sources(settings: Settings) -> tuple[str, dict[str, str | None]]:
+    """ingest.source and each camera's own source as ingest opens them: a stream URL as given, a path resolved against
+    the site folder ("" and None where none is given)."""
     def resolve(src: str | None) -> str | None:
         return src if not src or "://" in src else str(settings.path(src))
 
-    own_sources = {c.name: resolve(c.source) for c in settings.cameras}
-    source = open_source(resolve(cfg.source) or "", list(cams), own_sources, cfg.fps, cfg.tzinfo(), stopper.event)
+    return resolve(settings.ingest.source) or "", {c.name: resolve(c.source) for c in settings.cameras}
+
+
+def record_folder(settings: Settings) -> Path:
+    """ingest.record_dir resolved against the site folder; ValueError when it overlaps a folder being played."""
+    folder = settings.path(settings.ingest.record_dir)
+    main, own = site_sources(settings)
+    for played in {main, *own.values()}:
+        check_not_the_source(folder, played)
+    return folder
+
+
+def main(settings: Settings, stopper: Stopper) -> int:
+    cfg = settings.ingest
+    cams = {c.name: c for c in settings.cameras}
+    main_source, own_sources = site_sources(settings)
+    source = open_source(main_source, list(cams), own_sources, cfg.fps, cfg.tzinfo(), stopper.event)
     play_window(cfg, source)  # the files cut to the slice, before the bus: a slice without frames stops ingest at once
     recorder = None
     if cfg.record_dir is not None:
-        record_dir = settings.path(cfg.record_dir)
-        for played in {resolve(cfg.source), *own_sources.values()}:
-            check_not_the_source(record_dir, played)
+        record_dir = record_folder(settings)
         recorder = FrameRecorder(RecorderConfig(record_dir, cfg.record_jpeg_quality, cfg.record_queue_mb,
                                                 cfg.record_min_free_mb))
         log.info("recording every frame published to %s", record_dir)
