@@ -24,6 +24,7 @@ import socket
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 
 import zenoh
 
@@ -72,7 +73,9 @@ class StatusReporter:
 
     `count(name, n)` adds n to a count (names as the Status message's: `<what>_<in|out>` or what was skipped);
     `output=True` also marks the service's output as just published. `gauge(name, value)` sets a reading.
-    `close()` stops the thread and sends a last report marked `final`."""
+    `watch(readings)` adds readings taken when a report is made (`readings()`: {name: value}), for what a service
+    keeps itself and need not hand over at every message. `close()` stops the thread and sends a last report marked
+    `final`."""
 
     def __init__(self, session: zenoh.Session | None, site: str, service: str, bad: BadInput, period_s: float,
                  instance: str | None = None) -> None:
@@ -84,6 +87,7 @@ class StatusReporter:
         self.started_ns = time.time_ns()
         self._counts: Counter[str] = Counter()
         self._gauges: dict[str, float] = {}
+        self._watched: list[Callable[[], dict[str, float]]] = []
         self._last_output_ns = 0
         self._lock = threading.Lock()
         self._seq = 0
@@ -112,9 +116,20 @@ class StatusReporter:
             else:
                 self._gauges.pop(name, None)
 
+    def watch(self, readings: Callable[[], dict[str, float]]) -> None:
+        """Take `readings()` into every report from now on (read when the report is made, from the reporter's
+        thread: `readings` must be safe to call from it)."""
+        with self._lock:
+            self._watched.append(readings)
+
     def report(self, final: bool = False) -> Status:
         """The Status message of now (rates over the time since the previous report)."""
         now, now_ns = time.monotonic(), time.time_ns()
+        with self._lock:
+            watched = list(self._watched)
+        for readings in watched:
+            for name, value in readings().items():
+                self.gauge(name, value)
         with self._lock:
             counts, gauges, last_out = Counter(self._counts), dict(self._gauges), self._last_output_ns
         t0, before = self._before

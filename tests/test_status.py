@@ -349,3 +349,15 @@ def test_roadside_status_without_site_names_the_sites_whose_services_are_on_the_
         for t in tokens:
             t.undeclare()
         session.close()
+
+
+def test_watched_readings_are_taken_when_a_report_is_made():
+    """`watch`: readings a service keeps itself (ingest's frame recording) are read at each report, not handed over at
+    every message; a later reading replaces the earlier one."""
+    kept = {"recorded.NE": 0}
+    reporter = StatusReporter(None, "site", "ingest", BadInput("ingest"), 0.0)
+    reporter.watch(lambda: dict(kept))
+    reporter.gauge("ack_timeouts", 2)
+    assert reporter.report().gauges == {"ack_timeouts": 2.0, "recorded.NE": 0.0}
+    kept["recorded.NE"] = 7
+    assert reporter.report().gauges["recorded.NE"] == 7.0

@@ -194,12 +194,6 @@ def resume_point(session, site: str, source, loop: bool = False) -> int | None:
     return None
 
 
-def record_status(status: StatusReporter, recorder: FrameRecorder) -> None:
-    """The recording's counters in ingest's status reports (`roadside status`, `roadside metrics`)."""
-    for name, n in recorder.counts().items():
-        status.gauge(name, n)
-
-
 def site_sources(settings: Settings) -> tuple[str, dict[str, str | None]]:
     """ingest.source and each camera's own source as ingest opens them: a stream URL as given, a path resolved against
     the site folder ("" and None where none is given)."""
@@ -241,6 +235,8 @@ def main(settings: Settings, stopper: Stopper) -> int:
                         per_camera=settings.detect.ring)
         tokens = declare_alive(session, settings.site, "ingest", list(cams))
         status = StatusReporter(session, settings.site, "ingest", bad, settings.bus.status_period_s)
+        if recorder is not None:  # its counters read at each report, not handed over per frame
+            status.watch(recorder.counts)
         seen = wait_for_peers(session, all_alive_key(settings.site), len(cams) * 3 + 1 + cfg.wait_extra_peers,
                               PIPELINE_WAIT_S, stopper)
         log.info("source %s, %d cameras, pace %s; %d liveliness tokens on the bus", cfg.source, len(cams),
@@ -294,7 +290,6 @@ def main(settings: Settings, stopper: Stopper) -> int:
                 status.count(f"frames_out.{sf.camera}", output=True)
                 if recorder is not None:
                     recorder.put(sf.camera, t, jpeg=sf.jpeg, image=sf.image)
-                    record_status(status, recorder)
                 if acks is not None:
                     acks.sent(sf.camera, msg.seq)
                     status.gauge("ack_timeouts", acks.timeouts)
@@ -318,8 +313,7 @@ def main(settings: Settings, stopper: Stopper) -> int:
             while not stopper.wait(1.0):
                 pass
         if recorder is not None:
-            recorder.close()
-            record_status(status, recorder)
+            recorder.close()  # what is queued written before the last report
         status.close()
         del tokens
     finally:
