@@ -672,26 +672,20 @@ def _add_viz(sub) -> None:
 
 
 def _tracks_span(path: Path) -> tuple[int, int] | None:
-    """(first, last) capture time in ns of the messages of a tracks file (`t_ns`, or `t_capture_ns`); lines that are
-    not JSON objects with such a time are passed over. None when the file is missing or has no such line."""
-    first = last = None
+    """(first, last) capture time in ns of the valid messages of a tracks file, read as the sink reads them
+    (shared.tracks_file); None when the file cannot be read or has none."""
+    from shared.tracks_file import file_lines, parse_tracks_message
+
+    times = []
     try:
-        with Path(path).open(encoding="utf-8", errors="replace") as f:
-            for line in f:
-                if not line.strip():
-                    continue
-                try:
-                    obj = json.loads(line)
-                except ValueError:
-                    continue
-                t = obj.get("t_ns", obj.get("t_capture_ns")) if isinstance(obj, dict) else None
-                if not isinstance(t, int) or isinstance(t, bool) or t < 0:
-                    continue
-                first = t if first is None else min(first, t)
-                last = t if last is None else max(last, t)
-    except OSError:
+        for _, line in file_lines(path):
+            try:
+                times.append(parse_tracks_message(json.loads(line)).t_ns)
+            except ValueError:  # bad JSON or a bad message: the sink passes it over too
+                continue
+    except ValueError:  # the file cannot be opened: the sink says so
         return None
-    return None if first is None else (first, last)
+    return (min(times), max(times)) if times else None
 
 
 def _frames_within(source, span: tuple[int, int] | None, cameras, margin_ns: int = VIZ_FRAMES_MARGIN_NS,
