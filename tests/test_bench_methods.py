@@ -135,13 +135,15 @@ def test_detector_bench_names_each_timings_input_and_times_the_deployed_input_to
     # a 1280x960 camera and a model whose input_long_side is 640: the detect service feeds it 480x640
     assert deployed_input(path, (1280, 960)) == (640, 480, 640)
     assert _parse([]).frame_wh == (1280, 960) and _parse([]).hw == (512, 512)
-    # a GPU provider as on a machine that has one (its timing stubbed: this one has none), so its entry is checked
+    # a GPU provider as on a machine that has one, so that run's bookkeeping of a GPU entry (its input named beside
+    # the timing) is exercised; the GPU timing itself cannot run on this machine and is stubbed
     have = bench.detector.ort.get_available_providers()
     monkeypatch.setattr(bench.detector.ort, "get_available_providers", lambda: [*have, "CUDAExecutionProvider"])
     monkeypatch.setattr(bench.detector, "time_gpu", lambda *a: {"median_ms": 1.0})
     monkeypatch.setattr(bench.detector, "gpu_name", lambda: "a GPU")
     out = run(BenchSettings(model=path, size_px=64, height_px=96, runs=1, warmup=0, frame_wh=(160, 120)), tmp_path)
     assert "cuda_fp32" in out
+    assert out["cuda_fp32"] == {"input": [1, 1, 96, 64], "median_ms": 1.0}  # run's input beside the stubbed timing
     assert out["target"]["input"] == [1, 1, 512, 512] and out["target"]["applies_to"] is None  # not 512x512
     assert out["cpu_fp32"]["input"] == out["cpu_fp32_throughput"]["input"] == out["input"] == [1, 1, 96, 64]
     deployed = out["deployed"]
